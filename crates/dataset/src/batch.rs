@@ -1,0 +1,208 @@
+//! Builds training and evaluation batches from decoded scenes: choose input views, sample
+//! target rays with a seeded RNG, and lay everything out as flat `f32` buffers ready to be
+//! wrapped as tensors. Nothing is padded: every scene of a batch must have the same input
+//! image size and the same number of target rays, and a mismatch is an error.
+
+use crate::error::{DatasetError, Result};
+use crate::rays::{pixel_ray, view_rays};
+use crate::scene::Scene;
+use rand::Rng;
+use rand::seq::index;
+use serde::{Deserialize, Serialize};
+
+/// Which views target rays are drawn from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetViews {
+    /// Every view of the scene, inputs included (OSRT's novel-view setup on CLEVR-3D).
+    #[default]
+    All,
+    /// Only views that are not inputs.
+    NonInput,
+    /// Only the input views: 2D reconstruction training (paper §4.2).
+    Input,
+}
+
+/// How input views are chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum InputSelection {
+    /// The first `input_views` views (evaluation: fixed and comparable).
+    #[default]
+    First,
+    /// A seeded random subset, in random order (training).
+    Random,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BatchConfig {
+    pub input_views: usize,
+    pub input_selection: InputSelection,
+    pub target_views: TargetViews,
+    /// Target rays per scene; `None` takes every pixel of the target views, in order
+    /// (evaluation renders whole images).
+    pub rays_per_scene: Option<usize>,
+    /// Also gather the instance id of every target ray (needs masks; evaluation only).
+    pub with_masks: bool,
+}
+
+/// A batch as flat row-major buffers. `b` scenes, `v` input views of `h × w` pixels,
+/// `k` target rays per scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batch {
+    pub scene_ids: Vec<u64>,
+    pub batch_size: usize,
+    pub input_views: usize,
+    pub height: usize,
+    pub width: usize,
+    /// `[b, v, h, w, 3]`, RGB in `[0, 1]`.
+    pub input_images: Vec<f32>,
+    /// `[b, v, h, w, 3]`
+    pub input_origins: Vec<f32>,
+    /// `[b, v, h, w, 3]`, unit length.
+    pub input_directions: Vec<f32>,
+    pub rays_per_scene: usize,
+    /// `[b, k, 3]`
+    pub target_origins: Vec<f32>,
+    /// `[b, k, 3]`, unit length.
+    pub target_directions: Vec<f32>,
+    /// `[b, k, 3]`, RGB in `[0, 1]`.
+    pub target_rgb: Vec<f32>,
+    /// `[b, k]` instance ids (0 = background), when asked for.
+    pub target_masks: Option<Vec<u8>>,
+    /// `[b, k]` `(view index in the scene, pixel index in that view)` of each target ray.
+    pub target_pixels: Vec<(u32, u32)>,
+}
+
+fn choose_inputs(scene: &Scene, cfg: &BatchConfig, rng: &mut impl Rng) -> Result<Vec<usize>> {
+    let n = scene.views.len();
+    if cfg.input_views == 0 || cfg.input_views > n {
+        return Err(DatasetError::Batch(format!(
+            "scene {}: {} input views requested, the scene has {n}",
+            scene.id, cfg.input_views
+        )));
+    }
+    Ok(match cfg.input_selection {
+        InputSelection::First => (0..cfg.input_views).collect(),
+        InputSelection::Random => index::sample(rng, n, cfg.input_views).into_vec(),
+    })
+}
+
+fn target_view_ids(scene: &Scene, inputs: &[usize], which: TargetViews) -> Result<Vec<usize>> {
+    let ids: Vec<usize> = match which {
+        TargetViews::All => (0..scene.views.len()).collect(),
+        TargetViews::Input => inputs.to_vec(),
+        TargetViews::NonInput => (0..scene.views.len())
+            .filter(|v| !inputs.contains(v))
+            .collect(),
+    };
+    if ids.is_empty() {
+        return Err(DatasetError::Batch(format!(
+            "scene {}: no target views left ({which:?} with {} of {} views as inputs)",
+            scene.id,
+            inputs.len(),
+            scene.views.len()
+        )));
+    }
+    Ok(ids)
+}
+
+/// Builds one batch. The RNG draws input views (when random) then target rays, scene by
+/// scene in order, so the same RNG state and scenes give the same batch.
+pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> Result<Batch> {
+    let first = scenes
+        .first()
+        .ok_or_else(|| DatasetError::Batch("a batch needs at least one scene".into()))?;
+    let (w0, h0) = (first.views[0].width as usize, first.views[0].height as usize);
+    let b = scenes.len();
+    let v = cfg.input_views;
+    let mut batch = Batch {
+        scene_ids: Vec::with_capacity(b),
+        batch_size: b,
+        input_views: v,
+        height: h0,
+        width: w0,
+        input_images: Vec::with_capacity(b * v * h0 * w0 * 3),
+        input_origins: Vec::with_capacity(b * v * h0 * w0 * 3),
+        input_directions: Vec::with_capacity(b * v * h0 * w0 * 3),
+        rays_per_scene: 0,
+        target_origins: Vec::new(),
+        target_directions: Vec::new(),
+        target_rgb: Vec::new(),
+        target_masks: cfg.with_masks.then(Vec::new),
+        target_pixels: Vec::new(),
+    };
+    for (si, scene) in scenes.iter().enumerate() {
+        let inputs = choose_inputs(scene, cfg, rng)?;
+        for &vi in &inputs {
+            let view = &scene.views[vi];
+            if (view.width as usize, view.height as usize) != (w0, h0) {
+                return Err(DatasetError::Batch(format!(
+                    "scene {} view {vi} is {}x{}, the batch's input views are {w0}x{h0} (no padding)",
+                    scene.id, view.width, view.height
+                )));
+            }
+            batch
+                .input_images
+                .extend(view.image.iter().map(|&p| p as f32 / 255.0));
+            let rays = view_rays(&view.camera, view.width, view.height);
+            batch.input_origins.extend(rays.origins);
+            batch.input_directions.extend(rays.directions);
+        }
+
+        let targets = target_view_ids(scene, &inputs, cfg.target_views)?;
+        // Pixel index space over the target views, view after view.
+        let sizes: Vec<usize> = targets.iter().map(|&t| scene.views[t].num_pixels()).collect();
+        let total: usize = sizes.iter().sum();
+        let picks: Vec<usize> = match cfg.rays_per_scene {
+            None => (0..total).collect(),
+            Some(k) if k <= total => index::sample(rng, total, k).into_vec(),
+            Some(k) => {
+                return Err(DatasetError::Batch(format!(
+                    "scene {}: {k} target rays requested, its target views have {total} pixels",
+                    scene.id
+                )));
+            }
+        };
+        if si == 0 {
+            batch.rays_per_scene = picks.len();
+        } else if picks.len() != batch.rays_per_scene {
+            return Err(DatasetError::Batch(format!(
+                "scene {} has {} target rays, scene {} has {} (no padding: use rays_per_scene)",
+                scene.id,
+                picks.len(),
+                first.id,
+                batch.rays_per_scene
+            )));
+        }
+        for p in picks {
+            // Locate the pixel: which target view, which pixel inside it.
+            let (mut t, mut rest) = (0, p);
+            while rest >= sizes[t] {
+                rest -= sizes[t];
+                t += 1;
+            }
+            let vi = targets[t];
+            let view = &scene.views[vi];
+            let (u, row) = ((rest % view.width as usize) as u32, (rest / view.width as usize) as u32);
+            let (o, d) = pixel_ray(&view.camera, u, row);
+            batch.target_origins.extend_from_slice(&o);
+            batch.target_directions.extend_from_slice(&d);
+            batch
+                .target_rgb
+                .extend(view.image[3 * rest..3 * rest + 3].iter().map(|&c| c as f32 / 255.0));
+            if let Some(m) = batch.target_masks.as_mut() {
+                let mask = view.mask.as_ref().ok_or_else(|| {
+                    DatasetError::Batch(format!(
+                        "scene {} view {vi} has no mask: read the split with masks for evaluation",
+                        scene.id
+                    ))
+                })?;
+                m.push(mask[rest]);
+            }
+            batch.target_pixels.push((vi as u32, rest as u32));
+        }
+        batch.scene_ids.push(scene.id);
+    }
+    Ok(batch)
+}

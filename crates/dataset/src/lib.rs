@@ -1,0 +1,36 @@
+//! Multi-view scenes for OSRT: the Arrow/Parquet scene schema, reading and writing over
+//! `object_store`, rays derived from cameras, the batch builder, and the built-in
+//! CLEVR-like scene generator.
+//!
+//! A dataset is a prefix in an object store:
+//! ```text
+//! DATASET/manifest.json            counts, image size, generator settings (written last)
+//! DATASET/{train,val,test}/part-NNNNN.parquet
+//! ```
+//! One Parquet row is one scene; row groups are the unit the coordinator shards.
+
+pub mod batch;
+pub mod bench;
+pub mod camera;
+pub mod error;
+pub mod generator;
+pub mod inspect;
+pub mod manifest;
+pub mod math;
+pub mod rays;
+pub mod reader;
+pub mod scene;
+pub mod schema;
+pub mod store;
+pub mod writer;
+
+pub use batch::{Batch, BatchConfig, InputSelection, TargetViews, build_batch};
+pub use camera::{Camera, Intrinsics};
+pub use error::{DatasetError, Result};
+pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};
+pub use manifest::{MANIFEST_FILE, Manifest, SplitInfo};
+pub use reader::{ReadStats, RowGroupRef, SplitReader};
+pub use scene::{ObjectMeta, Scene, View};
+pub use schema::{Columns, SCHEMA_VERSION};
+pub use store::Location;
+pub use writer::{SplitWriter, WriterOptions};

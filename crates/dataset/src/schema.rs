@@ -1,0 +1,418 @@
+//! The scene schema in Arrow: one row per scene, a variable-length list of views.
+//!
+//! ```text
+//! scene_id  UInt64                                   not null
+//! views     List<Struct<                             not null, ≥ 1 view
+//!             width, height     UInt32
+//!             image             Binary   RGB8, row-major, height·width·3 bytes
+//!             mask              Binary?  u8 instance ids, height·width bytes
+//!             camera_position   FixedSizeList<Float32, 3>
+//!             camera_rotation   FixedSizeList<Float32, 9>   camera-to-world, row-major
+//!             intrinsics        FixedSizeList<Float32, 4>   fx, fy, cx, cy (pixels)
+//!           >>
+//! objects   List<Struct<shape, color, size, material: Utf8,
+//!                       position: FixedSizeList<Float32, 3>, yaw: Float32>>?   nullable
+//! ```
+//! The camera convention is documented in [`crate::camera`]. The schema version lives in
+//! the Parquet key-value metadata under [`VERSION_KEY`]; readers refuse other versions.
+
+use crate::camera::{Camera, Intrinsics};
+use crate::error::{DatasetError, Result};
+use crate::scene::{ObjectMeta, Scene, View};
+use arrow::array::{
+    Array, ArrayRef, AsArray, BinaryArray, FixedSizeListArray, Float32Array, ListArray,
+    RecordBatch, StringArray, StructArray, UInt32Array, UInt64Array,
+};
+use arrow::buffer::{NullBuffer, OffsetBuffer};
+use arrow::datatypes::{DataType, Field, Fields, Float32Type, Schema, SchemaRef, UInt32Type};
+use parquet::arrow::ProjectionMask;
+use parquet::schema::types::SchemaDescriptor;
+use std::sync::{Arc, LazyLock};
+
+/// Version of the scene schema this build writes and reads.
+pub const SCHEMA_VERSION: u32 = 1;
+/// Parquet key-value metadata key holding [`SCHEMA_VERSION`].
+pub const VERSION_KEY: &str = "osrt.scene_schema_version";
+
+/// Which optional column groups a reader decodes. Training needs neither; evaluation
+/// needs masks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Columns {
+    pub masks: bool,
+    pub objects: bool,
+}
+
+impl Columns {
+    pub const TRAIN: Columns = Columns {
+        masks: false,
+        objects: false,
+    };
+    pub const ALL: Columns = Columns {
+        masks: true,
+        objects: true,
+    };
+}
+
+fn f32_list(n: i32) -> DataType {
+    DataType::FixedSizeList(Arc::new(Field::new("item", DataType::Float32, false)), n)
+}
+
+fn view_fields() -> Fields {
+    Fields::from(vec![
+        Field::new("width", DataType::UInt32, false),
+        Field::new("height", DataType::UInt32, false),
+        Field::new("image", DataType::Binary, false),
+        Field::new("mask", DataType::Binary, true),
+        Field::new("camera_position", f32_list(3), false),
+        Field::new("camera_rotation", f32_list(9), false),
+        Field::new("intrinsics", f32_list(4), false),
+    ])
+}
+
+fn object_fields() -> Fields {
+    Fields::from(vec![
+        Field::new("shape", DataType::Utf8, false),
+        Field::new("color", DataType::Utf8, false),
+        Field::new("size", DataType::Utf8, false),
+        Field::new("material", DataType::Utf8, false),
+        Field::new("position", f32_list(3), false),
+        Field::new("yaw", DataType::Float32, false),
+    ])
+}
+
+static SCHEMA: LazyLock<SchemaRef> = LazyLock::new(|| {
+    Arc::new(Schema::new(vec![
+        Field::new("scene_id", DataType::UInt64, false),
+        Field::new(
+            "views",
+            DataType::List(Arc::new(Field::new(
+                "element",
+                DataType::Struct(view_fields()),
+                false,
+            ))),
+            false,
+        ),
+        Field::new(
+            "objects",
+            DataType::List(Arc::new(Field::new(
+                "element",
+                DataType::Struct(object_fields()),
+                false,
+            ))),
+            true,
+        ),
+    ]))
+});
+
+/// The Arrow schema of a scene file.
+pub fn arrow_schema() -> SchemaRef {
+    SCHEMA.clone()
+}
+
+fn fixed_list(values: Vec<f32>, n: i32) -> ArrayRef {
+    let item = Arc::new(Field::new("item", DataType::Float32, false));
+    Arc::new(FixedSizeListArray::new(
+        item,
+        n,
+        Arc::new(Float32Array::from(values)),
+        None,
+    ))
+}
+
+/// Encodes scenes as one record batch. No validation here: the writer validates first,
+/// and tests use this directly to produce deliberately bad files.
+pub fn scenes_to_batch(scenes: &[Scene]) -> Result<RecordBatch> {
+    let ids = UInt64Array::from_iter_values(scenes.iter().map(|s| s.id));
+
+    let all_views: Vec<&View> = scenes.iter().flat_map(|s| &s.views).collect();
+    let mut pos = Vec::with_capacity(all_views.len() * 3);
+    let mut rot = Vec::with_capacity(all_views.len() * 9);
+    let mut intr = Vec::with_capacity(all_views.len() * 4);
+    for v in &all_views {
+        pos.extend_from_slice(&v.camera.position);
+        rot.extend(v.camera.rotation.iter().flatten());
+        intr.extend_from_slice(&v.camera.intrinsics.to_array());
+    }
+    let view_columns: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from_iter_values(all_views.iter().map(|v| v.width))),
+        Arc::new(UInt32Array::from_iter_values(all_views.iter().map(|v| v.height))),
+        Arc::new(BinaryArray::from_iter_values(all_views.iter().map(|v| &v.image))),
+        Arc::new(BinaryArray::from_iter(all_views.iter().map(|v| v.mask.as_deref()))),
+        fixed_list(pos, 3),
+        fixed_list(rot, 9),
+        fixed_list(intr, 4),
+    ];
+    let views_struct = StructArray::try_new(view_fields(), view_columns, None)
+        .map_err(|e| DatasetError::Batch(format!("building views: {e}")))?;
+    let views = ListArray::try_new(
+        Arc::new(Field::new("element", DataType::Struct(view_fields()), false)),
+        OffsetBuffer::from_lengths(scenes.iter().map(|s| s.views.len())),
+        Arc::new(views_struct),
+        None,
+    )
+    .map_err(|e| DatasetError::Batch(format!("building views list: {e}")))?;
+
+    let objs: Vec<&ObjectMeta> = scenes
+        .iter()
+        .flat_map(|s| s.objects.iter().flatten())
+        .collect();
+    let mut opos = Vec::with_capacity(objs.len() * 3);
+    for o in &objs {
+        opos.extend_from_slice(&o.position);
+    }
+    let object_columns: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.shape))),
+        Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.color))),
+        Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.size))),
+        Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.material))),
+        fixed_list(opos, 3),
+        Arc::new(Float32Array::from_iter_values(objs.iter().map(|o| o.yaw))),
+    ];
+    let objects_struct = StructArray::try_new(object_fields(), object_columns, None)
+        .map_err(|e| DatasetError::Batch(format!("building objects: {e}")))?;
+    let objects = ListArray::try_new(
+        Arc::new(Field::new("element", DataType::Struct(object_fields()), false)),
+        OffsetBuffer::from_lengths(
+            scenes
+                .iter()
+                .map(|s| s.objects.as_ref().map_or(0, |o| o.len())),
+        ),
+        Arc::new(objects_struct),
+        Some(NullBuffer::from_iter(scenes.iter().map(|s| s.objects.is_some()))),
+    )
+    .map_err(|e| DatasetError::Batch(format!("building objects list: {e}")))?;
+
+    RecordBatch::try_new(
+        arrow_schema(),
+        vec![Arc::new(ids), Arc::new(views), Arc::new(objects)],
+    )
+    .map_err(|e| DatasetError::Batch(format!("building record batch: {e}")))
+}
+
+/// Checks a file's key-value metadata for our schema version.
+pub fn check_version(path: &str, kv: Option<&Vec<parquet::file::metadata::KeyValue>>) -> Result<()> {
+    let found = kv
+        .into_iter()
+        .flatten()
+        .find(|kv| kv.key == VERSION_KEY)
+        .and_then(|kv| kv.value.clone());
+    match found {
+        None => Err(DatasetError::schema(
+            path,
+            format!("no `{VERSION_KEY}` key in its Parquet key-value metadata"),
+        )),
+        Some(v) if v.trim() == SCHEMA_VERSION.to_string() => Ok(()),
+        Some(v) => Err(DatasetError::SchemaVersion {
+            path: path.to_string(),
+            found: v,
+            expected: SCHEMA_VERSION,
+        }),
+    }
+}
+
+/// Checks that a file's Arrow schema has every column we decode, with the right types.
+pub fn check_schema(path: &str, schema: &Schema) -> Result<()> {
+    let expected = arrow_schema();
+    for name in ["scene_id", "views"] {
+        let want = expected.field_with_name(name).expect("our own schema");
+        let got = schema.field_with_name(name).map_err(|_| {
+            DatasetError::schema(path, format!("missing column `{name}`"))
+        })?;
+        if got.data_type() != want.data_type() {
+            // Name the first differing view field where we can, so the message is short.
+            let detail = match (got.data_type(), want.data_type()) {
+                (DataType::List(g), DataType::List(w)) => match (g.data_type(), w.data_type()) {
+                    (DataType::Struct(gf), DataType::Struct(wf)) => wf
+                        .iter()
+                        .find_map(|f| match gf.find(f.name()) {
+                            None => Some(format!("missing column `{name}.{}`", f.name())),
+                            Some((_, g)) if g.data_type() != f.data_type() => Some(format!(
+                                "column `{name}.{}` has type {}, expected {}",
+                                f.name(),
+                                g.data_type(),
+                                f.data_type()
+                            )),
+                            _ => None,
+                        }),
+                    _ => None,
+                },
+                _ => None,
+            };
+            return Err(DatasetError::schema(
+                path,
+                detail.unwrap_or_else(|| {
+                    format!(
+                        "column `{name}` has type {}, expected {}",
+                        got.data_type(),
+                        want.data_type()
+                    )
+                }),
+            ));
+        }
+    }
+    if let Ok(got) = schema.field_with_name("objects") {
+        let want = expected.field_with_name("objects").expect("our own schema");
+        if got.data_type() != want.data_type() {
+            return Err(DatasetError::schema(
+                path,
+                format!("column `objects` has type {}, expected {}", got.data_type(), want.data_type()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The Parquet leaves to decode for `columns`: masks and object metadata are left out
+/// unless asked for, so their pages are never fetched.
+pub fn projection(descr: &SchemaDescriptor, columns: Columns) -> ProjectionMask {
+    let leaves = descr.columns().iter().enumerate().filter_map(|(i, c)| {
+        let parts = c.path().parts();
+        let top = parts.first().map(String::as_str);
+        let is_mask = top == Some("views") && parts.last().map(String::as_str) == Some("mask");
+        let is_object = top == Some("objects");
+        let keep = (columns.masks || !is_mask) && (columns.objects || !is_object);
+        keep.then_some(i)
+    });
+    ProjectionMask::leaves(descr, leaves)
+}
+
+fn column<'a>(s: &'a StructArray, name: &str, path: &str) -> Result<&'a ArrayRef> {
+    s.column_by_name(name)
+        .ok_or_else(|| DatasetError::schema(path, format!("missing column `{name}`")))
+}
+
+fn f32_rows<'a>(a: &'a ArrayRef, n: usize, name: &str, path: &str) -> Result<&'a [f32]> {
+    let l = a
+        .as_fixed_size_list_opt()
+        .filter(|l| l.value_length() as usize == n)
+        .ok_or_else(|| DatasetError::schema(path, format!("`{name}` is not FixedSizeList<Float32, {n}>")))?;
+    let vals = l
+        .values()
+        .as_primitive_opt::<Float32Type>()
+        .ok_or_else(|| DatasetError::schema(path, format!("`{name}` items are not Float32")))?;
+    // Sliced arrays: the list's offset is in rows.
+    let start = l.offset() * n;
+    Ok(&vals.values()[start..start + l.len() * n])
+}
+
+/// Decodes a record batch (possibly projected) into scenes, validating every view.
+/// `path` names the file in errors.
+pub fn batch_to_scenes(batch: &RecordBatch, path: &str) -> Result<Vec<Scene>> {
+    let ids = batch
+        .column_by_name("scene_id")
+        .and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt64Type>())
+        .ok_or_else(|| DatasetError::schema(path, "missing UInt64 column `scene_id`"))?;
+    let views = batch
+        .column_by_name("views")
+        .and_then(|c| c.as_list_opt::<i32>())
+        .ok_or_else(|| DatasetError::schema(path, "missing list column `views`"))?;
+    let vs = views.values().as_struct_opt().ok_or_else(|| {
+        DatasetError::schema(path, "`views` items are not structs")
+    })?;
+    let widths = column(vs, "width", path)?
+        .as_primitive_opt::<UInt32Type>()
+        .ok_or_else(|| DatasetError::schema(path, "`views.width` is not UInt32"))?;
+    let heights = column(vs, "height", path)?
+        .as_primitive_opt::<UInt32Type>()
+        .ok_or_else(|| DatasetError::schema(path, "`views.height` is not UInt32"))?;
+    let images = column(vs, "image", path)?
+        .as_binary_opt::<i32>()
+        .ok_or_else(|| DatasetError::schema(path, "`views.image` is not Binary"))?;
+    let masks = match vs.column_by_name("mask") {
+        Some(m) => Some(
+            m.as_binary_opt::<i32>()
+                .ok_or_else(|| DatasetError::schema(path, "`views.mask` is not Binary"))?,
+        ),
+        None => None,
+    };
+    let pos = f32_rows(column(vs, "camera_position", path)?, 3, "views.camera_position", path)?;
+    let rot = f32_rows(column(vs, "camera_rotation", path)?, 9, "views.camera_rotation", path)?;
+    let intr = f32_rows(column(vs, "intrinsics", path)?, 4, "views.intrinsics", path)?;
+
+    let objects = batch.column_by_name("objects").and_then(|c| c.as_list_opt::<i32>());
+    let object_rows = match objects {
+        Some(list) => Some((list, decode_objects(list, path)?)),
+        None => None,
+    };
+
+    let offsets = views.value_offsets();
+    let mut scenes = Vec::with_capacity(batch.num_rows());
+    for row in 0..batch.num_rows() {
+        let scene_id = ids.value(row);
+        let (start, end) = (offsets[row] as usize, offsets[row + 1] as usize);
+        if start == end {
+            return Err(DatasetError::InvalidScene {
+                path: path.to_string(),
+                scene_id,
+                reason: "scene has no views".into(),
+            });
+        }
+        let mut scene_views = Vec::with_capacity(end - start);
+        for (view, i) in (start..end).enumerate() {
+            let r = &rot[9 * i..9 * i + 9];
+            let camera = Camera {
+                position: [pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]],
+                rotation: [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
+                intrinsics: Intrinsics::from_array([
+                    intr[4 * i],
+                    intr[4 * i + 1],
+                    intr[4 * i + 2],
+                    intr[4 * i + 3],
+                ]),
+            };
+            let v = View {
+                width: widths.value(i),
+                height: heights.value(i),
+                image: images.value(i).to_vec(),
+                mask: masks.and_then(|m| m.is_valid(i).then(|| m.value(i).to_vec())),
+                camera,
+            };
+            v.validate().map_err(|reason| DatasetError::InvalidView {
+                path: path.to_string(),
+                scene_id,
+                view,
+                reason,
+            })?;
+            scene_views.push(v);
+        }
+        let objects = object_rows.as_ref().and_then(|(list, all)| {
+            list.is_valid(row).then(|| {
+                let o = list.value_offsets();
+                all[o[row] as usize..o[row + 1] as usize].to_vec()
+            })
+        });
+        scenes.push(Scene {
+            id: scene_id,
+            views: scene_views,
+            objects,
+        });
+    }
+    Ok(scenes)
+}
+
+fn decode_objects(list: &ListArray, path: &str) -> Result<Vec<ObjectMeta>> {
+    let s = list
+        .values()
+        .as_struct_opt()
+        .ok_or_else(|| DatasetError::schema(path, "`objects` items are not structs"))?;
+    let text = |name: &str| -> Result<&StringArray> {
+        column(s, name, path)?
+            .as_string_opt::<i32>()
+            .ok_or_else(|| DatasetError::schema(path, format!("`objects.{name}` is not Utf8")))
+    };
+    let (shape, color, size, material) = (text("shape")?, text("color")?, text("size")?, text("material")?);
+    let pos = f32_rows(column(s, "position", path)?, 3, "objects.position", path)?;
+    let yaw = column(s, "yaw", path)?
+        .as_primitive_opt::<Float32Type>()
+        .ok_or_else(|| DatasetError::schema(path, "`objects.yaw` is not Float32"))?;
+    Ok((0..s.len())
+        .map(|i| ObjectMeta {
+            shape: shape.value(i).to_string(),
+            color: color.value(i).to_string(),
+            size: size.value(i).to_string(),
+            material: material.value(i).to_string(),
+            position: [pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]],
+            yaw: yaw.value(i),
+        })
+        .collect())
+}

@@ -1,0 +1,175 @@
+//! Where a dataset (or a run) lives: a URL or local path resolved to an object store and
+//! a prefix inside it.
+//!
+//! - a plain path or `file://` URL → [`LocalFileSystem`] (the directory is created);
+//! - `memory://NAME/...` → a process-wide [`InMemory`] store per `NAME`, so that every
+//!   open of the same URL in one process sees the same objects (tests);
+//! - `s3://BUCKET/prefix` → [`AmazonS3Builder::from_env`], configured by the standard
+//!   `AWS_*` variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, `AWS_ACCESS_KEY_ID`, …).
+
+use crate::error::{DatasetError, Result};
+use object_store::ObjectStore;
+#[cfg(test)]
+use object_store::ObjectStoreExt;
+use object_store::aws::AmazonS3Builder;
+use object_store::local::LocalFileSystem;
+use object_store::memory::InMemory;
+use object_store::path::Path;
+use std::collections::HashMap;
+use std::sync::{Arc, LazyLock, Mutex};
+use url::Url;
+
+/// An object store and a prefix inside it.
+#[derive(Debug, Clone)]
+pub struct Location {
+    pub store: Arc<dyn ObjectStore>,
+    pub prefix: Path,
+    /// The string the user gave, for messages.
+    pub display: String,
+}
+
+static MEMORY_STORES: LazyLock<Mutex<HashMap<String, Arc<InMemory>>>> =
+    LazyLock::new(|| Mutex::new(HashMap::new()));
+
+impl Location {
+    /// Wraps an existing store (tests, embedding).
+    pub fn new(store: Arc<dyn ObjectStore>, prefix: impl Into<Path>) -> Self {
+        let prefix = prefix.into();
+        Self {
+            display: format!("{store}/{prefix}"),
+            store,
+            prefix,
+        }
+    }
+
+    /// Parses a local path or a `file://`, `memory://` or `s3://` URL.
+    pub fn parse(location: &str) -> Result<Self> {
+        let err = |reason: String| DatasetError::Location {
+            location: location.to_string(),
+            reason,
+        };
+        let looks_like_url = location.contains("://");
+        if !looks_like_url {
+            return Self::local(std::path::Path::new(location), location);
+        }
+        let url = Url::parse(location).map_err(|e| err(e.to_string()))?;
+        match url.scheme() {
+            "file" => {
+                let p = url
+                    .to_file_path()
+                    .map_err(|_| err("not a valid file URL".into()))?;
+                Self::local(&p, location)
+            }
+            "memory" => {
+                let name = url.host_str().unwrap_or("default").to_string();
+                let store = MEMORY_STORES
+                    .lock()
+                    .expect("memory store registry poisoned")
+                    .entry(name)
+                    .or_insert_with(|| Arc::new(InMemory::new()))
+                    .clone();
+                Ok(Self {
+                    store,
+                    prefix: url_prefix(&url).map_err(err)?,
+                    display: location.to_string(),
+                })
+            }
+            "s3" | "s3a" => {
+                let store = AmazonS3Builder::from_env()
+                    .with_url(location)
+                    .build()
+                    .map_err(|e| err(format!("S3 configuration from AWS_* environment: {e}")))?;
+                Ok(Self {
+                    store: Arc::new(store),
+                    prefix: url_prefix(&url).map_err(err)?,
+                    display: location.to_string(),
+                })
+            }
+            other => Err(err(format!(
+                "unsupported scheme `{other}`: expected a local path, file://, memory:// or s3://"
+            ))),
+        }
+    }
+
+    fn local(dir: &std::path::Path, display: &str) -> Result<Self> {
+        let err = |reason: String| DatasetError::Location {
+            location: display.to_string(),
+            reason,
+        };
+        std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create directory: {e}")))?;
+        let fs = LocalFileSystem::new_with_prefix(dir).map_err(|e| err(e.to_string()))?;
+        Ok(Self {
+            store: Arc::new(fs),
+            prefix: Path::default(),
+            display: display.to_string(),
+        })
+    }
+
+    /// The location of `child` (a relative path such as `train` or `manifest.json`).
+    pub fn join(&self, child: &str) -> Self {
+        Self {
+            store: self.store.clone(),
+            prefix: self.path(child),
+            display: format!("{}/{}", self.display.trim_end_matches('/'), child),
+        }
+    }
+
+    /// An object path under this prefix.
+    pub fn path(&self, child: &str) -> Path {
+        child
+            .split('/')
+            .filter(|p| !p.is_empty())
+            .fold(self.prefix.clone(), |p, part| p.join(part))
+    }
+
+    /// A path as a user reads it in messages (`DIR/train/part-00000.parquet`).
+    pub fn describe(&self, path: &Path) -> String {
+        let rel = path
+            .as_ref()
+            .strip_prefix(self.prefix.as_ref())
+            .unwrap_or(path.as_ref())
+            .trim_start_matches('/');
+        if rel.is_empty() {
+            self.display.clone()
+        } else {
+            format!("{}/{}", self.display.trim_end_matches('/'), rel)
+        }
+    }
+}
+
+fn url_prefix(url: &Url) -> std::result::Result<Path, String> {
+    Path::from_url_path(url.path()).map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn memory_urls_share_one_store_per_name() {
+        let a = Location::parse("memory://shared-test/data").unwrap();
+        a.store
+            .put(&a.path("x.txt"), bytes::Bytes::from_static(b"hi").into())
+            .await
+            .unwrap();
+        let b = Location::parse("memory://shared-test/data/").unwrap();
+        let got = b.store.get(&b.path("x.txt")).await.unwrap().bytes().await.unwrap();
+        assert_eq!(&got[..], b"hi");
+        assert_eq!(b.describe(&b.path("x.txt")), "memory://shared-test/data/x.txt");
+    }
+
+    #[test]
+    fn unknown_schemes_are_rejected() {
+        let e = Location::parse("ftp://host/x").unwrap_err().to_string();
+        assert!(e.contains("unsupported scheme `ftp`"), "{e}");
+    }
+
+    #[test]
+    fn local_paths_and_file_urls_resolve_to_the_same_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = Location::parse(dir.path().to_str().unwrap()).unwrap();
+        let url = format!("file://{}", dir.path().display());
+        let b = Location::parse(&url).unwrap();
+        assert_eq!(a.prefix, b.prefix);
+    }
+}

@@ -1,0 +1,208 @@
+//! `osrt data …` and `osrt bench data`: argument types and their calls into osrt-dataset.
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use osrt_dataset::generator::GeneratorConfig;
+use osrt_dataset::{Columns, Location, SplitReader, SplitSizes, WriterOptions, generate_dataset, inspect};
+use std::io::IsTerminal;
+
+#[derive(Subcommand)]
+pub enum DataCommand {
+    /// Generate a procedural CLEVR-like dataset (train/val/test splits + manifest.json).
+    Generate(GenerateArgs),
+    /// Print what a dataset holds; optionally draw a contact sheet.
+    Inspect(InspectArgs),
+}
+
+#[derive(Args)]
+pub struct GenerateArgs {
+    /// Generator preset: clevr-lite, hard-lite or ood.
+    #[arg(long, default_value = "clevr-lite")]
+    pub preset: String,
+    /// Output directory or URL (file://, memory://, s3://).
+    #[arg(long)]
+    pub out: String,
+    /// Scenes in the train split.
+    #[arg(long, default_value_t = 2000)]
+    pub train: u64,
+    /// Scenes in the val split.
+    #[arg(long, default_value_t = 100)]
+    pub val: u64,
+    /// Scenes in the test split.
+    #[arg(long, default_value_t = 100)]
+    pub test: u64,
+    /// Random seed: the same seed gives the same bytes.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image width and height in pixels (default: the preset's).
+    #[arg(long)]
+    pub image_size: Option<u32>,
+    /// Supersampling per side for anti-aliasing (1 = off; default: the preset's).
+    #[arg(long)]
+    pub antialias: Option<u32>,
+    /// Scenes per Parquet row group (the sharding unit).
+    #[arg(long, default_value_t = 32)]
+    pub scenes_per_row_group: usize,
+}
+
+#[derive(Args)]
+pub struct InspectArgs {
+    /// Dataset directory or URL.
+    pub dataset: String,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Write a contact sheet PNG (views and coloured masks of the first scenes).
+    #[arg(long)]
+    pub sheet: Option<std::path::PathBuf>,
+    /// Split drawn on the contact sheet.
+    #[arg(long, default_value = "train")]
+    pub sheet_split: String,
+    /// Scenes on the contact sheet.
+    #[arg(long, default_value_t = 6)]
+    pub sheet_scenes: usize,
+}
+
+#[derive(Args)]
+pub struct BenchDataArgs {
+    /// Generator preset to benchmark.
+    #[arg(long, default_value = "clevr-lite")]
+    pub preset: String,
+    /// Scenes to generate, write and read.
+    #[arg(long, default_value_t = 256)]
+    pub scenes: usize,
+    /// Image size (default: the preset's).
+    #[arg(long)]
+    pub image_size: Option<u32>,
+    /// Read passes; the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Where the JSON figures are saved.
+    #[arg(long, default_value = "target/bench/data.json")]
+    pub out: std::path::PathBuf,
+}
+
+pub async fn run(cmd: DataCommand) -> Result<()> {
+    match cmd {
+        DataCommand::Generate(a) => generate(a).await,
+        DataCommand::Inspect(a) => inspect_cmd(a).await,
+    }
+}
+
+fn preset(name: &str, image_size: Option<u32>, antialias: Option<u32>) -> Result<GeneratorConfig> {
+    let mut cfg = GeneratorConfig::preset(name)?;
+    if let Some(s) = image_size {
+        cfg.image_size = s;
+    }
+    if let Some(a) = antialias {
+        cfg.antialias = a;
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+async fn generate(a: GenerateArgs) -> Result<()> {
+    let cfg = preset(&a.preset, a.image_size, a.antialias)?;
+    let loc = Location::parse(&a.out)?;
+    let sizes = SplitSizes {
+        train: a.train,
+        val: a.val,
+        test: a.test,
+    };
+    let opts = WriterOptions {
+        scenes_per_row_group: a.scenes_per_row_group.max(1),
+        ..WriterOptions::default()
+    };
+    let t = std::time::Instant::now();
+    let m = generate_dataset(&loc, &cfg, a.seed, sizes, opts, std::io::stderr().is_terminal())
+        .await
+        .with_context(|| format!("generating {} into {}", a.preset, a.out))?;
+    tracing::info!(
+        preset = %a.preset,
+        out = %a.out,
+        seconds = t.elapsed().as_secs_f64(),
+        "dataset written"
+    );
+    for (name, s) in &m.splits {
+        println!("{name:>5}: {} scenes in {} files, {} row groups", s.scenes, s.files, s.row_groups);
+    }
+    Ok(())
+}
+
+async fn inspect_cmd(a: InspectArgs) -> Result<()> {
+    let loc = Location::parse(&a.dataset)?;
+    let report = inspect::inspect(&loc).await?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!("dataset {}", report.location);
+        match &report.manifest {
+            Some(m) => {
+                println!("  schema version {}", m.schema_version);
+                if let Some(g) = &m.generator {
+                    println!("  generator: preset {}, seed {}", g.preset, g.seed);
+                }
+            }
+            None => println!("  (no manifest.json)"),
+        }
+        for (name, s) in &report.splits {
+            println!(
+                "  {name}: {} scenes, {} files ({:.1} MiB), {} row groups",
+                s.scenes,
+                s.files,
+                s.bytes as f64 / (1 << 20) as f64,
+                s.row_groups
+            );
+            println!("    image sizes: {:?}", s.image_sizes);
+            println!("    views per scene: {:?}", s.views_histogram);
+            println!("    objects per scene: {:?}", s.objects_histogram);
+        }
+    }
+    if let Some(path) = a.sheet {
+        let reader = SplitReader::open(loc.join(&a.sheet_split)).await?;
+        let mut scenes = Vec::new();
+        for rg in reader.row_groups().await? {
+            if scenes.len() >= a.sheet_scenes {
+                break;
+            }
+            scenes.extend(reader.read_row_group(&rg, Columns { masks: true, objects: false }).await?);
+        }
+        scenes.truncate(a.sheet_scenes);
+        let img = inspect::contact_sheet(&scenes)?;
+        img.save(&path)
+            .with_context(|| format!("writing contact sheet {}", path.display()))?;
+        eprintln!("contact sheet: {}", path.display());
+    }
+    Ok(())
+}
+
+pub async fn bench(a: BenchDataArgs) -> Result<()> {
+    let cfg = preset(&a.preset, a.image_size, None)?;
+    let scratch = Location::parse("memory://bench-data/split")?;
+    let r = osrt_dataset::bench::bench_data(&cfg, a.scenes, a.repeats, scratch).await?;
+    let json = serde_json::to_string_pretty(&r)?;
+    if let Some(dir) = a.out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&a.out, &json).with_context(|| format!("writing {}", a.out.display()))?;
+    if a.json {
+        println!("{json}");
+    } else {
+        println!("data bench: {} {}x{}, {} scenes, {} threads", r.preset, r.image_size, r.image_size, r.scenes, r.threads);
+        println!("  generate          {:>9.1} scenes/s", r.generate_scenes_per_s);
+        println!("  write (Parquet)   {:>9.1} scenes/s  ({} bytes)", r.write_scenes_per_s, r.file_bytes);
+        println!(
+            "  read + decode     {:>9.1} scenes/s with masks    ({} bytes fetched)",
+            r.read_with_masks.scenes_per_s, r.read_with_masks.data_bytes
+        );
+        println!(
+            "  read + decode     {:>9.1} scenes/s without masks ({} bytes fetched)",
+            r.read_without_masks.scenes_per_s, r.read_without_masks.data_bytes
+        );
+        println!("  saved to {}", a.out.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,49 @@
+//! `osrt`: train and evaluate the Object Scene Representation Transformer as a
+//! distributed batch job. This binary only parses arguments and calls the libraries.
+
+mod data;
+
+use clap::{Parser, Subcommand};
+use tracing_subscriber::EnvFilter;
+
+#[derive(Parser)]
+#[command(name = "osrt", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate, inspect and convert scene datasets.
+    Data {
+        #[command(subcommand)]
+        command: data::DataCommand,
+    },
+    /// Benchmarks that print (and save) throughput figures.
+    Bench {
+        #[command(subcommand)]
+        command: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Scenes/s generated, and read + decoded with and without masks.
+    Data(data::BenchDataArgs),
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Data { command } => data::run(command).await,
+        Command::Bench {
+            command: BenchCommand::Data(args),
+        } => data::bench(args).await,
+    }
+}
