@@ -3,7 +3,9 @@
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{Columns, Location, SplitReader, SplitSizes, WriterOptions, generate_dataset, inspect};
+use osrt_dataset::{
+    Columns, Location, SplitReader, SplitSizes, WriterOptions, generate_dataset, inspect,
+};
 use std::io::IsTerminal;
 
 #[derive(Subcommand)]
@@ -117,9 +119,16 @@ async fn generate(a: GenerateArgs) -> Result<()> {
         ..WriterOptions::default()
     };
     let t = std::time::Instant::now();
-    let m = generate_dataset(&loc, &cfg, a.seed, sizes, opts, std::io::stderr().is_terminal())
-        .await
-        .with_context(|| format!("generating {} into {}", a.preset, a.out))?;
+    let m = generate_dataset(
+        &loc,
+        &cfg,
+        a.seed,
+        sizes,
+        opts,
+        std::io::stderr().is_terminal(),
+    )
+    .await
+    .with_context(|| format!("generating {} into {}", a.preset, a.out))?;
     tracing::info!(
         preset = %a.preset,
         out = %a.out,
@@ -127,7 +136,10 @@ async fn generate(a: GenerateArgs) -> Result<()> {
         "dataset written"
     );
     for (name, s) in &m.splits {
-        println!("{name:>5}: {} scenes in {} files, {} row groups", s.scenes, s.files, s.row_groups);
+        println!(
+            "{name:>5}: {} scenes in {} files, {} row groups",
+            s.scenes, s.files, s.row_groups
+        );
     }
     Ok(())
 }
@@ -168,7 +180,17 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
             if scenes.len() >= a.sheet_scenes {
                 break;
             }
-            scenes.extend(reader.read_row_group(&rg, Columns { masks: true, objects: false }).await?);
+            scenes.extend(
+                reader
+                    .read_row_group(
+                        &rg,
+                        Columns {
+                            masks: true,
+                            objects: false,
+                        },
+                    )
+                    .await?,
+            );
         }
         scenes.truncate(a.sheet_scenes);
         let img = inspect::contact_sheet(&scenes)?;
@@ -191,9 +213,18 @@ pub async fn bench(a: BenchDataArgs) -> Result<()> {
     if a.json {
         println!("{json}");
     } else {
-        println!("data bench: {} {}x{}, {} scenes, {} threads", r.preset, r.image_size, r.image_size, r.scenes, r.threads);
-        println!("  generate          {:>9.1} scenes/s", r.generate_scenes_per_s);
-        println!("  write (Parquet)   {:>9.1} scenes/s  ({} bytes)", r.write_scenes_per_s, r.file_bytes);
+        println!(
+            "data bench: {} {}x{}, {} scenes, {} threads",
+            r.preset, r.image_size, r.image_size, r.scenes, r.threads
+        );
+        println!(
+            "  generate          {:>9.1} scenes/s",
+            r.generate_scenes_per_s
+        );
+        println!(
+            "  write (Parquet)   {:>9.1} scenes/s  ({} bytes)",
+            r.write_scenes_per_s, r.file_bytes
+        );
         println!(
             "  read + decode     {:>9.1} scenes/s with masks    ({} bytes fetched)",
             r.read_with_masks.scenes_per_s, r.read_with_masks.data_bytes

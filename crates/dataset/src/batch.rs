@@ -113,7 +113,10 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
     let first = scenes
         .first()
         .ok_or_else(|| DatasetError::Batch("a batch needs at least one scene".into()))?;
-    let (w0, h0) = (first.views[0].width as usize, first.views[0].height as usize);
+    let (w0, h0) = (
+        first.views[0].width as usize,
+        first.views[0].height as usize,
+    );
     let b = scenes.len();
     let v = cfg.input_views;
     let mut batch = Batch {
@@ -152,7 +155,10 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
 
         let targets = target_view_ids(scene, &inputs, cfg.target_views)?;
         // Pixel index space over the target views, view after view.
-        let sizes: Vec<usize> = targets.iter().map(|&t| scene.views[t].num_pixels()).collect();
+        let sizes: Vec<usize> = targets
+            .iter()
+            .map(|&t| scene.views[t].num_pixels())
+            .collect();
         let total: usize = sizes.iter().sum();
         let picks: Vec<usize> = match cfg.rays_per_scene {
             None => (0..total).collect(),
@@ -184,13 +190,18 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
             }
             let vi = targets[t];
             let view = &scene.views[vi];
-            let (u, row) = ((rest % view.width as usize) as u32, (rest / view.width as usize) as u32);
+            let (u, row) = (
+                (rest % view.width as usize) as u32,
+                (rest / view.width as usize) as u32,
+            );
             let (o, d) = pixel_ray(&view.camera, u, row);
             batch.target_origins.extend_from_slice(&o);
             batch.target_directions.extend_from_slice(&d);
-            batch
-                .target_rgb
-                .extend(view.image[3 * rest..3 * rest + 3].iter().map(|&c| c as f32 / 255.0));
+            batch.target_rgb.extend(
+                view.image[3 * rest..3 * rest + 3]
+                    .iter()
+                    .map(|&c| c as f32 / 255.0),
+            );
             if let Some(m) = batch.target_masks.as_mut() {
                 let mask = view.mask.as_ref().ok_or_else(|| {
                     DatasetError::Batch(format!(

@@ -40,7 +40,12 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 /// Generates `scenes` scenes, writes them to `store` (a scratch location), then reads the
 /// split back `repeats` times each way. Reported figures are medians.
-pub async fn bench_data(cfg: &GeneratorConfig, scenes: usize, repeats: usize, store: Location) -> Result<DataBench> {
+pub async fn bench_data(
+    cfg: &GeneratorConfig,
+    scenes: usize,
+    repeats: usize,
+    store: Location,
+) -> Result<DataBench> {
     let t = Instant::now();
     let cfg2 = cfg.clone();
     let generated = tokio::task::spawn_blocking(move || {
@@ -63,7 +68,13 @@ pub async fn bench_data(cfg: &GeneratorConfig, scenes: usize, repeats: usize, st
     let file_bytes = reader.files().iter().map(|f| f.size).sum();
     let rgs = reader.row_groups().await?;
     let mut figures = Vec::new();
-    for cols in [Columns { masks: true, objects: false }, Columns::TRAIN] {
+    for cols in [
+        Columns {
+            masks: true,
+            objects: false,
+        },
+        Columns::TRAIN,
+    ] {
         let mut times = Vec::new();
         let mut bytes = 0;
         for _ in 0..repeats.max(1) {
@@ -71,7 +82,10 @@ pub async fn bench_data(cfg: &GeneratorConfig, scenes: usize, repeats: usize, st
             let t = Instant::now();
             let mut n = 0;
             for rg in &rgs {
-                n += reader.read_row_group_with_stats(rg, cols, stats.clone()).await?.len();
+                n += reader
+                    .read_row_group_with_stats(rg, cols, stats.clone())
+                    .await?
+                    .len();
             }
             assert_eq!(n, scenes);
             times.push(t.elapsed().as_secs_f64());

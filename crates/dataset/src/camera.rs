@@ -73,12 +73,12 @@ impl Camera {
     /// Fails when the viewing direction is zero or parallel to `z` (no unique roll).
     pub fn look_at(position: Vec3, target: Vec3, intrinsics: Intrinsics) -> Result<Self, String> {
         let forward = target - position;
-        if !(forward.norm() > 1e-12) {
+        if forward.norm().is_nan() || forward.norm() <= 1e-12 {
             return Err("camera position equals its target: zero viewing direction".into());
         }
         let forward = forward.normalized();
         let right = forward.cross(Vec3::Z);
-        if !(right.norm() > 1e-9) {
+        if right.norm().is_nan() || right.norm() <= 1e-9 {
             return Err("viewing direction is parallel to the up axis".into());
         }
         let right = right.normalized();
@@ -175,7 +175,9 @@ impl Camera {
         }
         let det = cols[0].dot(cols[1].cross(cols[2]));
         if det < 0.0 {
-            return Err("rotation is a reflection (determinant −1), expected a proper rotation".into());
+            return Err(
+                "rotation is a reflection (determinant −1), expected a proper rotation".into(),
+            );
         }
         Ok(())
     }
@@ -211,7 +213,10 @@ mod tests {
         // Top-left pixel looks up and left of the forward axis: row 0 is the top.
         let tl = c.pixel_direction(0, 0);
         assert!(tl.dot(c.axis(0)) < 0.0 && tl.dot(c.axis(1)) < 0.0);
-        assert!(tl.z > c.axis(2).z, "row 0 must look higher in the world than the centre");
+        assert!(
+            tl.z > c.axis(2).z,
+            "row 0 must look higher in the world than the centre"
+        );
     }
 
     #[test]

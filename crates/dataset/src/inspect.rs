@@ -44,7 +44,13 @@ pub async fn inspect(dataset: &Location) -> Result<Report> {
     };
     let mut names: Vec<String> = ["train", "val", "test"].map(String::from).to_vec();
     if let Some(m) = &manifest {
-        names.extend(m.splits.keys().filter(|k| !names.contains(k)).cloned().collect::<Vec<_>>());
+        names.extend(
+            m.splits
+                .keys()
+                .filter(|k| !names.contains(k))
+                .cloned()
+                .collect::<Vec<_>>(),
+        );
     }
     let mut splits = BTreeMap::new();
     for name in names {
@@ -72,7 +78,9 @@ pub async fn inspect(dataset: &Location) -> Result<Report> {
                 rep.scenes += 1;
                 *rep.views_histogram.entry(s.views.len()).or_default() += 1;
                 for v in &s.views {
-                    *rep.image_sizes.entry(format!("{}x{}", v.width, v.height)).or_default() += 1;
+                    *rep.image_sizes
+                        .entry(format!("{}x{}", v.width, v.height))
+                        .or_default() += 1;
                 }
                 if let Some(n) = s.num_objects() {
                     *rep.objects_histogram.entry(n).or_default() += 1;
@@ -112,7 +120,11 @@ pub fn instance_color(id: u8) -> [u8; 3] {
         _ => (c, 0.0, x),
     };
     let m = v - c;
-    [((r + m) * 255.0) as u8, ((g + m) * 255.0) as u8, ((b + m) * 255.0) as u8]
+    [
+        ((r + m) * 255.0) as u8,
+        ((g + m) * 255.0) as u8,
+        ((b + m) * 255.0) as u8,
+    ]
 }
 
 /// A contact sheet: one row per scene, its views followed by their coloured masks.
@@ -134,7 +146,11 @@ pub fn contact_sheet(scenes: &[Scene]) -> Result<image::RgbImage> {
         image::Rgb([255, 255, 255]),
     );
     for (row, s) in scenes.iter().enumerate() {
-        let views: Vec<_> = s.views.iter().filter(|v| v.width == w && v.height == h).collect();
+        let views: Vec<_> = s
+            .views
+            .iter()
+            .filter(|v| v.width == w && v.height == h)
+            .collect();
         for (i, v) in views.iter().enumerate() {
             let y0 = pad + row as u32 * (h + pad);
             let xi = pad + i as u32 * (w + pad);

@@ -91,7 +91,10 @@ mod tests {
         }
         assert!((ds[0].dot(right) + ds[1].dot(right)).abs() < 1e-6);
         assert!((ds[0].dot(down) + ds[2].dot(down)).abs() < 1e-6);
-        assert!(ds[0].dot(right) < 0.0 && ds[0].dot(down) < 0.0, "top-left looks left and up");
+        assert!(
+            ds[0].dot(right) < 0.0 && ds[0].dot(down) < 0.0,
+            "top-left looks left and up"
+        );
         assert!((ds[3].dot(right) - ds[1].dot(right)).abs() < 1e-6);
     }
 }

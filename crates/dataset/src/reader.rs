@@ -9,10 +9,10 @@ use crate::store::Location;
 use bytes::Bytes;
 use futures::future::BoxFuture;
 use futures::{FutureExt, TryStreamExt};
-use parquet::arrow::ParquetRecordBatchStreamBuilder;
-use parquet::arrow::arrow_reader::ArrowReaderOptions;
 use object_store::path::Path;
 use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt};
+use parquet::arrow::ParquetRecordBatchStreamBuilder;
+use parquet::arrow::arrow_reader::ArrowReaderOptions;
 use parquet::arrow::async_reader::{AsyncFileReader, MetadataSuffixFetch};
 use parquet::errors::ParquetError;
 use parquet::file::metadata::{ParquetMetaData, ParquetMetaDataReader};
@@ -67,7 +67,13 @@ impl AsyncFileReader for StoreReader {
         self.stats
             .data_bytes
             .fetch_add(range.end - range.start, Ordering::Relaxed);
-        async move { self.store.get_range(&self.path, range).await.map_err(external) }.boxed()
+        async move {
+            self.store
+                .get_range(&self.path, range)
+                .await
+                .map_err(external)
+        }
+        .boxed()
     }
 
     fn get_byte_ranges(
@@ -76,7 +82,13 @@ impl AsyncFileReader for StoreReader {
     ) -> BoxFuture<'_, parquet::errors::Result<Vec<Bytes>>> {
         let n: u64 = ranges.iter().map(|r| r.end - r.start).sum();
         self.stats.data_bytes.fetch_add(n, Ordering::Relaxed);
-        async move { self.store.get_ranges(&self.path, &ranges).await.map_err(external) }.boxed()
+        async move {
+            self.store
+                .get_ranges(&self.path, &ranges)
+                .await
+                .map_err(external)
+        }
+        .boxed()
     }
 
     fn get_metadata<'a>(
@@ -101,7 +113,11 @@ impl MetadataSuffixFetch for &mut StoreReader {
             ..Default::default()
         };
         async move {
-            let resp = self.store.get_opts(&self.path, options).await.map_err(external)?;
+            let resp = self
+                .store
+                .get_opts(&self.path, options)
+                .await
+                .map_err(external)?;
             resp.bytes().await.map_err(external)
         }
         .boxed()
@@ -124,7 +140,8 @@ impl SplitReader {
             .map_err(|e| DatasetError::store(&split.display, e))
             .try_filter_map(|meta| {
                 let name = meta.location.filename().unwrap_or_default().to_string();
-                let direct = meta.location.prefix_match(&split.prefix).map(|p| p.count()) == Some(1);
+                let direct =
+                    meta.location.prefix_match(&split.prefix).map(|p| p.count()) == Some(1);
                 futures::future::ok((direct && name.ends_with(".parquet")).then_some(SplitFile {
                     name,
                     size: meta.size,
@@ -146,10 +163,12 @@ impl SplitReader {
     }
 
     fn file(&self, name: &str) -> Result<&SplitFile> {
-        self.files.iter().find(|f| f.name == name).ok_or_else(|| DatasetError::schema(
-            self.split.describe(&self.split.path(name)),
-            "no such file in the split",
-        ))
+        self.files.iter().find(|f| f.name == name).ok_or_else(|| {
+            DatasetError::schema(
+                self.split.describe(&self.split.path(name)),
+                "no such file in the split",
+            )
+        })
     }
 
     async fn builder(
@@ -166,7 +185,10 @@ impl SplitReader {
         let builder = ParquetRecordBatchStreamBuilder::new(reader)
             .await
             .map_err(|e| DatasetError::parquet(&shown, e))?;
-        check_version(&shown, builder.metadata().file_metadata().key_value_metadata())?;
+        check_version(
+            &shown,
+            builder.metadata().file_metadata().key_value_metadata(),
+        )?;
         check_schema(&shown, builder.schema())?;
         Ok(builder)
     }
@@ -228,7 +250,8 @@ impl SplitReader {
     }
 
     pub async fn read_row_group(&self, rg: &RowGroupRef, columns: Columns) -> Result<Vec<Scene>> {
-        self.read_row_group_with_stats(rg, columns, Arc::default()).await
+        self.read_row_group_with_stats(rg, columns, Arc::default())
+            .await
     }
 
     /// Decodes the whole split (small splits: validation, tests, inspection).

@@ -30,7 +30,10 @@ impl View {
     /// Checks image and mask sizes and the camera; the message says what is wrong.
     pub fn validate(&self) -> Result<(), String> {
         if self.width == 0 || self.height == 0 {
-            return Err(format!("image size {}x{} is empty", self.width, self.height));
+            return Err(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            ));
         }
         let px = self.num_pixels();
         if self.image.len() != px * 3 {
@@ -42,16 +45,16 @@ impl View {
                 self.height
             ));
         }
-        if let Some(m) = &self.mask {
-            if m.len() != px {
-                return Err(format!(
-                    "mask has {} bytes, expected {} for {}x{}",
-                    m.len(),
-                    px,
-                    self.width,
-                    self.height
-                ));
-            }
+        if let Some(m) = &self.mask
+            && m.len() != px
+        {
+            return Err(format!(
+                "mask has {} bytes, expected {} for {}x{}",
+                m.len(),
+                px,
+                self.width,
+                self.height
+            ));
         }
         self.camera.validate()
     }

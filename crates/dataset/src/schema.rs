@@ -134,10 +134,18 @@ pub fn scenes_to_batch(scenes: &[Scene]) -> Result<RecordBatch> {
         intr.extend_from_slice(&v.camera.intrinsics.to_array());
     }
     let view_columns: Vec<ArrayRef> = vec![
-        Arc::new(UInt32Array::from_iter_values(all_views.iter().map(|v| v.width))),
-        Arc::new(UInt32Array::from_iter_values(all_views.iter().map(|v| v.height))),
-        Arc::new(BinaryArray::from_iter_values(all_views.iter().map(|v| &v.image))),
-        Arc::new(BinaryArray::from_iter(all_views.iter().map(|v| v.mask.as_deref()))),
+        Arc::new(UInt32Array::from_iter_values(
+            all_views.iter().map(|v| v.width),
+        )),
+        Arc::new(UInt32Array::from_iter_values(
+            all_views.iter().map(|v| v.height),
+        )),
+        Arc::new(BinaryArray::from_iter_values(
+            all_views.iter().map(|v| &v.image),
+        )),
+        Arc::new(BinaryArray::from_iter(
+            all_views.iter().map(|v| v.mask.as_deref()),
+        )),
         fixed_list(pos, 3),
         fixed_list(rot, 9),
         fixed_list(intr, 4),
@@ -145,7 +153,11 @@ pub fn scenes_to_batch(scenes: &[Scene]) -> Result<RecordBatch> {
     let views_struct = StructArray::try_new(view_fields(), view_columns, None)
         .map_err(|e| DatasetError::Batch(format!("building views: {e}")))?;
     let views = ListArray::try_new(
-        Arc::new(Field::new("element", DataType::Struct(view_fields()), false)),
+        Arc::new(Field::new(
+            "element",
+            DataType::Struct(view_fields()),
+            false,
+        )),
         OffsetBuffer::from_lengths(scenes.iter().map(|s| s.views.len())),
         Arc::new(views_struct),
         None,
@@ -164,21 +176,29 @@ pub fn scenes_to_batch(scenes: &[Scene]) -> Result<RecordBatch> {
         Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.shape))),
         Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.color))),
         Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.size))),
-        Arc::new(StringArray::from_iter_values(objs.iter().map(|o| &o.material))),
+        Arc::new(StringArray::from_iter_values(
+            objs.iter().map(|o| &o.material),
+        )),
         fixed_list(opos, 3),
         Arc::new(Float32Array::from_iter_values(objs.iter().map(|o| o.yaw))),
     ];
     let objects_struct = StructArray::try_new(object_fields(), object_columns, None)
         .map_err(|e| DatasetError::Batch(format!("building objects: {e}")))?;
     let objects = ListArray::try_new(
-        Arc::new(Field::new("element", DataType::Struct(object_fields()), false)),
+        Arc::new(Field::new(
+            "element",
+            DataType::Struct(object_fields()),
+            false,
+        )),
         OffsetBuffer::from_lengths(
             scenes
                 .iter()
                 .map(|s| s.objects.as_ref().map_or(0, |o| o.len())),
         ),
         Arc::new(objects_struct),
-        Some(NullBuffer::from_iter(scenes.iter().map(|s| s.objects.is_some()))),
+        Some(NullBuffer::from_iter(
+            scenes.iter().map(|s| s.objects.is_some()),
+        )),
     )
     .map_err(|e| DatasetError::Batch(format!("building objects list: {e}")))?;
 
@@ -190,7 +210,10 @@ pub fn scenes_to_batch(scenes: &[Scene]) -> Result<RecordBatch> {
 }
 
 /// Checks a file's key-value metadata for our schema version.
-pub fn check_version(path: &str, kv: Option<&Vec<parquet::file::metadata::KeyValue>>) -> Result<()> {
+pub fn check_version(
+    path: &str,
+    kv: Option<&Vec<parquet::file::metadata::KeyValue>>,
+) -> Result<()> {
     let found = kv
         .into_iter()
         .flatten()
@@ -215,16 +238,15 @@ pub fn check_schema(path: &str, schema: &Schema) -> Result<()> {
     let expected = arrow_schema();
     for name in ["scene_id", "views"] {
         let want = expected.field_with_name(name).expect("our own schema");
-        let got = schema.field_with_name(name).map_err(|_| {
-            DatasetError::schema(path, format!("missing column `{name}`"))
-        })?;
+        let got = schema
+            .field_with_name(name)
+            .map_err(|_| DatasetError::schema(path, format!("missing column `{name}`")))?;
         if got.data_type() != want.data_type() {
             // Name the first differing view field where we can, so the message is short.
             let detail = match (got.data_type(), want.data_type()) {
                 (DataType::List(g), DataType::List(w)) => match (g.data_type(), w.data_type()) {
-                    (DataType::Struct(gf), DataType::Struct(wf)) => wf
-                        .iter()
-                        .find_map(|f| match gf.find(f.name()) {
+                    (DataType::Struct(gf), DataType::Struct(wf)) => {
+                        wf.iter().find_map(|f| match gf.find(f.name()) {
                             None => Some(format!("missing column `{name}.{}`", f.name())),
                             Some((_, g)) if g.data_type() != f.data_type() => Some(format!(
                                 "column `{name}.{}` has type {}, expected {}",
@@ -233,7 +255,8 @@ pub fn check_schema(path: &str, schema: &Schema) -> Result<()> {
                                 f.data_type()
                             )),
                             _ => None,
-                        }),
+                        })
+                    }
                     _ => None,
                 },
                 _ => None,
@@ -255,7 +278,11 @@ pub fn check_schema(path: &str, schema: &Schema) -> Result<()> {
         if got.data_type() != want.data_type() {
             return Err(DatasetError::schema(
                 path,
-                format!("column `objects` has type {}, expected {}", got.data_type(), want.data_type()),
+                format!(
+                    "column `objects` has type {}, expected {}",
+                    got.data_type(),
+                    want.data_type()
+                ),
             ));
         }
     }
@@ -285,7 +312,9 @@ fn f32_rows<'a>(a: &'a ArrayRef, n: usize, name: &str, path: &str) -> Result<&'a
     let l = a
         .as_fixed_size_list_opt()
         .filter(|l| l.value_length() as usize == n)
-        .ok_or_else(|| DatasetError::schema(path, format!("`{name}` is not FixedSizeList<Float32, {n}>")))?;
+        .ok_or_else(|| {
+            DatasetError::schema(path, format!("`{name}` is not FixedSizeList<Float32, {n}>"))
+        })?;
     let vals = l
         .values()
         .as_primitive_opt::<Float32Type>()
@@ -306,9 +335,10 @@ pub fn batch_to_scenes(batch: &RecordBatch, path: &str) -> Result<Vec<Scene>> {
         .column_by_name("views")
         .and_then(|c| c.as_list_opt::<i32>())
         .ok_or_else(|| DatasetError::schema(path, "missing list column `views`"))?;
-    let vs = views.values().as_struct_opt().ok_or_else(|| {
-        DatasetError::schema(path, "`views` items are not structs")
-    })?;
+    let vs = views
+        .values()
+        .as_struct_opt()
+        .ok_or_else(|| DatasetError::schema(path, "`views` items are not structs"))?;
     let widths = column(vs, "width", path)?
         .as_primitive_opt::<UInt32Type>()
         .ok_or_else(|| DatasetError::schema(path, "`views.width` is not UInt32"))?;
@@ -325,11 +355,23 @@ pub fn batch_to_scenes(batch: &RecordBatch, path: &str) -> Result<Vec<Scene>> {
         ),
         None => None,
     };
-    let pos = f32_rows(column(vs, "camera_position", path)?, 3, "views.camera_position", path)?;
-    let rot = f32_rows(column(vs, "camera_rotation", path)?, 9, "views.camera_rotation", path)?;
+    let pos = f32_rows(
+        column(vs, "camera_position", path)?,
+        3,
+        "views.camera_position",
+        path,
+    )?;
+    let rot = f32_rows(
+        column(vs, "camera_rotation", path)?,
+        9,
+        "views.camera_rotation",
+        path,
+    )?;
     let intr = f32_rows(column(vs, "intrinsics", path)?, 4, "views.intrinsics", path)?;
 
-    let objects = batch.column_by_name("objects").and_then(|c| c.as_list_opt::<i32>());
+    let objects = batch
+        .column_by_name("objects")
+        .and_then(|c| c.as_list_opt::<i32>());
     let object_rows = match objects {
         Some(list) => Some((list, decode_objects(list, path)?)),
         None => None,
@@ -400,7 +442,12 @@ fn decode_objects(list: &ListArray, path: &str) -> Result<Vec<ObjectMeta>> {
             .as_string_opt::<i32>()
             .ok_or_else(|| DatasetError::schema(path, format!("`objects.{name}` is not Utf8")))
     };
-    let (shape, color, size, material) = (text("shape")?, text("color")?, text("size")?, text("material")?);
+    let (shape, color, size, material) = (
+        text("shape")?,
+        text("color")?,
+        text("size")?,
+        text("material")?,
+    );
     let pos = f32_rows(column(s, "position", path)?, 3, "objects.position", path)?;
     let yaw = column(s, "yaw", path)?
         .as_primitive_opt::<Float32Type>()

@@ -153,9 +153,19 @@ mod tests {
             .await
             .unwrap();
         let b = Location::parse("memory://shared-test/data/").unwrap();
-        let got = b.store.get(&b.path("x.txt")).await.unwrap().bytes().await.unwrap();
+        let got = b
+            .store
+            .get(&b.path("x.txt"))
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
         assert_eq!(&got[..], b"hi");
-        assert_eq!(b.describe(&b.path("x.txt")), "memory://shared-test/data/x.txt");
+        assert_eq!(
+            b.describe(&b.path("x.txt")),
+            "memory://shared-test/data/x.txt"
+        );
     }
 
     #[test]

@@ -6,8 +6,8 @@ use crate::manifest::SplitInfo;
 use crate::scene::Scene;
 use crate::schema::{SCHEMA_VERSION, VERSION_KEY, arrow_schema, scenes_to_batch};
 use crate::store::Location;
-use parquet::arrow::AsyncArrowWriter;
 use object_store::buffered::BufWriter;
+use parquet::arrow::AsyncArrowWriter;
 use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::{EnabledStatistics, WriterProperties};
@@ -31,7 +31,9 @@ impl Default for WriterOptions {
 
 fn properties(rows: usize) -> WriterProperties {
     WriterProperties::builder()
-        .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).expect("valid level")))
+        .set_compression(Compression::ZSTD(
+            ZstdLevel::try_new(3).expect("valid level"),
+        ))
         // Images and masks are high-entropy blobs: dictionaries and min/max statistics on
         // them only cost space.
         .set_dictionary_enabled(false)
@@ -108,8 +110,12 @@ impl SplitWriter {
             let name = format!("part-{:05}.parquet", self.file_index);
             let path = self.split.path(&name);
             let obj = BufWriter::new(self.split.store.clone(), path.clone());
-            let w = AsyncArrowWriter::try_new(obj, arrow_schema(), Some(properties(self.opts.scenes_per_row_group)))
-                .map_err(|e| DatasetError::parquet(self.split.describe(&path), e))?;
+            let w = AsyncArrowWriter::try_new(
+                obj,
+                arrow_schema(),
+                Some(properties(self.opts.scenes_per_row_group)),
+            )
+            .map_err(|e| DatasetError::parquet(self.split.describe(&path), e))?;
             self.current = Some((w, 0));
             self.file_index += 1;
             self.info.files += 1;
@@ -117,8 +123,12 @@ impl SplitWriter {
         let shown = self.split.display.clone();
         let (w, groups) = self.current.as_mut().expect("opened above");
         let batch = scenes_to_batch(scenes)?;
-        w.write(&batch).await.map_err(|e| DatasetError::parquet(&shown, e))?;
-        w.flush().await.map_err(|e| DatasetError::parquet(&shown, e))?;
+        w.write(&batch)
+            .await
+            .map_err(|e| DatasetError::parquet(&shown, e))?;
+        w.flush()
+            .await
+            .map_err(|e| DatasetError::parquet(&shown, e))?;
         *groups += 1;
         self.info.row_groups += 1;
         self.info.scenes += scenes.len() as u64;

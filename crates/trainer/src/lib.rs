@@ -1,1 +1,3 @@
-
+//! The worker: train step, ring all-reduce over gRPC, checkpoints, evaluation, rendering.
+//!
+//! Not yet written: this crate is a placeholder in the workspace layout. It exports nothing.

@@ -40,7 +40,8 @@ pub const SHAPES: [(&str, Shape); 3] = [
     ("cube", Shape::Cube),
     ("cylinder", Shape::Cylinder),
 ];
-pub const MATERIALS: [(&str, Material); 2] = [("rubber", Material::Rubber), ("metal", Material::Metal)];
+pub const MATERIALS: [(&str, Material); 2] =
+    [("rubber", Material::Rubber), ("metal", Material::Metal)];
 
 /// Where the cameras of a scene are.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -173,13 +174,19 @@ impl GeneratorConfig {
             return bad(format!("image size {} outside 1..=4096", self.image_size));
         }
         if self.objects[0] > self.objects[1] || self.objects[1] > 254 {
-            return bad(format!("objects range {:?} must be ordered and ≤ 254", self.objects));
+            return bad(format!(
+                "objects range {:?} must be ordered and ≤ 254",
+                self.objects
+            ));
         }
         if self.cameras.num_views() == 0 {
             return bad("a scene needs at least one camera".into());
         }
         if !(self.fov_deg > 1.0 && self.fov_deg < 170.0) {
-            return bad(format!("field of view {}° outside (1°, 170°)", self.fov_deg));
+            return bad(format!(
+                "field of view {}° outside (1°, 170°)",
+                self.fov_deg
+            ));
         }
         Ok(())
     }
@@ -195,7 +202,12 @@ pub struct SplitSizes {
 
 impl SplitSizes {
     pub fn iter(&self) -> impl Iterator<Item = (&'static str, u64)> {
-        [("train", self.train), ("val", self.val), ("test", self.test)].into_iter()
+        [
+            ("train", self.train),
+            ("val", self.val),
+            ("test", self.test),
+        ]
+        .into_iter()
     }
 }
 
@@ -230,7 +242,11 @@ fn cameras(cfg: &GeneratorConfig, rng: &mut ChaCha8Rng) -> Result<Vec<Camera>> {
         } => {
             for a in azimuths_deg {
                 let az = (base_azimuth_deg + a).to_radians();
-                let pos = Vec3::new(horizontal_distance * az.cos(), horizontal_distance * az.sin(), *height);
+                let pos = Vec3::new(
+                    horizontal_distance * az.cos(),
+                    horizontal_distance * az.sin(),
+                    *height,
+                );
                 out.push(Camera::look_at(pos, Vec3::ZERO, k).map_err(DatasetError::Generator)?);
             }
         }
@@ -242,9 +258,15 @@ fn cameras(cfg: &GeneratorConfig, rng: &mut ChaCha8Rng) -> Result<Vec<Camera>> {
         } => {
             for _ in 0..*views {
                 let az = rng.random_range(0.0..2.0 * PI);
-                let el = rng.random_range(elevation_deg[0]..=elevation_deg[1]).to_radians();
+                let el = rng
+                    .random_range(elevation_deg[0]..=elevation_deg[1])
+                    .to_radians();
                 let r = rng.random_range(distance[0]..=distance[1]);
-                let pos = Vec3::new(r * el.cos() * az.cos(), r * el.cos() * az.sin(), r * el.sin());
+                let pos = Vec3::new(
+                    r * el.cos() * az.cos(),
+                    r * el.cos() * az.sin(),
+                    r * el.sin(),
+                );
                 let target = Vec3::new(
                     rng.random_range(-target_jitter..=*target_jitter),
                     rng.random_range(-target_jitter..=*target_jitter),
@@ -259,7 +281,10 @@ fn cameras(cfg: &GeneratorConfig, rng: &mut ChaCha8Rng) -> Result<Vec<Camera>> {
 
 fn lighting(cfg: &GeneratorConfig, rng: &mut ChaCha8Rng) -> Lighting {
     let (az, el): (f64, f64) = if cfg.vary_light {
-        (rng.random_range(0.0..2.0 * PI), rng.random_range(35f64..75.0).to_radians())
+        (
+            rng.random_range(0.0..2.0 * PI),
+            rng.random_range(35f64..75.0).to_radians(),
+        )
     } else {
         (-2.3, 55f64.to_radians())
     };
@@ -292,7 +317,11 @@ fn lighting(cfg: &GeneratorConfig, rng: &mut ChaCha8Rng) -> Lighting {
 }
 
 /// Draws a non-overlapping layout of `n` objects; `None` when it does not fit.
-fn layout(cfg: &GeneratorConfig, n: usize, rng: &mut ChaCha8Rng) -> Option<(Vec<Object>, Vec<ObjectMeta>)> {
+fn layout(
+    cfg: &GeneratorConfig,
+    n: usize,
+    rng: &mut ChaCha8Rng,
+) -> Option<(Vec<Object>, Vec<ObjectMeta>)> {
     let mut objects: Vec<Object> = Vec::with_capacity(n);
     let mut meta = Vec::with_capacity(n);
     for _ in 0..n {
@@ -302,7 +331,13 @@ fn layout(cfg: &GeneratorConfig, n: usize, rng: &mut ChaCha8Rng) -> Option<(Vec<
         let (material_name, material) = MATERIALS[rng.random_range(0..MATERIALS.len())];
         let yaw = rng.random_range(0.0..2.0 * PI);
         // Footprint radius: cubes reach out to their corners.
-        let reach = |s: Shape, r: f64| if s == Shape::Cube { r * std::f64::consts::SQRT_2 } else { r };
+        let reach = |s: Shape, r: f64| {
+            if s == Shape::Cube {
+                r * std::f64::consts::SQRT_2
+            } else {
+                r
+            }
+        };
         let mut placed = None;
         for _ in 0..100 {
             let x = rng.random_range(-cfg.extent..=cfg.extent);
@@ -310,7 +345,8 @@ fn layout(cfg: &GeneratorConfig, n: usize, rng: &mut ChaCha8Rng) -> Option<(Vec<
             let ok = objects.iter().all(|o| {
                 let dx = o.position.x - x;
                 let dy = o.position.y - y;
-                (dx * dx + dy * dy).sqrt() >= reach(o.shape, o.radius) + reach(shape, radius) + cfg.min_gap
+                (dx * dx + dy * dy).sqrt()
+                    >= reach(o.shape, o.radius) + reach(shape, radius) + cfg.min_gap
             });
             if ok {
                 placed = Some((x, y));
@@ -346,7 +382,9 @@ pub fn generate_scene(cfg: &GeneratorConfig, seed: u64, split: &str, index: u64)
     let light = lighting(cfg, &mut rng);
     let size = cfg.image_size;
     // Visibility threshold scales with image area (the configured value is for 64×64).
-    let min_px = ((cfg.min_visible_pixels as f64) * (size as f64 / 64.0).powi(2)).ceil().max(1.0) as usize;
+    let min_px = ((cfg.min_visible_pixels as f64) * (size as f64 / 64.0).powi(2))
+        .ceil()
+        .max(1.0) as usize;
     for _attempt in 0..200 {
         let Some((objects, meta)) = layout(cfg, n, &mut rng) else {
             continue;

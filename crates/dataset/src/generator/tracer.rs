@@ -96,7 +96,10 @@ impl Object {
                 let (mut tmin, mut tmax) = (f64::NEG_INFINITY, f64::INFINITY);
                 let mut axis_in = 0;
                 let mut sign_in = 0.0;
-                for (a, (oo, dd)) in [(lo.x, ld.x), (lo.y, ld.y), (lo.z, ld.z)].into_iter().enumerate() {
+                for (a, (oo, dd)) in [(lo.x, ld.x), (lo.y, ld.y), (lo.z, ld.z)]
+                    .into_iter()
+                    .enumerate()
+                {
                     if dd.abs() < 1e-15 {
                         if oo.abs() > self.radius {
                             return None;
@@ -105,7 +108,11 @@ impl Object {
                     }
                     let t1 = (-self.radius - oo) / dd;
                     let t2 = (self.radius - oo) / dd;
-                    let (near, far, sign) = if t1 < t2 { (t1, t2, -1.0) } else { (t2, t1, 1.0) };
+                    let (near, far, sign) = if t1 < t2 {
+                        (t1, t2, -1.0)
+                    } else {
+                        (t2, t1, 1.0)
+                    };
                     if near > tmin {
                         tmin = near;
                         axis_in = a;
@@ -169,14 +176,14 @@ impl World {
     fn nearest(&self, o: Vec3, d: Vec3) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         for (i, obj) in self.objects.iter().enumerate() {
-            if let Some((t, normal)) = obj.intersect(o, d) {
-                if best.is_none_or(|b| t < b.t) {
-                    best = Some(Hit {
-                        t,
-                        normal,
-                        object: Some(i),
-                    });
-                }
+            if let Some((t, normal)) = obj.intersect(o, d)
+                && best.is_none_or(|b| t < b.t)
+            {
+                best = Some(Hit {
+                    t,
+                    normal,
+                    object: Some(i),
+                });
             }
         }
         if d.z < -1e-12 {
@@ -218,7 +225,11 @@ impl World {
         let n = hit.normal;
         let p_off = p + n * 1e-6;
         let lambert = n.dot(lt.direction).max(0.0);
-        let lit = if lambert > 0.0 && !self.in_shadow(p_off) { 1.0 } else { 0.0 };
+        let lit = if lambert > 0.0 && !self.in_shadow(p_off) {
+            1.0
+        } else {
+            0.0
+        };
         let Some(k) = hit.object else {
             // Floor: a soft radial fall-off keeps it from being one flat colour.
             let falloff = 1.0 / (1.0 + 0.004 * (p.x * p.x + p.y * p.y));

@@ -6,7 +6,9 @@ use arrow::array::{ArrayRef, Int32Array, RecordBatch, UInt64Array};
 use arrow::datatypes::{DataType, Field, Schema};
 use object_store::ObjectStoreExt;
 use osrt_dataset::schema::{VERSION_KEY, scenes_to_batch};
-use osrt_dataset::{Columns, DatasetError, Location, Scene, SplitReader, SplitWriter, WriterOptions};
+use osrt_dataset::{
+    Columns, DatasetError, Location, Scene, SplitReader, SplitWriter, WriterOptions,
+};
 use parquet::arrow::ArrowWriter;
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
@@ -14,7 +16,9 @@ use std::sync::Arc;
 
 fn parquet_bytes(batch: &RecordBatch, version: Option<&str>) -> Vec<u8> {
     let props = WriterProperties::builder()
-        .set_key_value_metadata(version.map(|v| vec![KeyValue::new(VERSION_KEY.into(), v.to_string())]))
+        .set_key_value_metadata(
+            version.map(|v| vec![KeyValue::new(VERSION_KEY.into(), v.to_string())]),
+        )
         .build();
     let mut buf = Vec::new();
     let mut w = ArrowWriter::try_new(&mut buf, batch.schema(), Some(props)).unwrap();
@@ -26,13 +30,22 @@ fn parquet_bytes(batch: &RecordBatch, version: Option<&str>) -> Vec<u8> {
 /// Puts one file into a fresh split and returns the error of reading the split back.
 async fn read_error(name: &str, bytes: Vec<u8>) -> String {
     let loc = Location::parse(&format!("memory://bad-{name}/train")).unwrap();
-    loc.store.put(&loc.path("part-00000.parquet"), bytes.into()).await.unwrap();
+    loc.store
+        .put(&loc.path("part-00000.parquet"), bytes.into())
+        .await
+        .unwrap();
     let err = match SplitReader::open(loc).await {
         Err(e) => e,
-        Ok(r) => r.read_all(Columns::ALL).await.expect_err("reading must fail"),
+        Ok(r) => r
+            .read_all(Columns::ALL)
+            .await
+            .expect_err("reading must fail"),
     };
     let msg = err.to_string();
-    assert!(msg.contains(&format!("memory://bad-{name}/train")), "error must name the file: {msg}");
+    assert!(
+        msg.contains(&format!("memory://bad-{name}/train")),
+        "error must name the file: {msg}"
+    );
     msg
 }
 
@@ -44,7 +57,10 @@ fn good_bytes(scenes: &[Scene]) -> Vec<u8> {
 async fn truncated_file() {
     let bytes = good_bytes(&tiny_scenes(2, 8));
     let msg = read_error("truncated", bytes[..bytes.len() / 2].to_vec()).await;
-    assert!(msg.contains("part-00000.parquet") && msg.contains("Parquet error"), "{msg}");
+    assert!(
+        msg.contains("part-00000.parquet") && msg.contains("Parquet error"),
+        "{msg}"
+    );
 }
 
 #[tokio::test]
@@ -64,8 +80,15 @@ async fn corrupt_file() {
         *b ^= 0xff;
     }
     let loc = Location::parse("memory://bad-corrupt-middle/train").unwrap();
-    loc.store.put(&loc.path("part-00000.parquet"), bytes.into()).await.unwrap();
-    let got = SplitReader::open(loc).await.unwrap().read_all(Columns::ALL).await;
+    loc.store
+        .put(&loc.path("part-00000.parquet"), bytes.into())
+        .await
+        .unwrap();
+    let got = SplitReader::open(loc)
+        .await
+        .unwrap()
+        .read_all(Columns::ALL)
+        .await;
     match got {
         Err(e) => assert!(e.to_string().contains("part-00000.parquet"), "{e}"),
         // A flipped byte inside raw image bytes can decode fine; it must then still be a
@@ -77,9 +100,16 @@ async fn corrupt_file() {
 #[tokio::test]
 async fn file_of_another_schema() {
     let schema = Arc::new(Schema::new(vec![Field::new("x", DataType::Int32, false)]));
-    let batch = RecordBatch::try_new(schema, vec![Arc::new(Int32Array::from(vec![1, 2])) as ArrayRef]).unwrap();
+    let batch = RecordBatch::try_new(
+        schema,
+        vec![Arc::new(Int32Array::from(vec![1, 2])) as ArrayRef],
+    )
+    .unwrap();
     let msg = read_error("schema", parquet_bytes(&batch, Some("1"))).await;
-    assert!(msg.contains("not an osrt scene file") && msg.contains("missing column `scene_id`"), "{msg}");
+    assert!(
+        msg.contains("not an osrt scene file") && msg.contains("missing column `scene_id`"),
+        "{msg}"
+    );
     // Without our version key it is refused before the columns are even looked at.
     let msg = read_error("nokey", parquet_bytes(&batch, None)).await;
     assert!(msg.contains(VERSION_KEY), "{msg}");
@@ -89,21 +119,36 @@ async fn file_of_another_schema() {
 async fn file_of_another_version() {
     let batch = scenes_to_batch(&tiny_scenes(1, 8)).unwrap();
     let msg = read_error("version", parquet_bytes(&batch, Some("99"))).await;
-    assert!(msg.contains("schema version 99") && msg.contains("reads version 1"), "{msg}");
+    assert!(
+        msg.contains("schema version 99") && msg.contains("reads version 1"),
+        "{msg}"
+    );
 }
 
 #[tokio::test]
 async fn missing_column() {
     // A scene file whose views lack `intrinsics`.
     let batch = scenes_to_batch(&tiny_scenes(1, 8)).unwrap();
-    let views = batch.column_by_name("views").unwrap().as_any().downcast_ref::<arrow::array::ListArray>().unwrap();
-    let s = views.values().as_any().downcast_ref::<arrow::array::StructArray>().unwrap();
-    let keep: Vec<usize> = (0..s.num_columns()).filter(|&i| s.fields()[i].name() != "intrinsics").collect();
+    let views = batch
+        .column_by_name("views")
+        .unwrap()
+        .as_any()
+        .downcast_ref::<arrow::array::ListArray>()
+        .unwrap();
+    let s = views
+        .values()
+        .as_any()
+        .downcast_ref::<arrow::array::StructArray>()
+        .unwrap();
+    let keep: Vec<usize> = (0..s.num_columns())
+        .filter(|&i| s.fields()[i].name() != "intrinsics")
+        .collect();
     let fields: arrow::datatypes::Fields = keep.iter().map(|&i| s.fields()[i].clone()).collect();
     let cols: Vec<ArrayRef> = keep.iter().map(|&i| s.column(i).clone()).collect();
     let s2 = arrow::array::StructArray::new(fields.clone(), cols, None);
     let item = Arc::new(Field::new("element", DataType::Struct(fields), false));
-    let l2 = arrow::array::ListArray::new(item.clone(), views.offsets().clone(), Arc::new(s2), None);
+    let l2 =
+        arrow::array::ListArray::new(item.clone(), views.offsets().clone(), Arc::new(s2), None);
     let schema = Arc::new(Schema::new(vec![
         Field::new("scene_id", DataType::UInt64, false),
         Field::new("views", DataType::List(item), false),
@@ -120,11 +165,27 @@ async fn image_of_the_wrong_length() {
     scenes[1].id = 41;
     scenes[1].views[2].image.truncate(100);
     let msg = read_error("imagelen", good_bytes(&scenes)).await;
-    assert!(msg.contains("scene 41, view 2") && msg.contains("image has 100 bytes, expected 192"), "{msg}");
+    assert!(
+        msg.contains("scene 41, view 2") && msg.contains("image has 100 bytes, expected 192"),
+        "{msg}"
+    );
     // The writer refuses it in the first place.
-    let mut w = SplitWriter::new(Location::parse("memory://bad-imagelen-w/train").unwrap(), WriterOptions::default());
+    let mut w = SplitWriter::new(
+        Location::parse("memory://bad-imagelen-w/train").unwrap(),
+        WriterOptions::default(),
+    );
     let e = w.push(scenes).await.unwrap_err();
-    assert!(matches!(e, DatasetError::InvalidView { scene_id: 41, view: 2, .. }), "{e}");
+    assert!(
+        matches!(
+            e,
+            DatasetError::InvalidView {
+                scene_id: 41,
+                view: 2,
+                ..
+            }
+        ),
+        "{e}"
+    );
 }
 
 #[tokio::test]
@@ -133,7 +194,10 @@ async fn non_finite_and_degenerate_cameras() {
     scenes[0].id = 7;
     scenes[0].views[1].camera.position[0] = f32::INFINITY;
     let msg = read_error("nonfinite", good_bytes(&scenes)).await;
-    assert!(msg.contains("scene 7, view 1") && msg.contains("non-finite"), "{msg}");
+    assert!(
+        msg.contains("scene 7, view 1") && msg.contains("non-finite"),
+        "{msg}"
+    );
 
     let mut scenes = tiny_scenes(1, 8);
     // A zero forward axis: no viewing direction.
@@ -141,7 +205,10 @@ async fn non_finite_and_degenerate_cameras() {
         row[2] = 0.0;
     }
     let msg = read_error("zerodir", good_bytes(&scenes)).await;
-    assert!(msg.contains("view 0") && msg.contains("not orthonormal"), "{msg}");
+    assert!(
+        msg.contains("view 0") && msg.contains("not orthonormal"),
+        "{msg}"
+    );
 
     let mut scenes = tiny_scenes(1, 8);
     scenes[0].views[0].camera.rotation[0][0] *= 1.5;
@@ -159,12 +226,25 @@ async fn empty_split() {
     // A file with zero scenes.
     let batch = scenes_to_batch(&[]).unwrap();
     let loc = Location::parse("memory://bad-empty-rows/train").unwrap();
-    loc.store.put(&loc.path("part-00000.parquet"), parquet_bytes(&batch, Some("1")).into()).await.unwrap();
-    let e = SplitReader::open(loc).await.unwrap().row_groups().await.unwrap_err();
+    loc.store
+        .put(
+            &loc.path("part-00000.parquet"),
+            parquet_bytes(&batch, Some("1")).into(),
+        )
+        .await
+        .unwrap();
+    let e = SplitReader::open(loc)
+        .await
+        .unwrap()
+        .row_groups()
+        .await
+        .unwrap_err();
     assert!(matches!(e, DatasetError::EmptySplit { .. }), "{e}");
     // A local directory without the split folder.
     let dir = tempfile::tempdir().unwrap();
-    let e = SplitReader::open(Location::parse(dir.path().join("val").to_str().unwrap()).unwrap()).await.unwrap_err();
+    let e = SplitReader::open(Location::parse(dir.path().join("val").to_str().unwrap()).unwrap())
+        .await
+        .unwrap_err();
     assert!(e.to_string().contains("is empty"), "{e}");
 }
 
@@ -179,7 +259,19 @@ async fn scene_without_views() {
 #[tokio::test]
 async fn bad_manifest() {
     let loc = Location::parse("memory://bad-manifest/ds").unwrap();
-    loc.store.put(&loc.path("manifest.json"), bytes::Bytes::from_static(b"{\"schema_version\": 1").into()).await.unwrap();
-    let e = osrt_dataset::Manifest::read(&loc).await.unwrap_err().to_string();
-    assert!(e.contains("manifest memory://bad-manifest/ds/manifest.json"), "{e}");
+    loc.store
+        .put(
+            &loc.path("manifest.json"),
+            bytes::Bytes::from_static(b"{\"schema_version\": 1").into(),
+        )
+        .await
+        .unwrap();
+    let e = osrt_dataset::Manifest::read(&loc)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("manifest memory://bad-manifest/ds/manifest.json"),
+        "{e}"
+    );
 }

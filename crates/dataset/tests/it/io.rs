@@ -1,10 +1,17 @@
 //! Write/read round trips, projection, row groups.
 
 use crate::tiny_scenes;
-use osrt_dataset::{Columns, Location, ReadStats, RowGroupRef, SplitReader, SplitWriter, WriterOptions};
+use osrt_dataset::{
+    Columns, Location, ReadStats, RowGroupRef, SplitReader, SplitWriter, WriterOptions,
+};
 use std::sync::Arc;
 
-async fn write(loc: &Location, scenes: Vec<osrt_dataset::Scene>, per_rg: usize, rg_per_file: usize) {
+async fn write(
+    loc: &Location,
+    scenes: Vec<osrt_dataset::Scene>,
+    per_rg: usize,
+    rg_per_file: usize,
+) {
     let mut w = SplitWriter::new(
         loc.clone(),
         WriterOptions {
@@ -21,7 +28,12 @@ async fn round_trip_in_memory() {
     let scenes = tiny_scenes(5, 16);
     let loc = Location::parse("memory://io-roundtrip/train").unwrap();
     write(&loc, scenes.clone(), 2, 8).await;
-    let back = SplitReader::open(loc).await.unwrap().read_all(Columns::ALL).await.unwrap();
+    let back = SplitReader::open(loc)
+        .await
+        .unwrap()
+        .read_all(Columns::ALL)
+        .await
+        .unwrap();
     assert_eq!(back, scenes);
 }
 
@@ -69,8 +81,15 @@ async fn row_groups_are_listed_and_read_one_at_a_time() {
     assert_eq!(last, vec![scenes[9].clone()]);
     let third = r.read_row_group(&rgs[2], Columns::ALL).await.unwrap();
     assert_eq!(third, scenes[6..9].to_vec());
-    let err = r.read_row_group(&rg("part-00001.parquet", 5, 1), Columns::ALL).await.unwrap_err();
-    assert!(err.to_string().contains("row group 5 requested, the file has 2"), "{err}");
+    let err = r
+        .read_row_group(&rg("part-00001.parquet", 5, 1), Columns::ALL)
+        .await
+        .unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("row group 5 requested, the file has 2"),
+        "{err}"
+    );
 }
 
 #[tokio::test]
@@ -86,15 +105,25 @@ async fn projection_skips_mask_and_object_bytes() {
         let rg = rg.clone();
         async move {
             let stats = Arc::new(ReadStats::default());
-            let s = r.read_row_group_with_stats(&rg, cols, stats.clone()).await.unwrap();
+            let s = r
+                .read_row_group_with_stats(&rg, cols, stats.clone())
+                .await
+                .unwrap();
             (s, stats.bytes())
         }
     };
     let (with, bytes_with) = read(Columns::ALL).await;
     let (without, bytes_without) = read(Columns::TRAIN).await;
-    assert!(with.iter().all(|s| s.views.iter().all(|v| v.mask.is_some())));
+    assert!(
+        with.iter()
+            .all(|s| s.views.iter().all(|v| v.mask.is_some()))
+    );
     assert!(with.iter().all(|s| s.objects.is_some()));
-    assert!(without.iter().all(|s| s.views.iter().all(|v| v.mask.is_none())));
+    assert!(
+        without
+            .iter()
+            .all(|s| s.views.iter().all(|v| v.mask.is_none()))
+    );
     assert!(without.iter().all(|s| s.objects.is_none()));
     for (a, b) in with.iter().zip(&without) {
         assert_eq!(a.views.len(), b.views.len());
@@ -111,7 +140,8 @@ async fn projection_skips_mask_and_object_bytes() {
         .unwrap();
     let meta = parquet::file::serialized_reader::SerializedFileReader::new(file).unwrap();
     let md = parquet::file::reader::FileReader::metadata(&meta);
-    let mask_bytes: i64 = md.row_group(0)
+    let mask_bytes: i64 = md
+        .row_group(0)
         .columns()
         .iter()
         .filter(|c| c.column_path().string().ends_with("mask"))
@@ -159,7 +189,10 @@ async fn rays_and_batches_from_read_scenes() {
     let mut rng2 = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     assert_eq!(build_batch(&refs, &cfg, &mut rng2).unwrap(), b);
     let mut rng3 = rand_chacha::ChaCha8Rng::seed_from_u64(4);
-    assert_ne!(build_batch(&refs, &cfg, &mut rng3).unwrap().target_pixels, b.target_pixels);
+    assert_ne!(
+        build_batch(&refs, &cfg, &mut rng3).unwrap().target_pixels,
+        b.target_pixels
+    );
 
     // Whole-view evaluation batches take every pixel of the non-input views, in order.
     let eval = BatchConfig {
@@ -175,7 +208,12 @@ async fn rays_and_batches_from_read_scenes() {
     assert_eq!(e.target_pixels[64], (2, 0));
 
     // Too many rays is a clear error, not padding.
-    let too_many = BatchConfig { rays_per_scene: Some(10_000), ..cfg };
-    let err = build_batch(&refs, &too_many, &mut rng).unwrap_err().to_string();
+    let too_many = BatchConfig {
+        rays_per_scene: Some(10_000),
+        ..cfg
+    };
+    let err = build_batch(&refs, &too_many, &mut rng)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("10000 target rays requested"), "{err}");
 }

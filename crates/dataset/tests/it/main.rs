@@ -18,5 +18,7 @@ pub fn tiny_config(size: u32) -> GeneratorConfig {
 
 pub fn tiny_scenes(n: u64, size: u32) -> Vec<Scene> {
     let cfg = tiny_config(size);
-    (0..n).map(|i| generate_scene(&cfg, 7, "test", i).unwrap()).collect()
+    (0..n)
+        .map(|i| generate_scene(&cfg, 7, "test", i).unwrap())
+        .collect()
 }
