@@ -1,0 +1,255 @@
+//! Building blocks shared by the paper components: a LayerNorm whose backward exists,
+//! linear layers with PyTorch's default initialisation, MLPs, multi-head attention and
+//! pre-norm transformer blocks (self- and cross-attention).
+//!
+//! candle's fused `layer_norm` and `softmax_last_dim` have no backward pass and fail
+//! silently (their parameters never train), so everything here is composed from ops that
+//! do: `candle_nn::ops::softmax` and the LayerNorm below.
+
+use candle_core::{D, Module, Result, Tensor};
+use candle_nn::{Init, Linear, VarBuilder};
+use serde::{Deserialize, Serialize};
+
+/// Linear layer with PyTorch's default init: weight and bias ~ U(−1/√in, 1/√in).
+pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Result<Linear> {
+    let bound = 1.0 / (in_dim as f64).sqrt();
+    let init = Init::Uniform {
+        lo: -bound,
+        up: bound,
+    };
+    let w = vb.get_with_hints((out_dim, in_dim), "weight", init)?;
+    let b = if bias {
+        Some(vb.get_with_hints(out_dim, "bias", init)?)
+    } else {
+        None
+    };
+    Ok(Linear::new(w, b))
+}
+
+/// LayerNorm over the last dimension, composed from differentiable ops. Safe on constant
+/// input: the centred values are exactly 0, and ε keeps the divisor positive.
+#[derive(Debug, Clone)]
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm {
+    pub fn new(dim: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get_with_hints(dim, "weight", Init::Const(1.0))?,
+            bias: vb.get_with_hints(dim, "bias", Init::Const(0.0))?,
+            eps: 1e-5,
+        })
+    }
+}
+
+impl Module for LayerNorm {
+    /// `[.., d] → [.., d]`
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mean = x.mean_keepdim(D::Minus1)?;
+        let centred = x.broadcast_sub(&mean)?;
+        let var = centred.sqr()?.mean_keepdim(D::Minus1)?;
+        let normed = centred.broadcast_div(&(var + self.eps)?.sqrt()?)?;
+        normed
+            .broadcast_mul(&self.weight)?
+            .broadcast_add(&self.bias)
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Activation {
+    Relu,
+    Gelu,
+    LeakyRelu,
+}
+
+impl Activation {
+    pub fn apply(self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Activation::Relu => x.relu(),
+            // erf-based GELU, as in the reference transformer.
+            Activation::Gelu => x.gelu_erf(),
+            Activation::LeakyRelu => {
+                // max(x, 0.01·x): differentiable through candle's maximum.
+                x.maximum(&(x * 0.01)?)
+            }
+        }
+    }
+}
+
+/// `Linear → act → … → Linear` (no activation after the last layer).
+#[derive(Debug, Clone)]
+pub struct Mlp {
+    layers: Vec<Linear>,
+    act: Activation,
+}
+
+impl Mlp {
+    /// `dims = [in, hidden…, out]`.
+    pub fn new(dims: &[usize], act: Activation, bias: bool, vb: VarBuilder) -> Result<Self> {
+        let layers = dims
+            .windows(2)
+            .enumerate()
+            .map(|(i, w)| linear(w[0], w[1], bias, vb.pp(i.to_string())))
+            .collect::<Result<_>>()?;
+        Ok(Self { layers, act })
+    }
+}
+
+impl Module for Mlp {
+    /// `[.., in] → [.., out]`
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mut h = x.clone();
+        for (i, l) in self.layers.iter().enumerate() {
+            h = l.forward(&h)?;
+            if i + 1 < self.layers.len() {
+                h = self.act.apply(&h)?;
+            }
+        }
+        Ok(h)
+    }
+}
+
+/// Multi-head scaled dot-product attention: bias-free q/k/v projections and an output
+/// projection with bias (as in SRT). Queries and keys/values may have different widths.
+#[derive(Debug, Clone)]
+pub struct Attention {
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    out: Linear,
+    heads: usize,
+    head_dim: usize,
+}
+
+impl Attention {
+    pub fn new(
+        q_dim: usize,
+        kv_dim: usize,
+        heads: usize,
+        head_dim: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let inner = heads * head_dim;
+        Ok(Self {
+            q: linear(q_dim, inner, false, vb.pp("q"))?,
+            k: linear(kv_dim, inner, false, vb.pp("k"))?,
+            v: linear(kv_dim, inner, false, vb.pp("v"))?,
+            out: linear(inner, q_dim, true, vb.pp("out"))?,
+            heads,
+            head_dim,
+        })
+    }
+
+    /// # Shapes
+    /// `x: [b, n, q_dim]`, `ctx: [b, m, kv_dim]` → `[b, n, q_dim]`
+    pub fn forward(&self, x: &Tensor, ctx: &Tensor) -> Result<Tensor> {
+        let (b, n, _) = x.dims3()?;
+        let m = ctx.dim(1)?;
+        let split = |t: Tensor, len: usize| -> Result<Tensor> {
+            // [b, len, h·dh] → [b·h, len, dh]
+            t.reshape((b, len, self.heads, self.head_dim))?
+                .transpose(1, 2)?
+                .reshape((b * self.heads, len, self.head_dim))
+        };
+        let q = split(self.q.forward(x)?, n)?;
+        let k = split(self.k.forward(ctx)?, m)?;
+        let v = split(self.v.forward(ctx)?, m)?;
+        let scale = 1.0 / (self.head_dim as f64).sqrt();
+        let logits = (q.matmul(&k.t()?)? * scale)?; // [b·h, n, m]
+        let attn = candle_nn::ops::softmax(&logits, D::Minus1)?;
+        let o = attn.matmul(&v)?; // [b·h, n, dh]
+        let o = o
+            .reshape((b, self.heads, n, self.head_dim))?
+            .transpose(1, 2)?
+            .reshape((b, n, self.heads * self.head_dim))?;
+        self.out.forward(&o)
+    }
+}
+
+/// Sizes of a transformer stack.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TransformerConfig {
+    pub layers: usize,
+    pub heads: usize,
+    pub head_dim: usize,
+    pub mlp_hidden: usize,
+}
+
+/// Pre-LayerNorm block: `x + Attn(LN(x), ctx)`, then `x + MLP(LN(x))`. With `ctx = None`
+/// it is self-attention; otherwise the queries cross-attend into `ctx`, and only the
+/// queries are normalised (the context — slots — arrives normalised by its producer).
+#[derive(Debug, Clone)]
+pub struct Block {
+    norm_attn: LayerNorm,
+    attn: Attention,
+    norm_mlp: LayerNorm,
+    mlp: Mlp,
+}
+
+impl Block {
+    pub fn new(
+        dim: usize,
+        ctx_dim: usize,
+        cfg: &TransformerConfig,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        Ok(Self {
+            norm_attn: LayerNorm::new(dim, vb.pp("norm_attn"))?,
+            attn: Attention::new(dim, ctx_dim, cfg.heads, cfg.head_dim, vb.pp("attn"))?,
+            norm_mlp: LayerNorm::new(dim, vb.pp("norm_mlp"))?,
+            mlp: Mlp::new(
+                &[dim, cfg.mlp_hidden, dim],
+                Activation::Gelu,
+                true,
+                vb.pp("mlp"),
+            )?,
+        })
+    }
+
+    /// # Shapes
+    /// `x: [b, n, dim]`, `ctx: [b, m, ctx_dim]` (or `None`) → `[b, n, dim]`
+    pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        let h = self.norm_attn.forward(x)?;
+        let a = match ctx {
+            Some(c) => self.attn.forward(&h, c)?,
+            None => self.attn.forward(&h, &h)?,
+        };
+        let x = (x + a)?;
+        let m = self.mlp.forward(&self.norm_mlp.forward(&x)?)?;
+        x + m
+    }
+}
+
+/// A stack of [`Block`]s.
+#[derive(Debug, Clone)]
+pub struct Transformer {
+    blocks: Vec<Block>,
+}
+
+impl Transformer {
+    pub fn new(
+        dim: usize,
+        ctx_dim: usize,
+        cfg: &TransformerConfig,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let blocks = (0..cfg.layers)
+            .map(|i| Block::new(dim, ctx_dim, cfg, vb.pp(i.to_string())))
+            .collect::<Result<_>>()?;
+        Ok(Self { blocks })
+    }
+
+    /// # Shapes
+    /// `x: [b, n, dim]`, `ctx: [b, m, ctx_dim]` (or `None`) → `[b, n, dim]`
+    pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        let mut h = x.clone();
+        for b in &self.blocks {
+            h = b.forward(&h, ctx)?;
+        }
+        Ok(h)
+    }
+}

@@ -1,0 +1,435 @@
+//! Model-level tests: parameter counts, gradient flow, finite-difference gradient checks
+//! (in f64) and extreme inputs.
+
+use crate::decoder::{self, DecoderOutput};
+use crate::nn::{Block, TransformerConfig};
+use crate::params::{Params, normal_samples};
+use crate::ray_encoding::RayEncoding;
+use crate::slot_attention::{SlotAttention, SlotInit};
+use crate::{Config, Osrt, add_slot, drop_slot};
+use candle_core::{DType, Device, Result, Tensor, Var};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const CPU: Device = Device::Cpu;
+
+fn randn(shape: &[usize], seed: u64, dtype: DType) -> Tensor {
+    let n = shape.iter().product();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    Tensor::from_vec(normal_samples(&mut rng, n), shape, &CPU)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap()
+}
+
+/// Inputs of a small scene batch: images in [0,1], camera rays looking at the origin.
+struct Inputs {
+    images: Tensor,
+    origins: Tensor,
+    dirs: Tensor,
+    t_origins: Tensor,
+    t_dirs: Tensor,
+    target: Tensor,
+}
+
+fn unit_dirs(shape: &[usize], seed: u64, dtype: DType) -> Tensor {
+    let d = randn(shape, seed, DType::F64);
+    let n = d
+        .sqr()
+        .unwrap()
+        .sum_keepdim(candle_core::D::Minus1)
+        .unwrap()
+        .sqrt()
+        .unwrap();
+    d.broadcast_div(&n).unwrap().to_dtype(dtype).unwrap()
+}
+
+fn inputs(b: usize, v: usize, hw: usize, r: usize, cam_dist: f64, dtype: DType) -> Inputs {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let img: Vec<f32> = (0..b * v * hw * hw * 3).map(|_| rng.random()).collect();
+    let images = Tensor::from_vec(img, (b, v, hw, hw, 3), &CPU)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap();
+    let origins = (unit_dirs(&[b, v, hw, hw, 3], 1, DType::F64) * cam_dist)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap();
+    let t_origins = (unit_dirs(&[b, r, 3], 2, DType::F64) * cam_dist)
+        .unwrap()
+        .to_dtype(dtype)
+        .unwrap();
+    let tgt: Vec<f32> = (0..b * r * 3).map(|_| rng.random()).collect();
+    Inputs {
+        images,
+        origins,
+        dirs: unit_dirs(&[b, v, hw, hw, 3], 3, dtype),
+        t_origins,
+        t_dirs: unit_dirs(&[b, r, 3], 4, dtype),
+        target: Tensor::from_vec(tgt, (b, r, 3), &CPU)
+            .unwrap()
+            .to_dtype(dtype)
+            .unwrap(),
+    }
+}
+
+fn noise(cfg: &Config, b: usize, dtype: DType) -> Option<Tensor> {
+    (cfg.slot_attention.init == SlotInit::Random).then(|| {
+        randn(
+            &[b, cfg.slot_attention.num_slots, cfg.slot_attention.slot_dim],
+            5,
+            dtype,
+        )
+    })
+}
+
+fn run(model: &Osrt, x: &Inputs) -> Result<(DecoderOutput, Tensor)> {
+    let slots = model.encode(
+        &x.images,
+        &x.origins,
+        &x.dirs,
+        noise(&model.cfg, x.images.dim(0)?, x.images.dtype()).as_ref(),
+    )?;
+    let out = model.decode(&slots.slots, &x.t_origins, &x.t_dirs)?;
+    let loss = (&out.rgb - &x.target)?.sqr()?.mean_all()?;
+    Ok((out, loss))
+}
+
+fn decoder_variants(base: Config) -> Vec<(String, Config)> {
+    let mut out = Vec::new();
+    for kind in ["slot_mixer", "spatial_broadcast", "transformer"] {
+        for init in [SlotInit::Learned, SlotInit::Random] {
+            let mut c = base.clone().with_decoder(kind).unwrap();
+            c.slot_attention.init = init;
+            out.push((format!("{kind}/{init:?}"), c));
+        }
+    }
+    out
+}
+
+#[test]
+fn paper_preset_has_the_papers_parameter_count() {
+    let p = Params::new(0);
+    Osrt::new(&Config::paper(), p.var_builder(&CPU)).unwrap();
+    let n = p.num_elements() as f64;
+    let paper = 81e6;
+    eprintln!("paper preset: {n} parameters");
+    assert!(
+        (n - paper).abs() / paper < 0.03,
+        "paper preset has {n} parameters, expected 81 M ± 3%"
+    );
+}
+
+#[test]
+fn every_parameter_of_every_variant_gets_a_gradient() {
+    for (name, cfg) in decoder_variants(Config::tiny()) {
+        let p = Params::new(1);
+        let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+        let x = inputs(2, 2, 4, 5, 3.0, DType::F32);
+        let (_, loss) = run(&model, &x).unwrap();
+        let grads = loss.backward().unwrap();
+        for (pname, var) in p.vars() {
+            let g = grads
+                .get(var.as_tensor())
+                .unwrap_or_else(|| panic!("{name}: `{pname}` has no gradient"));
+            let v = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert!(
+                v.iter().all(|x| x.is_finite()),
+                "{name}: `{pname}` has a non-finite gradient"
+            );
+            assert!(
+                v.iter().any(|&x| x != 0.0),
+                "{name}: `{pname}` has an all-zero gradient"
+            );
+        }
+    }
+}
+
+/// Compares autograd with central differences on a few entries of every variable.
+fn gradcheck(vars: &[(String, Var)], f: &dyn Fn() -> Result<Tensor>, per_var: usize) {
+    let loss = f().unwrap();
+    let grads = loss.backward().unwrap();
+    let h = 1e-6;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for (name, var) in vars {
+        let g = grads
+            .get(var.as_tensor())
+            .unwrap_or_else(|| panic!("`{name}` has no gradient"));
+        let g = g.flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        let base = var
+            .as_tensor()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f64>()
+            .unwrap();
+        for _ in 0..per_var.min(base.len()) {
+            let i = rng.random_range(0..base.len());
+            let eval = |delta: f64| {
+                let mut v = base.clone();
+                v[i] += delta;
+                var.set(&Tensor::from_vec(v, var.shape(), &CPU).unwrap())
+                    .unwrap();
+                f().unwrap().to_scalar::<f64>().unwrap()
+            };
+            let numeric = (eval(h) - eval(-h)) / (2.0 * h);
+            var.set(&Tensor::from_vec(base.clone(), var.shape(), &CPU).unwrap())
+                .unwrap();
+            let tol = 1e-5 + 1e-4 * numeric.abs().max(g[i].abs());
+            assert!(
+                (numeric - g[i]).abs() <= tol,
+                "`{name}`[{i}]: autograd {} vs finite difference {numeric}",
+                g[i]
+            );
+        }
+    }
+}
+
+#[test]
+fn gradcheck_ray_encoding() {
+    let enc = RayEncoding::new(Config::tiny().ray_encoding, DType::F64, &CPU).unwrap();
+    let o = Var::from_tensor(&randn(&[2, 3, 3], 1, DType::F64)).unwrap();
+    let d = Var::from_tensor(&unit_dirs(&[2, 3, 3], 2, DType::F64)).unwrap();
+    let w = randn(&[2, 3, enc.dim()], 3, DType::F64);
+    let f = || {
+        enc.forward(o.as_tensor(), d.as_tensor())?
+            .mul(&w)?
+            .sum_all()
+    };
+    gradcheck(
+        &[
+            ("origins".into(), o.clone()),
+            ("directions".into(), d.clone()),
+        ],
+        &f,
+        6,
+    );
+}
+
+#[test]
+fn gradcheck_encoder_block() {
+    let p = Params::new(2);
+    let cfg = TransformerConfig {
+        layers: 1,
+        heads: 2,
+        head_dim: 3,
+        mlp_hidden: 7,
+    };
+    let block = Block::new(6, 6, &cfg, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
+    let x = randn(&[2, 4, 6], 4, DType::F64);
+    let w = randn(&[2, 4, 6], 5, DType::F64);
+    let f = || block.forward(&x, None)?.mul(&w)?.sum_all();
+    gradcheck(&p.vars(), &f, 4);
+}
+
+#[test]
+fn gradcheck_slot_attention() {
+    for init in [SlotInit::Learned, SlotInit::Random] {
+        let p = Params::new(3);
+        let mut cfg = Config::tiny().slot_attention;
+        cfg.init = init;
+        let sa = SlotAttention::new(&cfg, 5, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
+        let x = randn(&[2, 6, 5], 6, DType::F64);
+        let z = randn(&[2, cfg.num_slots, cfg.slot_dim], 7, DType::F64);
+        let w = randn(&[2, cfg.num_slots, cfg.slot_dim], 8, DType::F64);
+        let f = || sa.forward(&x, Some(&z))?.slots.mul(&w)?.sum_all();
+        gradcheck(&p.vars(), &f, 3);
+    }
+}
+
+#[test]
+fn gradcheck_decoders_and_loss() {
+    // The full model (encoder, slot attention, each decoder) under the MSE loss.
+    for (name, cfg) in decoder_variants(Config::tiny()).into_iter().step_by(2) {
+        let p = Params::new(4);
+        let model = Osrt::new(&cfg, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
+        let x = inputs(1, 1, 4, 3, 2.0, DType::F64);
+        let f = || run(&model, &x).map(|(_, l)| l);
+        eprintln!("gradcheck {name}");
+        gradcheck(&p.vars(), &f, 2);
+    }
+}
+
+fn assert_sane(name: &str, out: &DecoderOutput, k: usize) {
+    let rgb = out.rgb.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    assert!(
+        rgb.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)),
+        "{name}: rgb out of [0,1] or non-finite"
+    );
+    if let Some(w) = &out.weights {
+        assert_eq!(w.dim(2).unwrap(), k);
+        let w = w.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(
+            w.iter().all(|v| v.is_finite() && *v >= 0.0),
+            "{name}: bad slot weights"
+        );
+    }
+}
+
+#[test]
+fn extreme_inputs_give_finite_outputs() {
+    for (name, cfg) in decoder_variants(Config::tiny()) {
+        let p = Params::new(5);
+        let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+        let k = cfg.slot_attention.num_slots;
+        let base = inputs(2, 2, 4, 5, 3.0, DType::F32);
+        // Black, white and constant images (a scene with zero objects is a constant one).
+        for fill in [0.0f32, 1.0, 0.37] {
+            let x = Inputs {
+                images: (base.images.zeros_like().unwrap() + fill as f64).unwrap(),
+                ..inputs(2, 2, 4, 5, 3.0, DType::F32)
+            };
+            assert_sane(
+                &format!("{name} fill {fill}"),
+                &run(&model, &x).unwrap().0,
+                k,
+            );
+        }
+        // Identical input tokens: one pixel repeated, same ray everywhere.
+        let one_ray = base
+            .origins
+            .narrow(2, 0, 1)
+            .unwrap()
+            .narrow(3, 0, 1)
+            .unwrap()
+            .broadcast_as(base.origins.shape())
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let one_dir = base
+            .dirs
+            .narrow(2, 0, 1)
+            .unwrap()
+            .narrow(3, 0, 1)
+            .unwrap()
+            .broadcast_as(base.dirs.shape())
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let x = Inputs {
+            origins: one_ray,
+            dirs: one_dir,
+            images: (base.images.zeros_like().unwrap() + 0.5).unwrap(),
+            ..inputs(2, 2, 4, 5, 3.0, DType::F32)
+        };
+        assert_sane(
+            &format!("{name} identical tokens"),
+            &run(&model, &x).unwrap().0,
+            k,
+        );
+        // Cameras very near and very far.
+        for dist in [1e-3, 1e4] {
+            assert_sane(
+                &format!("{name} camera at {dist}"),
+                &run(&model, &inputs(2, 2, 4, 5, dist, DType::F32))
+                    .unwrap()
+                    .0,
+                k,
+            );
+        }
+        // A single ray, batch of one.
+        assert_sane(
+            &format!("{name} single ray"),
+            &run(&model, &inputs(1, 1, 4, 1, 3.0, DType::F32)).unwrap().0,
+            k,
+        );
+    }
+}
+
+#[test]
+fn one_and_many_slots_and_huge_attention_logits() {
+    for slots in [1usize, 64] {
+        for (name, mut cfg) in decoder_variants(Config::tiny()) {
+            cfg.slot_attention.num_slots = slots;
+            let p = Params::new(6);
+            let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+            assert_sane(
+                &format!("{name} {slots} slots"),
+                &run(&model, &inputs(1, 1, 4, 3, 3.0, DType::F32)).unwrap().0,
+                slots,
+            );
+        }
+    }
+    // Attention logits ×1e4: scale every query projection by 1e4.
+    for (name, cfg) in decoder_variants(Config::tiny()) {
+        let p = Params::new(7);
+        let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+        for (pname, v) in p.vars() {
+            if pname.ends_with("q.weight")
+                || pname.ends_with("to_q.weight")
+                || pname.ends_with("mix_q.weight")
+            {
+                v.set(&(v.as_tensor() * 1e4).unwrap()).unwrap();
+            }
+        }
+        let x = inputs(2, 1, 4, 5, 3.0, DType::F32);
+        let (out, loss) = run(&model, &x).unwrap();
+        assert_sane(
+            &format!("{name} logits ×1e4"),
+            &out,
+            cfg.slot_attention.num_slots,
+        );
+        let grads = loss.backward().unwrap();
+        for (pname, v) in p.vars() {
+            if let Some(g) = grads.get(v.as_tensor()) {
+                let g = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                assert!(
+                    g.iter().all(|x| x.is_finite()),
+                    "{name}: `{pname}` gradient non-finite at logits ×1e4"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn initialisation_is_deterministic_and_order_independent() {
+    let a = Params::new(42);
+    Osrt::new(&Config::tiny(), a.var_builder(&CPU)).unwrap();
+    let b = Params::new(42);
+    Osrt::new(&Config::tiny(), b.var_builder(&CPU)).unwrap();
+    assert_eq!(a.flatten().unwrap(), b.flatten().unwrap());
+    let c = Params::new(43);
+    Osrt::new(&Config::tiny(), c.var_builder(&CPU)).unwrap();
+    assert_ne!(a.flatten().unwrap(), c.flatten().unwrap());
+    // Names are sorted: the flat order is fixed.
+    let names: Vec<String> = a.vars().into_iter().map(|(n, _)| n).collect();
+    let mut sorted = names.clone();
+    sorted.sort();
+    assert_eq!(names, sorted);
+    // Round trip through the flat buffer.
+    let flat = c.flatten().unwrap();
+    a.load_flat(&flat).unwrap();
+    assert_eq!(a.flatten().unwrap(), flat);
+}
+
+#[test]
+fn scene_editing_changes_the_slot_set() {
+    let p = Params::new(8);
+    let model = Osrt::new(&Config::tiny(), p.var_builder(&CPU)).unwrap();
+    let x = inputs(1, 1, 4, 6, 3.0, DType::F32);
+    let slots = model
+        .encode(&x.images, &x.origins, &x.dirs, None)
+        .unwrap()
+        .slots;
+    let dropped = drop_slot(&slots, 1).unwrap();
+    assert_eq!(dropped.dims(), &[1, 2, 8]);
+    let out = model.decode(&dropped, &x.t_origins, &x.t_dirs).unwrap();
+    assert_eq!(out.weights.unwrap().dims(), &[1, 6, 2]);
+    let added = add_slot(&slots, &dropped, 0).unwrap();
+    assert_eq!(added.dims(), &[1, 4, 8]);
+    assert!(drop_slot(&slots, 3).is_err());
+    assert!(add_slot(&slots, &dropped, 2).is_err());
+    let _ = decoder::Config::SlotMixer(decoder::slot_mixer::Config::paper());
+}
+
+#[test]
+fn cpu_preset_size() {
+    let p = Params::new(0);
+    Osrt::new(&Config::cpu(), p.var_builder(&CPU)).unwrap();
+    let n = p.num_elements();
+    eprintln!("cpu preset: {n} parameters");
+    assert!(
+        (500_000..3_000_000).contains(&n),
+        "cpu preset has {n} parameters"
+    );
+}
