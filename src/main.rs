@@ -2,6 +2,7 @@
 //! distributed batch job. This binary only parses arguments and calls the libraries.
 
 mod data;
+mod train;
 
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
@@ -20,6 +21,10 @@ enum Command {
         #[command(subcommand)]
         command: data::DataCommand,
     },
+    /// Train a model (single process for now).
+    Train(Box<train::TrainArgs>),
+    /// Evaluate a trained run on a split.
+    Eval(train::EvalArgs),
     /// Benchmarks that print (and save) throughput figures.
     Bench {
         #[command(subcommand)]
@@ -44,6 +49,8 @@ async fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Data { command } => data::run(command).await,
+        Command::Train(args) => train::train(*args).await,
+        Command::Eval(args) => train::eval(args).await,
         Command::Bench {
             command: BenchCommand::Data(args),
         } => data::bench(args).await,

@@ -135,3 +135,97 @@ fn pyarrow_reads_generated_splits() {
         );
     }
 }
+
+fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+#[test]
+fn train_then_eval_a_tiny_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    osrt(&[
+        "data",
+        "generate",
+        "--out",
+        data.to_str().unwrap(),
+        "--train",
+        "12",
+        "--val",
+        "4",
+        "--test",
+        "3",
+        "--image-size",
+        "8",
+        "--antialias",
+        "1",
+    ]);
+    for decoder in ["slot_mixer", "transformer"] {
+        let run = dir.path().join(format!("run-{decoder}"));
+        osrt(&[
+            "train",
+            "--preset",
+            "tiny",
+            "--decoder",
+            decoder,
+            "--data",
+            data.to_str().unwrap(),
+            "--run",
+            run.to_str().unwrap(),
+            "--max-steps",
+            "3",
+        ]);
+        let records = read_jsonl(&run.join("metrics.jsonl"));
+        let train: Vec<_> = records.iter().filter(|r| r.get("loss").is_some()).collect();
+        let evals: Vec<_> = records.iter().filter(|r| r.get("psnr").is_some()).collect();
+        assert_eq!(train.len(), 3, "log_every = 1 in the tiny preset");
+        for r in &train {
+            for key in ["step", "wall_s", "loss", "scenes_per_s"] {
+                assert!(r[key].is_number(), "{key} missing in {r}");
+            }
+        }
+        assert_eq!(evals.first().unwrap()["step"], 0);
+        assert_eq!(evals.last().unwrap()["step"], 3);
+        for key in ["psnr", "fg_ari", "fg_ari_2d", "ari"] {
+            assert!(evals.last().unwrap().get(key).is_some(), "{key}");
+        }
+        assert!(run.join("weights.safetensors").is_file());
+        assert!(run.join("config.toml").is_file());
+
+        let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--json"]);
+        let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(r["scenes"], 3);
+        assert!(r["psnr"].as_f64().unwrap().is_finite());
+        assert!(r["render_fps"].as_f64().unwrap() > 0.0);
+        if decoder == "transformer" {
+            // No slot weights: no segmentation numbers, and the text output says so.
+            assert!(r["fg_ari"].is_null() && r["ari"].is_null());
+            assert_eq!(r["segmentation"], false);
+            let text =
+                String::from_utf8(osrt(&["eval", "--run", run.to_str().unwrap()]).stdout).unwrap();
+            assert!(text.contains("n/a (decoder has no slot weights)"), "{text}");
+        } else {
+            assert!(r["fg_ari"].as_f64().is_some() && r["ari"].as_f64().is_some());
+        }
+    }
+    // Training into a folder that holds a run is refused, not overwritten.
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--data",
+            data.to_str().unwrap(),
+            "--run",
+        ])
+        .arg(dir.path().join("run-slot_mixer"))
+        .args(["--max-steps", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("already holds a run"));
+}

@@ -1,0 +1,173 @@
+//! The job configuration: model sizes plus training settings. A TOML file is a full
+//! [`JobConfig`]; named presets are constructors, and the resolved config is saved into
+//! every run folder.
+
+use crate::error::{Result, TrainError};
+use osrt_dataset::{InputSelection, TargetViews};
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Model-initialisation and data-order seed.
+    pub seed: u64,
+    /// Scenes per optimiser step (summed over workers).
+    pub batch_size: usize,
+    /// Target rays sampled per scene and step.
+    pub rays_per_scene: usize,
+    pub input_views: usize,
+    pub input_selection: InputSelection,
+    /// Views target rays are drawn from during training (`input` = 2D reconstruction).
+    pub target_views: TargetViews,
+    /// Peak learning rate after warm-up.
+    pub lr: f64,
+    pub warmup_steps: u64,
+    /// After warm-up: `lr · decay_rate^((step − warmup) / decay_steps)`.
+    pub decay_rate: f64,
+    pub decay_steps: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    pub adam_eps: f64,
+    pub weight_decay: f64,
+    /// Global-norm gradient clipping; `None` = off (the paper's setting).
+    pub clip_norm: Option<f64>,
+    /// Consecutive skipped (non-finite) steps that stop the job.
+    pub max_consecutive_skips: u64,
+    /// Evaluate on the validation subset every this many wall-clock seconds.
+    pub eval_every_s: f64,
+    /// Size of the fixed validation subset (its first scenes).
+    pub eval_scenes: usize,
+    /// Views rendered at evaluation (`non_input` = novel views).
+    pub eval_target_views: TargetViews,
+    /// Log a training line every this many steps.
+    pub log_every: u64,
+}
+
+impl TrainConfig {
+    /// The paper's optimiser (Adam, warm-up to 1e-4, 0.16 decay over 4 M steps, no
+    /// clipping) with settings for one input view of a 3-view scene.
+    pub fn reference() -> Self {
+        Self {
+            seed: 0,
+            batch_size: 16,
+            rays_per_scene: 512,
+            input_views: 1,
+            input_selection: InputSelection::Random,
+            target_views: TargetViews::All,
+            lr: 1e-4,
+            warmup_steps: 5000,
+            decay_rate: 0.16,
+            decay_steps: 4e6,
+            beta1: 0.9,
+            beta2: 0.999,
+            adam_eps: 1e-8,
+            weight_decay: 0.0,
+            clip_norm: None,
+            max_consecutive_skips: 20,
+            eval_every_s: 120.0,
+            eval_scenes: 32,
+            eval_target_views: TargetViews::NonInput,
+            log_every: 10,
+        }
+    }
+
+    /// Learning rate at `step` (0-based): linear warm-up, then exponential decay.
+    pub fn lr_at(&self, step: u64) -> f64 {
+        if step < self.warmup_steps {
+            self.lr * (step + 1) as f64 / self.warmup_steps as f64
+        } else {
+            self.lr
+                * self
+                    .decay_rate
+                    .powf((step - self.warmup_steps) as f64 / self.decay_steps)
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobConfig {
+    pub model: osrt_model::Config,
+    pub train: TrainConfig,
+}
+
+impl JobConfig {
+    /// Named presets: `clevr-lite-cpu` (the CPU model on clevr-lite), `paper`, `tiny`.
+    pub fn preset(name: &str) -> Result<Self> {
+        let (model, train) = match name {
+            "clevr-lite-cpu" => (
+                osrt_model::Config::cpu(),
+                TrainConfig {
+                    lr: 3e-4,
+                    warmup_steps: 300,
+                    ..TrainConfig::reference()
+                },
+            ),
+            "paper" => (
+                osrt_model::Config::paper(),
+                TrainConfig {
+                    batch_size: 256,
+                    rays_per_scene: 8192,
+                    ..TrainConfig::reference()
+                },
+            ),
+            "tiny" => (
+                osrt_model::Config::tiny(),
+                TrainConfig {
+                    batch_size: 4,
+                    rays_per_scene: 32,
+                    lr: 1e-3,
+                    warmup_steps: 2,
+                    eval_scenes: 4,
+                    log_every: 1,
+                    ..TrainConfig::reference()
+                },
+            ),
+            other => {
+                return Err(TrainError::Config {
+                    path: format!("preset `{other}`"),
+                    reason: "unknown preset: expected clevr-lite-cpu, paper or tiny".into(),
+                });
+            }
+        };
+        Ok(Self { model, train })
+    }
+
+    pub fn from_toml(path: &str, text: &str) -> Result<Self> {
+        toml::from_str(text).map_err(|e| TrainError::Config {
+            path: path.to_string(),
+            reason: e.to_string(),
+        })
+    }
+
+    pub fn load(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path.display(), e))?;
+        Self::from_toml(&path.display().to_string(), &text)
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("config serialises")
+    }
+
+    /// Rejects settings that cannot train.
+    pub fn validate(&self) -> Result<()> {
+        let t = &self.train;
+        let bad = |reason: String| {
+            Err(TrainError::Config {
+                path: "job config".into(),
+                reason,
+            })
+        };
+        if t.batch_size == 0 || t.rays_per_scene == 0 || t.input_views == 0 {
+            return bad("batch_size, rays_per_scene and input_views must be positive".into());
+        }
+        if !(t.lr.is_finite() && t.lr > 0.0) {
+            return bad(format!(
+                "learning rate {} must be positive and finite",
+                t.lr
+            ));
+        }
+        if self.model.slot_attention.num_slots == 0 {
+            return bad("num_slots must be positive".into());
+        }
+        Ok(())
+    }
+}

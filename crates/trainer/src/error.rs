@@ -1,0 +1,42 @@
+//! Typed errors of the trainer.
+
+use thiserror::Error;
+
+pub type Result<T, E = TrainError> = std::result::Result<T, E>;
+
+#[derive(Debug, Error)]
+pub enum TrainError {
+    #[error(transparent)]
+    Dataset(#[from] osrt_dataset::DatasetError),
+
+    #[error("model: {0}")]
+    Model(#[from] candle_core::Error),
+
+    #[error("config {path}: {reason}")]
+    Config { path: String, reason: String },
+
+    #[error("run folder {path}: {reason}")]
+    Run { path: String, reason: String },
+
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error(
+        "training stopped: {skipped} steps in a row had a non-finite loss or gradient \
+         (limit {limit}); lower the learning rate or enable gradient clipping"
+    )]
+    TooManySkips { skipped: u64, limit: u64 },
+}
+
+impl TrainError {
+    pub(crate) fn io(path: impl std::fmt::Display, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.to_string(),
+            source,
+        }
+    }
+}

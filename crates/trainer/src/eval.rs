@@ -1,0 +1,175 @@
+//! Evaluation: render whole target views of each scene, score PSNR (and a mean-colour
+//! baseline), ARI / FG-ARI / 2D-FG-ARI from the argmax of the slot weights, and the
+//! decoder's render speed.
+
+use crate::error::Result;
+use crate::step::BatchTensors;
+use candle_core::{D, Tensor};
+use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch};
+use osrt_model::metrics::{Psnr, Segmentation};
+use osrt_model::{Osrt, SlotInit};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::time::Instant;
+
+/// Evaluation scores; segmentation scores are `None` for decoders without slot weights
+/// (the transformer decoder) or data without masks.
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalResult {
+    pub scenes: usize,
+    pub psnr: f64,
+    /// PSNR of predicting each scene's mean input-view colour everywhere.
+    pub baseline_psnr: f64,
+    pub ari: Option<f64>,
+    pub fg_ari: Option<f64>,
+    pub fg_ari_2d: Option<f64>,
+    pub ratio: Option<f64>,
+    /// Target views rendered per second of decoding (slots → image).
+    pub render_fps: f64,
+    pub segmentation: bool,
+}
+
+/// Rays decoded per forward pass (bounds memory on large images).
+const CHUNK: usize = 4096;
+
+pub struct EvalOptions {
+    pub input_views: usize,
+    pub target_views: TargetViews,
+    /// Replace the input images by their grey level (robustness study).
+    pub grayscale: bool,
+    /// Seed of the slot noise for random slot init.
+    pub seed: u64,
+}
+
+/// Slot-weight argmax per ray: `[b, r, k]` → `[b, r]` as u32.
+fn argmax(weights: &Tensor) -> Result<Vec<Vec<u32>>> {
+    Ok(weights.argmax(D::Minus1)?.to_vec2::<u32>()?)
+}
+
+pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
+    let mut psnr = Psnr::default();
+    let mut baseline = Psnr::default();
+    let mut seg = Segmentation::default();
+    let mut has_weights = true;
+    let mut decode_s = 0.0;
+    let mut frames = 0usize;
+    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    let cfg = BatchConfig {
+        input_views: opts.input_views,
+        input_selection: InputSelection::First,
+        target_views: opts.target_views,
+        rays_per_scene: None,
+        with_masks: scenes
+            .iter()
+            .all(|s| s.views.iter().all(|v| v.mask.is_some())),
+    };
+    for scene in scenes {
+        // Scenes with fewer views than needed for novel views fall back to all views.
+        let cfg = if opts.target_views == TargetViews::NonInput
+            && scene.views.len() <= opts.input_views
+        {
+            BatchConfig {
+                target_views: TargetViews::All,
+                ..cfg
+            }
+        } else {
+            cfg
+        };
+        let mut batch = build_batch(&[scene], &cfg, &mut rng)?;
+        if opts.grayscale {
+            for px in batch.input_images.chunks_mut(3) {
+                let g = 0.299 * px[0] + 0.587 * px[1] + 0.114 * px[2];
+                px.fill(g);
+            }
+        }
+        let t = BatchTensors::new(&batch, model.device())?;
+        let noise = match model.cfg.slot_attention.init {
+            SlotInit::Random => {
+                let sa = &model.cfg.slot_attention;
+                let n = sa.num_slots * sa.slot_dim;
+                Some(Tensor::from_vec(
+                    osrt_model::params::normal_samples(&mut rng, n),
+                    (1, sa.num_slots, sa.slot_dim),
+                    model.device(),
+                )?)
+            }
+            SlotInit::Learned => None,
+        };
+        let slots = model
+            .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?
+            .slots;
+        let r = batch.rays_per_scene;
+        let start = Instant::now();
+        let mut rgb = Vec::with_capacity(r * 3);
+        let mut labels: Option<Vec<u32>> = Some(Vec::with_capacity(r));
+        let mut off = 0;
+        while off < r {
+            let len = CHUNK.min(r - off);
+            let out = model.decode(
+                &slots,
+                &t.target_origins.narrow(1, off, len)?,
+                &t.target_directions.narrow(1, off, len)?,
+            )?;
+            rgb.extend(out.rgb.flatten_all()?.to_vec1::<f32>()?);
+            match (&out.weights, labels.as_mut()) {
+                (Some(w), Some(l)) => l.extend(argmax(w)?.remove(0)),
+                _ => labels = None,
+            }
+            off += len;
+        }
+        decode_s += start.elapsed().as_secs_f64();
+        let n_views: std::collections::BTreeSet<u32> =
+            batch.target_pixels.iter().map(|p| p.0).collect();
+        frames += n_views.len();
+        psnr.update(&rgb, &batch.target_rgb);
+
+        // Baseline: the mean colour of the input views, everywhere.
+        let mut mean = [0f64; 3];
+        for px in batch.input_images.chunks(3) {
+            for c in 0..3 {
+                mean[c] += px[c] as f64;
+            }
+        }
+        let npx = (batch.input_images.len() / 3) as f64;
+        let pred: Vec<f32> = (0..r * 3).map(|i| (mean[i % 3] / npx) as f32).collect();
+        baseline.update(&pred, &batch.target_rgb);
+
+        match (labels, &batch.target_masks) {
+            (Some(labels), Some(masks)) => {
+                // Group rays by view, in order: views are contiguous in a whole-view batch.
+                let mut views: Vec<(&[u8], &[u32])> = Vec::new();
+                let mut s = 0;
+                while s < r {
+                    let v = batch.target_pixels[s].0;
+                    let mut e = s;
+                    while e < r && batch.target_pixels[e].0 == v {
+                        e += 1;
+                    }
+                    views.push((&masks[s..e], &labels[s..e]));
+                    s = e;
+                }
+                seg.update(&views);
+            }
+            (None, _) => has_weights = false,
+            _ => has_weights = false,
+        }
+    }
+    let scores = seg.compute();
+    let segmentation = has_weights && !scenes.is_empty();
+    Ok(EvalResult {
+        scenes: scenes.len(),
+        psnr: psnr.compute().unwrap_or(f64::NAN),
+        baseline_psnr: baseline.compute().unwrap_or(f64::NAN),
+        ari: scores.ari.filter(|_| segmentation),
+        fg_ari: scores.fg_ari.filter(|_| segmentation),
+        fg_ari_2d: scores.fg_ari_2d.filter(|_| segmentation),
+        ratio: scores.ratio.filter(|_| segmentation),
+        render_fps: if decode_s > 0.0 {
+            frames as f64 / decode_s
+        } else {
+            0.0
+        },
+        segmentation,
+    })
+}

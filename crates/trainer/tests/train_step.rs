@@ -1,0 +1,206 @@
+//! The train step: flat gradients in a fixed order, applying external gradients, skipping
+//! non-finite steps, and learning on a tiny problem.
+
+use candle_core::Device;
+use osrt_dataset::generator::GeneratorConfig;
+use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
+use osrt_trainer::{ApplyOutcome, JobConfig, Trainer};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+fn scenes(n: u64) -> Vec<Scene> {
+    let cfg = GeneratorConfig {
+        image_size: 8,
+        antialias: 1,
+        ..GeneratorConfig::clevr_lite()
+    };
+    (0..n)
+        .map(|i| generate_scene(&cfg, 1, "train", i).unwrap())
+        .collect()
+}
+
+fn batch(scenes: &[Scene], seed: u64) -> osrt_dataset::Batch {
+    let refs: Vec<&Scene> = scenes.iter().collect();
+    let cfg = BatchConfig {
+        input_views: 1,
+        input_selection: InputSelection::First,
+        target_views: TargetViews::All,
+        rays_per_scene: Some(32),
+        with_masks: false,
+    };
+    build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
+}
+
+fn tiny() -> JobConfig {
+    JobConfig::preset("tiny").unwrap()
+}
+
+#[test]
+fn gradients_are_one_flat_buffer_in_sorted_parameter_order() {
+    let t = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let data = scenes(2);
+    let g = t
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    assert_eq!(g.grads.len(), t.num_parameters());
+    assert_eq!(g.samples, 2);
+    assert!(g.loss.is_finite() && g.loss > 0.0);
+    // Same seed, same data → the same bytes (determinism of one step).
+    let t2 = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let g2 = t2
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    assert_eq!(g.grads, g2.grads);
+    // The segment of each parameter sits at its offset in sorted-name order.
+    let names: Vec<String> = t.params.vars().into_iter().map(|(n, _)| n).collect();
+    let mut sorted = names.clone();
+    sorted.sort();
+    assert_eq!(names, sorted);
+}
+
+#[test]
+fn applying_a_flat_gradient_equals_applying_the_local_one() {
+    let data = scenes(2);
+    let mut a = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let mut b = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let g = a
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    // b receives the gradient "over the network": a copy of the bytes.
+    let bytes: Vec<u8> = g.grads.iter().flat_map(|x| x.to_le_bytes()).collect();
+    let received: Vec<f32> = bytes
+        .chunks(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert!(matches!(
+        a.apply(g.loss, g.grads).unwrap(),
+        ApplyOutcome::Applied { .. }
+    ));
+    assert!(matches!(
+        b.apply(g.loss, received).unwrap(),
+        ApplyOutcome::Applied { .. }
+    ));
+    assert_eq!(a.params.flatten().unwrap(), b.params.flatten().unwrap());
+    assert_ne!(
+        a.params.flatten().unwrap(),
+        Trainer::new(tiny(), Device::Cpu)
+            .unwrap()
+            .params
+            .flatten()
+            .unwrap()
+    );
+}
+
+#[test]
+fn non_finite_steps_are_skipped_and_counted() {
+    let data = scenes(2);
+    let mut t = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let before = t.params.flatten().unwrap();
+    let g = t
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    let mut bad = g.grads.clone();
+    bad[3] = f32::NAN;
+    assert_eq!(
+        t.apply(g.loss, bad).unwrap(),
+        ApplyOutcome::Skipped {
+            reason: "non-finite gradient"
+        }
+    );
+    assert_eq!(
+        t.apply(f64::INFINITY, g.grads.clone()).unwrap(),
+        ApplyOutcome::Skipped {
+            reason: "non-finite loss"
+        }
+    );
+    assert_eq!(
+        t.params.flatten().unwrap(),
+        before,
+        "a skipped step must not touch the weights"
+    );
+    assert_eq!((t.skipped_total, t.skipped_in_a_row, t.step), (2, 2, 2));
+    assert!(matches!(
+        t.apply(g.loss, g.grads).unwrap(),
+        ApplyOutcome::Applied { .. }
+    ));
+    assert_eq!(t.skipped_in_a_row, 0);
+}
+
+#[test]
+fn an_absurd_learning_rate_never_writes_a_non_finite_weight() {
+    let data = scenes(2);
+    let mut job = tiny();
+    job.train.lr = 1e38;
+    job.train.warmup_steps = 0;
+    let mut t = Trainer::new(job, Device::Cpu).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    for i in 0..6 {
+        let g = t.gradients(&batch(&data, i), &mut rng).unwrap();
+        let _ = t.apply(g.loss, g.grads).unwrap();
+        assert!(
+            t.params.flatten().unwrap().iter().all(|p| p.is_finite()),
+            "step {i}"
+        );
+    }
+    assert!(
+        t.skipped_total > 0,
+        "lr 1e38 must have produced skipped steps"
+    );
+}
+
+#[test]
+fn clipping_bounds_the_applied_gradient_norm() {
+    let data = scenes(2);
+    let mut job = tiny();
+    job.train.clip_norm = Some(1e-3);
+    let mut t = Trainer::new(job, Device::Cpu).unwrap();
+    let g = t
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    let norm = osrt_trainer::optim::global_norm(&g.grads);
+    match t.apply(g.loss, g.grads).unwrap() {
+        ApplyOutcome::Applied { grad_norm, .. } => assert_eq!(grad_norm, norm),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn the_loss_falls_when_fitting_one_batch() {
+    let data = scenes(2);
+    let mut job = tiny();
+    job.train.lr = 3e-3;
+    let mut t = Trainer::new(job, Device::Cpu).unwrap();
+    let b = batch(&data, 0);
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let first = t.gradients(&b, &mut rng).unwrap().loss;
+    let mut last = first;
+    for _ in 0..60 {
+        let g = t.gradients(&b, &mut rng).unwrap();
+        last = g.loss;
+        t.apply(g.loss, g.grads).unwrap();
+    }
+    assert!(last < 0.5 * first, "loss {first} → {last}");
+}
+
+#[test]
+fn learning_rate_schedule_warms_up_then_decays() {
+    let t = osrt_trainer::TrainConfig::reference();
+    assert!((t.lr_at(0) - 1e-4 / 5000.0).abs() < 1e-15);
+    assert!((t.lr_at(4999) - 1e-4).abs() < 1e-15);
+    assert!((t.lr_at(5000) - 1e-4).abs() < 1e-15);
+    assert!((t.lr_at(5000 + 4_000_000) - 1.6e-5).abs() < 1e-12);
+}
+
+#[test]
+fn presets_round_trip_through_toml() {
+    for name in ["clevr-lite-cpu", "tiny", "paper"] {
+        let job = JobConfig::preset(name).unwrap();
+        let back = JobConfig::from_toml("mem", &job.to_toml()).unwrap();
+        assert_eq!(back, job);
+    }
+    let err = JobConfig::from_toml("bad.toml", "[train]\nlr = 'x'")
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("bad.toml"), "{err}");
+    assert!(JobConfig::preset("huge").is_err());
+}

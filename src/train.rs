@@ -1,0 +1,259 @@
+//! `osrt train` and `osrt eval`: argument types and their calls into osrt-trainer.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use osrt_dataset::generator::GeneratorConfig;
+use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
+use osrt_model::SlotInit;
+use osrt_trainer::run::eval_options;
+use osrt_trainer::{JobConfig, TrainOptions, evaluate, load_run};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
+/// Where `osrt train` with no `--data` looks for (and generates) the embedded default.
+const DEFAULT_DATA: &str = "data";
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// Job config (TOML, a full `JobConfig`); default: the `--preset`.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Named job preset when no --config is given: clevr-lite-cpu, tiny, paper.
+    #[arg(long, default_value = "clevr-lite-cpu")]
+    pub preset: String,
+    /// Dataset directory or URL; the default ./data is generated (clevr-lite) if absent.
+    #[arg(long, default_value = DEFAULT_DATA)]
+    pub data: String,
+    /// Worker processes (only 1 until the cluster lands).
+    #[arg(long, default_value_t = 1)]
+    pub workers: usize,
+    /// Run folder (default: runs/<preset>-<unix time>).
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Stop after this many optimiser steps.
+    #[arg(long)]
+    pub max_steps: Option<u64>,
+    /// Stop after this many minutes of wall-clock time.
+    #[arg(long)]
+    pub max_minutes: Option<f64>,
+    /// Override the seed (initial weights and data order).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override the peak learning rate.
+    #[arg(long)]
+    pub lr: Option<f64>,
+    /// Override scenes per step.
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    /// Override target rays per scene.
+    #[arg(long)]
+    pub rays_per_scene: Option<usize>,
+    /// Override the decoder: slot_mixer, spatial_broadcast, transformer.
+    #[arg(long)]
+    pub decoder: Option<String>,
+    /// Override the number of slots.
+    #[arg(long)]
+    pub slots: Option<usize>,
+    /// Override slot-attention iterations.
+    #[arg(long)]
+    pub iterations: Option<usize>,
+    /// Override the slot init: learned or random.
+    #[arg(long)]
+    pub slot_init: Option<String>,
+    /// Override seconds between validation runs.
+    #[arg(long)]
+    pub eval_every_s: Option<f64>,
+    /// Override the validation subset size.
+    #[arg(long)]
+    pub eval_scenes: Option<usize>,
+}
+
+#[derive(Args)]
+pub struct EvalArgs {
+    /// Run folder of a finished `osrt train`.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Split to evaluate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Dataset (default: the one the run trained on).
+    #[arg(long)]
+    pub data: Option<String>,
+    /// Evaluate at most this many scenes.
+    #[arg(long)]
+    pub scenes: Option<usize>,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn job_config(a: &TrainArgs) -> Result<JobConfig> {
+    let mut job = match &a.config {
+        Some(p) => JobConfig::load(p)?,
+        None => JobConfig::preset(&a.preset)?,
+    };
+    let t = &mut job.train;
+    if let Some(v) = a.seed {
+        t.seed = v;
+    }
+    if let Some(v) = a.lr {
+        t.lr = v;
+    }
+    if let Some(v) = a.batch_size {
+        t.batch_size = v;
+    }
+    if let Some(v) = a.rays_per_scene {
+        t.rays_per_scene = v;
+    }
+    if let Some(v) = a.eval_every_s {
+        t.eval_every_s = v;
+    }
+    if let Some(v) = a.eval_scenes {
+        t.eval_scenes = v;
+    }
+    if let Some(d) = &a.decoder {
+        job.model = job.model.clone().with_decoder(d).with_context(|| {
+            format!("unknown decoder `{d}`: expected slot_mixer, spatial_broadcast or transformer")
+        })?;
+    }
+    let sa = &mut job.model.slot_attention;
+    if let Some(v) = a.slots {
+        sa.num_slots = v;
+    }
+    if let Some(v) = a.iterations {
+        sa.iterations = v;
+    }
+    if let Some(v) = &a.slot_init {
+        sa.init = match v.as_str() {
+            "learned" => SlotInit::Learned,
+            "random" => SlotInit::Random,
+            other => bail!("unknown slot init `{other}`: expected learned or random"),
+        };
+    }
+    job.validate()?;
+    Ok(job)
+}
+
+/// Generates the embedded default dataset if `./data` holds none.
+async fn ensure_default_data(data: &str) -> Result<()> {
+    if data != DEFAULT_DATA {
+        return Ok(());
+    }
+    let loc = Location::parse(data)?;
+    if Manifest::read(&loc).await.is_ok() {
+        return Ok(());
+    }
+    eprintln!("no dataset in ./{data}: generating the default clevr-lite dataset (seed 0)");
+    let sizes = SplitSizes {
+        train: 2000,
+        val: 100,
+        test: 100,
+    };
+    generate_dataset(
+        &loc,
+        &GeneratorConfig::clevr_lite(),
+        0,
+        sizes,
+        WriterOptions::default(),
+        std::io::stderr().is_terminal(),
+    )
+    .await?;
+    Ok(())
+}
+
+pub async fn train(a: TrainArgs) -> Result<()> {
+    if a.workers != 1 {
+        bail!(
+            "--workers {}: multi-worker training is not implemented yet (the cluster issue); use --workers 1",
+            a.workers
+        );
+    }
+    let job = job_config(&a)?;
+    ensure_default_data(&a.data).await?;
+    let run = a.run.clone().unwrap_or_else(|| {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0);
+        PathBuf::from(format!("runs/{}-{now}", a.preset))
+    });
+    if a.max_steps.is_none() && a.max_minutes.is_none() {
+        eprintln!(
+            "no --max-steps or --max-minutes: training until interrupted is not supported, stopping after 10 minutes"
+        );
+    }
+    let max_minutes = a.max_minutes.or(if a.max_steps.is_none() {
+        Some(10.0)
+    } else {
+        None
+    });
+    eprintln!("run folder: {}", run.display());
+    let summary = osrt_trainer::train(TrainOptions {
+        data: a.data.clone(),
+        run: run.clone(),
+        job,
+        max_steps: a.max_steps,
+        max_minutes,
+        progress: std::io::stderr().is_terminal(),
+    })
+    .await?;
+    println!(
+        "trained {} steps in {:.0} s ({} skipped); weights: {}",
+        summary.steps,
+        summary.wall_s,
+        summary.skipped,
+        run.join("weights.safetensors").display()
+    );
+    if let Some(e) = summary.final_eval {
+        println!(
+            "validation: PSNR {:.2} dB (mean-colour baseline {:.2} dB), FG-ARI {}",
+            e.psnr,
+            e.baseline_psnr,
+            e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+        );
+    }
+    Ok(())
+}
+
+pub async fn eval(a: EvalArgs) -> Result<()> {
+    let loaded = load_run(&a.run).with_context(|| format!("loading run {}", a.run.display()))?;
+    let data = a.data.clone().unwrap_or_else(|| loaded.info.data.clone());
+    let loc = Location::parse(&data)?;
+    let scenes = osrt_trainer::data::load_split(
+        &loc,
+        &a.split,
+        Columns {
+            masks: true,
+            objects: false,
+        },
+        a.scenes,
+    )
+    .await?;
+    let r = evaluate(&loaded.trainer.model, &scenes, &eval_options(&loaded.job))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        let show = |v: Option<f64>| {
+            v.map_or("n/a (decoder has no slot weights)".to_string(), |v| {
+                format!("{v:.4}")
+            })
+        };
+        println!(
+            "run {} on {}/{} ({} scenes)",
+            a.run.display(),
+            data,
+            a.split,
+            r.scenes
+        );
+        println!(
+            "  PSNR        {:.2} dB (mean-colour baseline {:.2} dB)",
+            r.psnr, r.baseline_psnr
+        );
+        println!("  FG-ARI      {}", show(r.fg_ari));
+        println!("  2D-FG-ARI   {}", show(r.fg_ari_2d));
+        println!("  ARI         {}", show(r.ari));
+        println!("  ratio       {}", show(r.ratio));
+        println!("  render fps  {:.1}", r.render_fps);
+    }
+    Ok(())
+}
