@@ -1,6 +1,7 @@
 //! `osrt`: train and evaluate the Object Scene Representation Transformer as a
 //! distributed batch job. This binary only parses arguments and calls the libraries.
 
+mod bench;
 mod data;
 mod train;
 
@@ -36,6 +37,8 @@ enum Command {
 enum BenchCommand {
     /// Scenes/s generated, and read + decoded with and without masks.
     Data(data::BenchDataArgs),
+    /// Train-step time per preset and render speed per decoder, at 1 and 2 threads.
+    Model(bench::BenchModelArgs),
 }
 
 #[tokio::main]
@@ -54,5 +57,8 @@ async fn main() -> anyhow::Result<()> {
         Command::Bench {
             command: BenchCommand::Data(args),
         } => data::bench(args).await,
+        Command::Bench {
+            command: BenchCommand::Model(args),
+        } => bench::run(args),
     }
 }

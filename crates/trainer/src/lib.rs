@@ -3,6 +3,7 @@
 //! single-process training run. The gRPC collective and checkpoints arrive with the
 //! cluster.
 
+pub mod bench;
 pub mod config;
 pub mod data;
 pub mod error;

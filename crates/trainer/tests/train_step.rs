@@ -204,3 +204,23 @@ fn presets_round_trip_through_toml() {
     assert!(err.contains("bad.toml"), "{err}");
     assert!(JobConfig::preset("huge").is_err());
 }
+
+#[test]
+fn same_seed_same_weights_after_several_steps() {
+    let data = scenes(3);
+    let run = |seed: u64| {
+        let mut job = tiny();
+        job.train.seed = seed;
+        job.model.slot_attention.init = osrt_model::SlotInit::Random;
+        let mut t = Trainer::new(job, Device::Cpu).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        for i in 0..4 {
+            let g = t.gradients(&batch(&data, i), &mut rng).unwrap();
+            t.apply(g.loss, g.grads).unwrap();
+        }
+        t.params.flatten().unwrap()
+    };
+    let a = run(5);
+    assert_eq!(a, run(5), "same seed must give bit-identical weights");
+    assert_ne!(a, run(6));
+}

@@ -1,0 +1,146 @@
+//! `osrt bench model`: train-step time per preset at 1 and 2 threads, and render speed of
+//! each decoder at 6 and 32 slots. Each thread count runs in its own child process (the
+//! thread pools are sized once per process), and the parent prints and saves the union.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use osrt_trainer::JobConfig;
+use osrt_trainer::bench::{bench_render, bench_step};
+use serde_json::json;
+
+#[derive(Args)]
+pub struct BenchModelArgs {
+    /// Job presets whose train step is timed.
+    #[arg(long, value_delimiter = ',', default_value = "clevr-lite-cpu")]
+    pub presets: Vec<String>,
+    /// Image size of the benchmark scenes.
+    #[arg(long, default_value_t = 32)]
+    pub image_size: u32,
+    /// Timed steps (after one warm-up); the median is reported.
+    #[arg(long, default_value_t = 10)]
+    pub steps: usize,
+    /// Slot counts for the render benchmark.
+    #[arg(long, value_delimiter = ',', default_value = "6,32")]
+    pub slots: Vec<usize>,
+    /// Thread counts, one child process each.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    pub threads: Vec<usize>,
+    /// Run in this process only (used by the parent; set RAYON_NUM_THREADS yourself).
+    #[arg(long, hide = true)]
+    pub child: bool,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Where the JSON figures are saved.
+    #[arg(long, default_value = "target/bench/model.json")]
+    pub out: std::path::PathBuf,
+}
+
+fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
+    let mut steps = Vec::new();
+    for p in &a.presets {
+        let job = JobConfig::preset(p)?;
+        steps.push(bench_step(p, &job, a.image_size, a.steps)?);
+    }
+    let model = JobConfig::preset(&a.presets[0])?.model;
+    let mut renders = Vec::new();
+    for &k in &a.slots {
+        for d in ["slot_mixer", "spatial_broadcast", "transformer"] {
+            renders.push(bench_render(&model, d, k, a.image_size, 5)?);
+        }
+    }
+    Ok(json!({ "steps": steps, "renders": renders }))
+}
+
+pub fn run(a: BenchModelArgs) -> Result<()> {
+    if a.child {
+        println!("{}", serde_json::to_string(&measure(&a)?)?);
+        return Ok(());
+    }
+    let exe = std::env::current_exe()?;
+    let mut by_threads = serde_json::Map::new();
+    for &n in &a.threads {
+        eprintln!("benchmarking with {n} thread(s)…");
+        let mut cmd = std::process::Command::new(&exe);
+        cmd.args([
+            "bench",
+            "model",
+            "--child",
+            "--image-size",
+            &a.image_size.to_string(),
+            "--steps",
+            &a.steps.to_string(),
+        ])
+        .arg("--presets")
+        .arg(a.presets.join(","))
+        .arg("--slots")
+        .arg(
+            a.slots
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+        )
+        .env("RAYON_NUM_THREADS", n.to_string());
+        let out = cmd.output().context("running the benchmark child")?;
+        if !out.status.success() {
+            bail!(
+                "benchmark child ({n} threads) failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+        by_threads.insert(n.to_string(), v);
+    }
+    let report = serde_json::Value::Object(by_threads);
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(dir) = a.out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&a.out, &text)?;
+    if a.json {
+        println!("{text}");
+        return Ok(());
+    }
+    for (threads, v) in report.as_object().expect("object") {
+        println!("{threads} thread(s):");
+        for s in v["steps"].as_array().expect("array") {
+            println!(
+                "  train step {:<16} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} rays, {}px)",
+                s["preset"].as_str().unwrap_or(""),
+                s["median_step_s"].as_f64().unwrap_or(0.0) * 1e3,
+                s["scenes_per_s"].as_f64().unwrap_or(0.0),
+                s["median_forward_backward_s"].as_f64().unwrap_or(0.0) * 1e3,
+                s["parameters"],
+                s["batch_size"],
+                s["rays_per_scene"],
+                s["image_size"]
+            );
+        }
+        let renders = v["renders"].as_array().expect("array");
+        for r in renders {
+            println!(
+                "  render {:<18} {:>3} slots {:>9.1} fps",
+                r["decoder"].as_str().unwrap_or(""),
+                r["slots"],
+                r["fps"].as_f64().unwrap_or(0.0)
+            );
+        }
+        for &k in &a.slots {
+            let fps = |d: &str| {
+                renders
+                    .iter()
+                    .find(|r| r["decoder"] == d && r["slots"] == k)
+                    .and_then(|r| r["fps"].as_f64())
+            };
+            if let (Some(sm), Some(sb)) = (fps("slot_mixer"), fps("spatial_broadcast")) {
+                println!(
+                    "  Slot Mixer / spatial broadcast at {k} slots: {:.1}×",
+                    sm / sb
+                );
+            }
+        }
+    }
+    println!("saved to {}", a.out.display());
+    Ok(())
+}
