@@ -48,6 +48,9 @@ pub struct TrainArgs {
     /// Override target rays per scene.
     #[arg(long)]
     pub rays_per_scene: Option<usize>,
+    /// Share of target rays drawn from salient pixels (0 = uniform, the paper's setting).
+    #[arg(long)]
+    pub salient_fraction: Option<f32>,
     /// Override the decoder: slot_mixer, spatial_broadcast, transformer.
     #[arg(long)]
     pub decoder: Option<String>,
@@ -104,6 +107,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.rays_per_scene {
         t.rays_per_scene = v;
+    }
+    if let Some(v) = a.salient_fraction {
+        t.salient_fraction = v;
     }
     if let Some(v) = a.eval_every_s {
         t.eval_every_s = v;

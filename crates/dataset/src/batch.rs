@@ -44,6 +44,74 @@ pub struct BatchConfig {
     pub rays_per_scene: Option<usize>,
     /// Also gather the instance id of every target ray (needs masks; evaluation only).
     pub with_masks: bool,
+    /// Fraction of the sampled rays drawn from *salient* pixels — pixels whose colour
+    /// differs from their view's median colour by more than [`SALIENCE_THRESHOLD`] — the
+    /// rest uniformly from the remaining pixels. 0 = uniform sampling (the paper). An
+    /// explicit training option: it over-weights objects and shadows in the loss, and
+    /// uses only the images (never masks).
+    #[serde(default)]
+    pub salient_fraction: f32,
+}
+
+/// Summed absolute RGB difference (in `[0, 3]`) from the view's median colour above which
+/// a pixel counts as salient.
+pub const SALIENCE_THRESHOLD: f32 = 0.1;
+
+/// Indices (into the concatenated target views) of salient pixels.
+fn salient_pixels(scene: &Scene, targets: &[usize]) -> Vec<usize> {
+    let mut out = Vec::new();
+    let mut base = 0;
+    for &t in targets {
+        let v = &scene.views[t];
+        let n = v.num_pixels();
+        let mut median = [0u8; 3];
+        for (c, m) in median.iter_mut().enumerate() {
+            let mut ch: Vec<u8> = v.image.iter().skip(c).step_by(3).copied().collect();
+            let mid = ch.len() / 2;
+            *m = *ch.select_nth_unstable(mid).1;
+        }
+        for p in 0..n {
+            let d: i32 = (0..3)
+                .map(|c| (v.image[3 * p + c] as i32 - median[c] as i32).abs())
+                .sum();
+            if d as f32 / 255.0 > SALIENCE_THRESHOLD {
+                out.push(base + p);
+            }
+        }
+        base += n;
+    }
+    out
+}
+
+/// `k` distinct pixels of `total`: a salient share first, the rest uniform over the others.
+fn sample_pixels(
+    scene: &Scene,
+    targets: &[usize],
+    total: usize,
+    k: usize,
+    fraction: f32,
+    rng: &mut impl Rng,
+) -> Vec<usize> {
+    if fraction <= 0.0 {
+        return index::sample(rng, total, k).into_vec();
+    }
+    let salient = salient_pixels(scene, targets);
+    let ks = ((fraction.min(1.0) * k as f32).round() as usize).min(salient.len());
+    let mut picks: Vec<usize> = index::sample(rng, salient.len(), ks)
+        .into_iter()
+        .map(|i| salient[i])
+        .collect();
+    let mut taken = vec![false; total];
+    for &p in &picks {
+        taken[p] = true;
+    }
+    let rest: Vec<usize> = (0..total).filter(|&p| !taken[p]).collect();
+    picks.extend(
+        index::sample(rng, rest.len(), k - ks)
+            .into_iter()
+            .map(|i| rest[i]),
+    );
+    picks
 }
 
 /// A batch as flat row-major buffers. `b` scenes, `v` input views of `h × w` pixels,
@@ -162,7 +230,9 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
         let total: usize = sizes.iter().sum();
         let picks: Vec<usize> = match cfg.rays_per_scene {
             None => (0..total).collect(),
-            Some(k) if k <= total => index::sample(rng, total, k).into_vec(),
+            Some(k) if k <= total => {
+                sample_pixels(scene, &targets, total, k, cfg.salient_fraction, rng)
+            }
             Some(k) => {
                 return Err(DatasetError::Batch(format!(
                     "scene {}: {k} target rays requested, its target views have {total} pixels",

@@ -67,6 +67,7 @@ pub fn bench_step(
         target_views: TargetViews::All,
         rays_per_scene: Some(job.train.rays_per_scene),
         with_masks: false,
+        salient_fraction: 0.0,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut step_s = Vec::new();
@@ -118,6 +119,7 @@ pub fn bench_render(
         target_views: TargetViews::NonInput,
         rays_per_scene: None,
         with_masks: false,
+        salient_fraction: 0.0,
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;
     let t = BatchTensors::new(&batch, &Device::Cpu)?;

@@ -14,6 +14,10 @@ pub struct TrainConfig {
     pub batch_size: usize,
     /// Target rays sampled per scene and step.
     pub rays_per_scene: usize,
+    /// Share of target rays drawn from salient pixels (see
+    /// `osrt_dataset::BatchConfig::salient_fraction`); 0 = uniform, the paper's setting.
+    #[serde(default)]
+    pub salient_fraction: f32,
     pub input_views: usize,
     pub input_selection: InputSelection,
     /// Views target rays are drawn from during training (`input` = 2D reconstruction).
@@ -50,6 +54,7 @@ impl TrainConfig {
             seed: 0,
             batch_size: 16,
             rays_per_scene: 512,
+            salient_fraction: 0.0,
             input_views: 1,
             input_selection: InputSelection::Random,
             target_views: TargetViews::All,

@@ -63,6 +63,7 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
         with_masks: scenes
             .iter()
             .all(|s| s.views.iter().all(|v| v.mask.is_some())),
+        salient_fraction: 0.0,
     };
     for scene in scenes {
         // Scenes with fewer views than needed for novel views fall back to all views.

@@ -199,6 +199,7 @@ pub async fn train(opts: TrainOptions) -> Result<RunSummary> {
         target_views: t.target_views,
         rays_per_scene: Some(t.rays_per_scene),
         with_masks: false,
+        salient_fraction: t.salient_fraction,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(t.seed.wrapping_add(1));
     let mut sampler = EpochSampler::new(train_scenes.len());

@@ -27,6 +27,7 @@ fn batch(scenes: &[Scene], seed: u64) -> osrt_dataset::Batch {
         target_views: TargetViews::All,
         rays_per_scene: Some(32),
         with_masks: false,
+        salient_fraction: 0.0,
     };
     build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
 }

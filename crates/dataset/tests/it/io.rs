@@ -166,6 +166,7 @@ async fn rays_and_batches_from_read_scenes() {
         target_views: TargetViews::All,
         rays_per_scene: Some(50),
         with_masks: true,
+        salient_fraction: 0.0,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let b = build_batch(&refs, &cfg, &mut rng).unwrap();
@@ -201,6 +202,7 @@ async fn rays_and_batches_from_read_scenes() {
         target_views: TargetViews::NonInput,
         rays_per_scene: None,
         with_masks: true,
+        salient_fraction: 0.0,
     };
     let e = build_batch(&refs, &eval, &mut rng).unwrap();
     assert_eq!(e.rays_per_scene, 2 * 64);
@@ -216,4 +218,37 @@ async fn rays_and_batches_from_read_scenes() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("10000 target rays requested"), "{err}");
+}
+
+#[test]
+fn salient_sampling_draws_more_object_rays_without_reading_masks() {
+    use osrt_dataset::{BatchConfig, InputSelection, TargetViews, build_batch};
+    use rand::SeedableRng;
+    let scenes = tiny_scenes(6, 24);
+    let refs: Vec<_> = scenes.iter().collect();
+    let cfg = |f: f32| BatchConfig {
+        input_views: 1,
+        input_selection: InputSelection::First,
+        target_views: TargetViews::All,
+        rays_per_scene: Some(200),
+        with_masks: true,
+        salient_fraction: f,
+    };
+    let share = |f: f32| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let b = build_batch(&refs, &cfg(f), &mut rng).unwrap();
+        for s in 0..6 {
+            let mut px = b.target_pixels[s * 200..(s + 1) * 200].to_vec();
+            px.sort();
+            px.dedup();
+            assert_eq!(px.len(), 200, "rays must stay distinct pixels");
+        }
+        let m = b.target_masks.unwrap();
+        m.iter().filter(|&&id| id != 0).count() as f64 / m.len() as f64
+    };
+    let (uniform, salient) = (share(0.0), share(0.5));
+    assert!(
+        salient > 2.0 * uniform,
+        "object share {uniform} uniform vs {salient} salient"
+    );
 }
