@@ -144,3 +144,55 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
     println!("saved to {}", a.out.display());
     Ok(())
 }
+
+#[derive(Args)]
+pub struct BenchAllReduceArgs {
+    /// Buffer sizes in floats.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1000000,10000000,50000000"
+    )]
+    pub floats: Vec<usize>,
+    /// Timed repeats per size (after one warm-up); the median is reported.
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Where the JSON figures are saved.
+    #[arg(long, default_value = "target/bench/allreduce.json")]
+    pub out: std::path::PathBuf,
+}
+
+pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
+    let mut rows = Vec::new();
+    for &n in &a.floats {
+        rows.push(osrt_trainer::bench_allreduce::bench_allreduce(n, a.repeats).await);
+    }
+    let text = serde_json::to_string_pretty(&rows)?;
+    if let Some(dir) = a.out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&a.out, &text)?;
+    if a.json {
+        println!("{text}");
+        return Ok(());
+    }
+    println!(
+        "ring all-reduce, 2 ranks over gRPC on loopback, vs a raw TCP copy of the same bytes:"
+    );
+    for r in &rows {
+        println!(
+            "  {:>10} floats: all-reduce {:>8.1} ms ({:.2} GB/s), TCP copy {:>8.1} ms ({:.2} GB/s), ratio {:.2}",
+            r.floats,
+            r.median_allreduce_s * 1e3,
+            r.allreduce_gb_per_s,
+            r.median_tcp_copy_s * 1e3,
+            r.tcp_gb_per_s,
+            r.ratio
+        );
+    }
+    println!("saved to {}", a.out.display());
+    Ok(())
+}

@@ -39,6 +39,8 @@ enum BenchCommand {
     Data(data::BenchDataArgs),
     /// Train-step time per preset and render speed per decoder, at 1 and 2 threads.
     Model(bench::BenchModelArgs),
+    /// Ring all-reduce throughput of 2 ranks on loopback beside a raw TCP copy.
+    Allreduce(bench::BenchAllReduceArgs),
 }
 
 #[tokio::main]
@@ -60,5 +62,8 @@ async fn main() -> anyhow::Result<()> {
         Command::Bench {
             command: BenchCommand::Model(args),
         } => bench::run(args),
+        Command::Bench {
+            command: BenchCommand::Allreduce(args),
+        } => bench::allreduce(args).await,
     }
 }

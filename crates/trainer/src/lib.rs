@@ -4,6 +4,8 @@
 //! cluster.
 
 pub mod bench;
+pub mod bench_allreduce;
+pub mod collective;
 pub mod config;
 pub mod data;
 pub mod error;

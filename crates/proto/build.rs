@@ -1,0 +1,14 @@
+//! Generates the gRPC code from `proto/` with the protoc binary vendored by
+//! `protoc-bin-vendored`, so no system protoc is needed.
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../proto");
+    let file = root.join("osrt/v1/osrt.proto");
+    println!("cargo:rerun-if-changed={}", file.display());
+    let mut config = tonic_prost_build::Config::new();
+    config.protoc_executable(protoc_bin_vendored::protoc_bin_path()?);
+    // Gradient chunks arrive as `Bytes`: no copy between the wire and the reducer.
+    config.bytes(["."]);
+    tonic_prost_build::configure().compile_with_config(config, &[file], &[root])?;
+    Ok(())
+}

@@ -1,0 +1,110 @@
+//! `osrt bench allreduce`: ring all-reduce throughput of 2 ranks over gRPC on loopback,
+//! beside a raw TCP copy of the same bytes between two sockets of the same machine.
+
+use crate::collective::{Mailbox, Ring, RingConfig, serve};
+use serde::Serialize;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+#[derive(Debug, Clone, Serialize)]
+pub struct AllReduceFigures {
+    pub floats: usize,
+    pub bytes: usize,
+    pub median_allreduce_s: f64,
+    /// Buffer bytes / all-reduce time.
+    pub allreduce_gb_per_s: f64,
+    pub median_tcp_copy_s: f64,
+    pub tcp_gb_per_s: f64,
+    /// all-reduce throughput / raw TCP throughput.
+    pub ratio: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+async fn tcp_copy(bytes: usize) -> f64 {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let reader = tokio::spawn(async move {
+        let (mut s, _) = listener.accept().await.expect("accept");
+        let mut buf = vec![0u8; 1 << 20];
+        let mut got = 0;
+        while got < bytes {
+            let n = s.read(&mut buf).await.expect("read");
+            assert!(n > 0, "peer closed early");
+            got += n;
+        }
+    });
+    let data = vec![7u8; bytes];
+    let t = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(addr).await.expect("connect");
+    s.set_nodelay(true).expect("nodelay");
+    s.write_all(&data).await.expect("write");
+    reader.await.expect("reader");
+    t.elapsed().as_secs_f64()
+}
+
+/// Median over `repeats` of a 2-rank all-reduce of `floats` values and of a TCP copy of
+/// the same number of bytes.
+pub async fn bench_allreduce(floats: usize, repeats: usize) -> AllReduceFigures {
+    let mut addrs = Vec::new();
+    let mut mailboxes = Vec::new();
+    for _ in 0..2 {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        addrs.push(format!("http://{}", listener.local_addr().expect("addr")));
+        let m = Mailbox::new("bench");
+        tokio::spawn(serve(listener, m.clone(), std::future::pending()));
+        mailboxes.push(m);
+    }
+    let mut rings: Vec<Ring> = (0..2)
+        .map(|rank| {
+            let cfg = RingConfig {
+                job: "bench".into(),
+                generation: 1,
+                rank,
+                peers: addrs.clone(),
+                bucket_floats: 25 << 20,
+                chunk_floats: crate::collective::MAX_CHUNK_FLOATS,
+                timeout: Duration::from_secs(60),
+            };
+            Ring::new(cfg, mailboxes[rank].clone()).expect("ring")
+        })
+        .collect();
+    let mut times = Vec::new();
+    for step in 0..=repeats as u64 {
+        let (mut a, mut b) = (vec![1.0f32; floats], vec![2.0f32; floats]);
+        let (r0, r1) = rings.split_at_mut(1);
+        let t = Instant::now();
+        let (x, y) = tokio::join!(
+            r0[0].all_reduce(step, &mut a),
+            r1[0].all_reduce(step, &mut b)
+        );
+        x.expect("rank 0");
+        y.expect("rank 1");
+        if step > 0 {
+            times.push(t.elapsed().as_secs_f64());
+        }
+        assert_eq!(a[floats / 2], 3.0);
+    }
+    let mut tcp = Vec::new();
+    for _ in 0..repeats.max(1) {
+        tcp.push(tcp_copy(floats * 4).await);
+    }
+    let (ar, tc) = (median(times), median(tcp));
+    let bytes = floats * 4;
+    AllReduceFigures {
+        floats,
+        bytes,
+        median_allreduce_s: ar,
+        allreduce_gb_per_s: bytes as f64 / ar / 1e9,
+        median_tcp_copy_s: tc,
+        tcp_gb_per_s: bytes as f64 / tc / 1e9,
+        ratio: tc / ar,
+    }
+}

@@ -1,0 +1,478 @@
+//! Ring all-reduce of the flat gradient buffer over gRPC (the `Collective` service).
+//!
+//! The buffer is cut into **buckets** from its end (reverse parameter order, at most
+//! `bucket_floats` each); each bucket into `world` **segments**; each segment into
+//! **chunks** of at most `chunk_floats` (≤ 1 MiB of little-endian f32). Per bucket:
+//!
+//! - *reduce-scatter*, rounds `r = 0 .. world−2`: rank `i` sends segment `(i − r) mod W`
+//!   to rank `i + 1` and adds the segment `(i − r − 1) mod W` it receives from `i − 1`;
+//!   afterwards rank `i` holds the complete sum of segment `(i + 1) mod W`.
+//! - *all-gather*, rounds `r = 0 .. world−2`: rank `i` sends segment `(i + 1 − r) mod W`
+//!   and copies the segment `(i − r) mod W` it receives.
+//!
+//! Every segment is summed exactly once, in ring order starting at its first sender, and
+//! then copied byte for byte: **all replicas end with bit-identical buffers**.
+//!
+//! Every chunk is tagged `(job, generation, step, bucket, phase, round, chunk, from_rank)`;
+//! the receiving server refuses another job's chunks, stale generations and steps, a
+//! sender that is not its ring predecessor, an unknown bucket and a wrong length. Every RPC
+//! and every wait has a deadline, so a dead peer fails the round in seconds.
+
+use bytes::Bytes;
+use osrt_proto::v1::collective_client::CollectiveClient;
+use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
+use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
+use std::collections::HashMap;
+use std::ops::Range;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use thiserror::Error;
+use tokio::sync::Notify;
+use tonic::transport::{Channel, Endpoint};
+use tonic::{Request, Response, Status};
+
+/// Largest chunk payload: 1 MiB of f32.
+pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
+
+#[derive(Debug, Error)]
+pub enum CollectiveError {
+    #[error("rank {rank}: sending to rank {to} failed: {status}")]
+    Send {
+        rank: usize,
+        to: usize,
+        status: Status,
+    },
+    #[error(
+        "rank {rank}: no chunk from rank {from} within {timeout:?} (bucket {bucket}, {phase:?} round {round}): peer dead or slow"
+    )]
+    Timeout {
+        rank: usize,
+        from: usize,
+        bucket: usize,
+        phase: Phase,
+        round: usize,
+        timeout: Duration,
+    },
+    #[error("rank {rank}: round failed: {0}", rank = .1)]
+    Peer(String, usize),
+    #[error("cannot connect to {addr}: {reason}")]
+    Connect { addr: String, reason: String },
+    #[error("collective configuration: {0}")]
+    Config(String),
+}
+
+/// Who is on the ring and how buffers are cut.
+#[derive(Debug, Clone)]
+pub struct RingConfig {
+    pub job: String,
+    pub generation: u64,
+    pub rank: usize,
+    /// `http://host:port` of every rank's collective server, in ring order.
+    pub peers: Vec<String>,
+    pub bucket_floats: usize,
+    pub chunk_floats: usize,
+    /// Deadline of every RPC and of every wait for a chunk.
+    pub timeout: Duration,
+}
+
+impl RingConfig {
+    pub fn world(&self) -> usize {
+        self.peers.len()
+    }
+}
+
+/// How a buffer of `len` floats is cut; both sides compute it identically.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Layout {
+    pub world: usize,
+    pub buckets: Vec<Range<usize>>,
+    pub chunk_floats: usize,
+}
+
+impl Layout {
+    pub fn new(len: usize, world: usize, bucket_floats: usize, chunk_floats: usize) -> Self {
+        // Buckets from the end: the last parameters' gradients are ready first in backward.
+        let mut buckets = Vec::new();
+        let mut end = len;
+        while end > 0 {
+            let start = end.saturating_sub(bucket_floats.max(1));
+            buckets.push(start..end);
+            end = start;
+        }
+        Self {
+            world,
+            buckets,
+            chunk_floats: chunk_floats.clamp(1, MAX_CHUNK_FLOATS),
+        }
+    }
+
+    /// Range of segment `s` of bucket `b` (absolute indices in the buffer).
+    pub fn segment(&self, b: usize, s: usize) -> Range<usize> {
+        let r = &self.buckets[b];
+        let n = r.len();
+        let (base, extra) = (n / self.world, n % self.world);
+        let start = r.start + s * base + s.min(extra);
+        let len = base + usize::from(s < extra);
+        start..start + len
+    }
+
+    /// Chunks of a segment.
+    pub fn chunks(&self, seg: Range<usize>) -> Vec<Range<usize>> {
+        let mut out = Vec::new();
+        let mut s = seg.start;
+        while s < seg.end {
+            let e = (s + self.chunk_floats).min(seg.end);
+            out.push(s..e);
+            s = e;
+        }
+        out
+    }
+
+    /// Segment a rank *receives* in `phase`, round `round`.
+    pub fn recv_segment(&self, rank: usize, phase: Phase, round: usize) -> usize {
+        let w = self.world;
+        match phase {
+            Phase::ReduceScatter => (rank + 2 * w - round - 1) % w,
+            _ => (rank + w - round) % w,
+        }
+    }
+
+    /// Segment a rank *sends* in `phase`, round `round`.
+    pub fn send_segment(&self, rank: usize, phase: Phase, round: usize) -> usize {
+        let w = self.world;
+        match phase {
+            Phase::ReduceScatter => (rank + w - round) % w,
+            _ => (rank + 1 + w - round) % w,
+        }
+    }
+}
+
+type Key = (u64, u32, i32, u32, u32);
+
+/// What is wrong with a chunk addressed to `rank` at step `min_step`, if anything.
+fn validate(
+    layout: &Layout,
+    rank: usize,
+    min_step: u64,
+    tag: &ChunkTag,
+    phase: Phase,
+    bytes: usize,
+) -> Option<String> {
+    let w = layout.world;
+    let expected_from = (rank + w - 1) % w;
+    if tag.from_rank as usize != expected_from {
+        return Some(format!(
+            "chunk from rank {}, expected the ring predecessor {expected_from}",
+            tag.from_rank
+        ));
+    }
+    if tag.bucket as usize >= layout.buckets.len() || tag.round as usize + 1 >= w.max(2) {
+        return Some(format!(
+            "unknown bucket {} or round {}",
+            tag.bucket, tag.round
+        ));
+    }
+    if tag.step == min_step {
+        let seg = layout.segment(
+            tag.bucket as usize,
+            layout.recv_segment(rank, phase, tag.round as usize),
+        );
+        let want = layout
+            .chunks(seg)
+            .get(tag.chunk as usize)
+            .map(|c| c.len() * 4);
+        if want != Some(bytes) {
+            return Some(format!(
+                "malformed chunk {} of bucket {}: {bytes} bytes, expected {}",
+                tag.chunk,
+                tag.bucket,
+                want.map_or("no such chunk".to_string(), |w| w.to_string())
+            ));
+        }
+    }
+    None
+}
+
+#[derive(Default)]
+struct MailboxState {
+    job: String,
+    generation: u64,
+    rank: usize,
+    min_step: u64,
+    layout: Option<Layout>,
+    chunks: HashMap<Key, Bytes>,
+    /// A malformed chunk aimed at this rank fails the round that waits for it.
+    failure: Option<String>,
+}
+
+/// Chunks received by this rank's server, waiting for the local all-reduce.
+#[derive(Default)]
+pub struct Mailbox {
+    state: Mutex<MailboxState>,
+    notify: Notify,
+}
+
+impl Mailbox {
+    pub fn new(job: &str) -> Arc<Self> {
+        let m = Arc::new(Self::default());
+        m.state.lock().expect("mailbox").job = job.to_string();
+        m
+    }
+
+    /// Starts a new generation (membership changed): older traffic becomes stale.
+    pub fn set_generation(&self, generation: u64, rank: usize) {
+        let mut s = self.state.lock().expect("mailbox");
+        s.generation = generation;
+        s.rank = rank;
+        s.chunks.clear();
+        s.failure = None;
+    }
+
+    fn begin_step(&self, step: u64, layout: Layout) {
+        let mut s = self.state.lock().expect("mailbox");
+        s.min_step = step;
+        s.layout = Some(layout);
+        s.chunks.retain(|k, _| k.0 >= step);
+        s.failure = None;
+    }
+
+    fn accept(&self, chunk: Chunk) -> Result<(), Status> {
+        let tag = chunk
+            .tag
+            .ok_or_else(|| Status::invalid_argument("chunk without a tag"))?;
+        let mut s = self.state.lock().expect("mailbox");
+        if tag.job != s.job {
+            return Err(Status::permission_denied(format!(
+                "chunk of job `{}`, this is job `{}`",
+                tag.job, s.job
+            )));
+        }
+        if tag.generation != s.generation {
+            return Err(Status::failed_precondition(format!(
+                "stale chunk: generation {}, current generation {}",
+                tag.generation, s.generation
+            )));
+        }
+        if tag.step < s.min_step {
+            return Err(Status::failed_precondition(format!(
+                "stale chunk: step {}, current step {}",
+                tag.step, s.min_step
+            )));
+        }
+        let phase = Phase::try_from(tag.phase)
+            .map_err(|_| Status::invalid_argument(format!("unknown phase {}", tag.phase)))?;
+        if phase == Phase::Unspecified {
+            return Err(Status::invalid_argument("chunk phase unspecified"));
+        }
+        let Some(layout) = s.layout.clone() else {
+            // The local worker has not reached this step yet: keep it, validate on use.
+            s.chunks.insert(
+                (tag.step, tag.bucket, tag.phase, tag.round, tag.chunk),
+                chunk.data,
+            );
+            self.notify.notify_waiters();
+            return Ok(());
+        };
+        let (rank, min_step) = (s.rank, s.min_step);
+        let problem = validate(&layout, rank, min_step, &tag, phase, chunk.data.len());
+        if let Some(msg) = problem {
+            s.failure = Some(msg.clone());
+            self.notify.notify_waiters();
+            return Err(Status::invalid_argument(msg));
+        }
+        s.chunks.insert(
+            (tag.step, tag.bucket, tag.phase, tag.round, tag.chunk),
+            chunk.data,
+        );
+        self.notify.notify_waiters();
+        Ok(())
+    }
+
+    async fn take(&self, key: Key, timeout: Duration) -> Result<Result<Bytes, String>, ()> {
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            let notified = self.notify.notified();
+            {
+                let mut s = self.state.lock().expect("mailbox");
+                if let Some(f) = s.failure.take() {
+                    return Ok(Err(f));
+                }
+                if let Some(b) = s.chunks.remove(&key) {
+                    return Ok(Ok(b));
+                }
+            }
+            if tokio::time::timeout_at(deadline, notified).await.is_err() {
+                return Err(());
+            }
+        }
+    }
+}
+
+/// The gRPC face of a [`Mailbox`].
+pub struct CollectiveService {
+    mailbox: Arc<Mailbox>,
+}
+
+impl CollectiveService {
+    pub fn server(mailbox: Arc<Mailbox>) -> CollectiveServer<Self> {
+        CollectiveServer::new(Self { mailbox })
+            .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
+    }
+}
+
+#[tonic::async_trait]
+impl Collective for CollectiveService {
+    async fn push_chunk(&self, request: Request<Chunk>) -> Result<Response<ChunkAck>, Status> {
+        let chunk = request.into_inner();
+        if let Err(status) = self.mailbox.accept(chunk) {
+            tracing::warn!(code = ?status.code(), message = status.message(), "chunk rejected");
+            return Err(status);
+        }
+        Ok(Response::new(ChunkAck {}))
+    }
+}
+
+/// One rank's side of the ring.
+pub struct Ring {
+    cfg: RingConfig,
+    mailbox: Arc<Mailbox>,
+    next: CollectiveClient<Channel>,
+}
+
+fn to_bytes(v: &[f32]) -> Bytes {
+    let mut b = Vec::with_capacity(v.len() * 4);
+    for x in v {
+        b.extend_from_slice(&x.to_le_bytes());
+    }
+    Bytes::from(b)
+}
+
+impl Ring {
+    /// Connects lazily to the next rank; `mailbox` is this rank's server's.
+    pub fn new(cfg: RingConfig, mailbox: Arc<Mailbox>) -> Result<Self, CollectiveError> {
+        let w = cfg.world();
+        if cfg.rank >= w {
+            return Err(CollectiveError::Config(format!(
+                "rank {} outside a ring of {w}",
+                cfg.rank
+            )));
+        }
+        let addr = cfg.peers[(cfg.rank + 1) % w].clone();
+        let endpoint = Endpoint::from_shared(addr.clone())
+            .map_err(|e| CollectiveError::Connect {
+                addr: addr.clone(),
+                reason: e.to_string(),
+            })?
+            .connect_timeout(cfg.timeout)
+            .timeout(cfg.timeout);
+        let next = CollectiveClient::new(endpoint.connect_lazy())
+            .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
+            .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
+        mailbox.set_generation(cfg.generation, cfg.rank);
+        Ok(Self { cfg, mailbox, next })
+    }
+
+    pub fn layout(&self, len: usize) -> Layout {
+        Layout::new(
+            len,
+            self.cfg.world(),
+            self.cfg.bucket_floats,
+            self.cfg.chunk_floats,
+        )
+    }
+
+    /// Sums `buf` over all ranks in place; every rank ends with identical bytes.
+    pub async fn all_reduce(&mut self, step: u64, buf: &mut [f32]) -> Result<(), CollectiveError> {
+        let w = self.cfg.world();
+        if w == 1 {
+            return Ok(());
+        }
+        let layout = self.layout(buf.len());
+        self.mailbox.begin_step(step, layout.clone());
+        let rank = self.cfg.rank;
+        for b in 0..layout.buckets.len() {
+            for phase in [Phase::ReduceScatter, Phase::AllGather] {
+                for round in 0..w - 1 {
+                    let send = layout.segment(b, layout.send_segment(rank, phase, round));
+                    for (c, range) in layout.chunks(send).into_iter().enumerate() {
+                        let tag = ChunkTag {
+                            job: self.cfg.job.clone(),
+                            generation: self.cfg.generation,
+                            step,
+                            bucket: b as u32,
+                            phase: phase as i32,
+                            round: round as u32,
+                            chunk: c as u32,
+                            from_rank: rank as u32,
+                        };
+                        let mut req = Request::new(Chunk {
+                            tag: Some(tag),
+                            data: to_bytes(&buf[range]),
+                        });
+                        req.set_timeout(self.cfg.timeout);
+                        self.next.push_chunk(req).await.map_err(|status| {
+                            CollectiveError::Send {
+                                rank,
+                                to: (rank + 1) % w,
+                                status,
+                            }
+                        })?;
+                    }
+                    let recv = layout.segment(b, layout.recv_segment(rank, phase, round));
+                    for (c, range) in layout.chunks(recv).into_iter().enumerate() {
+                        let key = (step, b as u32, phase as i32, round as u32, c as u32);
+                        let data = match self.mailbox.take(key, self.cfg.timeout).await {
+                            Ok(Ok(d)) => d,
+                            Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
+                            Err(()) => {
+                                return Err(CollectiveError::Timeout {
+                                    rank,
+                                    from: (rank + w - 1) % w,
+                                    bucket: b,
+                                    phase,
+                                    round,
+                                    timeout: self.cfg.timeout,
+                                });
+                            }
+                        };
+                        if data.len() != range.len() * 4 {
+                            return Err(CollectiveError::Peer(
+                                format!(
+                                    "chunk {c} of bucket {b} has {} bytes, expected {}",
+                                    data.len(),
+                                    range.len() * 4
+                                ),
+                                rank,
+                            ));
+                        }
+                        let dst = &mut buf[range];
+                        for (d, src) in dst.iter_mut().zip(data.chunks_exact(4)) {
+                            let v = f32::from_le_bytes([src[0], src[1], src[2], src[3]]);
+                            if phase == Phase::ReduceScatter {
+                                *d += v;
+                            } else {
+                                *d = v;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Serves a collective mailbox on `listener` until `shutdown` resolves.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    mailbox: Arc<Mailbox>,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<(), tonic::transport::Error> {
+    tonic::transport::Server::builder()
+        .add_service(CollectiveService::server(mailbox))
+        .serve_with_incoming_shutdown(
+            tonic::transport::server::TcpIncoming::from(listener),
+            shutdown,
+        )
+        .await
+}

@@ -1,0 +1,242 @@
+//! Ring all-reduce over real gRPC on loopback: sums, bit-identical replicas, stale and
+//! malformed traffic, dead peers.
+
+use bytes::Bytes;
+use osrt_proto::v1::collective_client::CollectiveClient;
+use osrt_proto::v1::{Chunk, ChunkTag, Phase};
+use osrt_trainer::collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, serve};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::oneshot;
+
+struct Node {
+    addr: String,
+    mailbox: Arc<Mailbox>,
+    server: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    _stop: oneshot::Sender<()>,
+}
+
+async fn start(n: usize, job: &str) -> Vec<Node> {
+    let mut nodes = Vec::new();
+    for _ in 0..n {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = format!("http://{}", listener.local_addr().unwrap());
+        let mailbox = Mailbox::new(job);
+        let (tx, rx) = oneshot::channel::<()>();
+        let server = tokio::spawn(serve(listener, mailbox.clone(), async move {
+            let _ = rx.await;
+        }));
+        nodes.push(Node {
+            addr,
+            mailbox,
+            server,
+            _stop: tx,
+        });
+    }
+    nodes
+}
+
+fn config(
+    nodes: &[Node],
+    rank: usize,
+    bucket: usize,
+    chunk: usize,
+    timeout: Duration,
+) -> RingConfig {
+    RingConfig {
+        job: "test-job".into(),
+        generation: 1,
+        rank,
+        peers: nodes.iter().map(|n| n.addr.clone()).collect(),
+        bucket_floats: bucket,
+        chunk_floats: chunk,
+        timeout,
+    }
+}
+
+fn random(n: usize, seed: u64) -> Vec<f32> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n).map(|_| rng.random_range(-1.0..1.0)).collect()
+}
+
+#[test]
+fn layout_covers_the_buffer_exactly_once() {
+    for (len, world, bucket, chunk) in [
+        (10, 3, 4, 1),
+        (1000, 2, 300, 7),
+        (5, 4, 100, 2),
+        (1, 3, 1, 1),
+    ] {
+        let l = Layout::new(len, world, bucket, chunk);
+        let mut seen = vec![0; len];
+        for b in 0..l.buckets.len() {
+            for s in 0..world {
+                for c in l.chunks(l.segment(b, s)) {
+                    assert!(c.len() <= chunk);
+                    for i in c {
+                        seen[i] += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            seen.iter().all(|&x| x == 1),
+            "{len} {world} {bucket} {chunk}"
+        );
+        // Reverse parameter order: the first bucket ends at the buffer's end.
+        assert_eq!(l.buckets[0].end, len);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ring_all_reduce_sums_and_replicas_are_bit_identical() {
+    for world in [2usize, 3] {
+        let nodes = start(world, "test-job").await;
+        let len = 100_003;
+        let inputs: Vec<Vec<f32>> = (0..world).map(|r| random(len, r as u64)).collect();
+        let mut tasks = Vec::new();
+        for rank in 0..world {
+            let cfg = config(&nodes, rank, 30_000, 4096, Duration::from_secs(10));
+            let mut ring = Ring::new(cfg, nodes[rank].mailbox.clone()).unwrap();
+            let mut buf = inputs[rank].clone();
+            tasks.push(tokio::spawn(async move {
+                for step in 0..2u64 {
+                    ring.all_reduce(step, &mut buf).await.unwrap();
+                }
+                buf
+            }));
+        }
+        let mut outs = Vec::new();
+        for t in tasks {
+            outs.push(t.await.unwrap());
+        }
+        for o in &outs[1..] {
+            assert!(
+                o.iter()
+                    .zip(&outs[0])
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "replicas differ"
+            );
+        }
+        // Two steps: the second all-reduce sums the sums → world × Σ inputs.
+        for i in (0..len).step_by(997) {
+            let want: f32 = inputs.iter().map(|v| v[i]).sum::<f32>() * world as f32;
+            assert!(
+                (outs[0][i] - want).abs() < 1e-4,
+                "index {i}: {} vs {want}",
+                outs[0][i]
+            );
+        }
+    }
+}
+
+fn chunk(job: &str, generation: u64, step: u64, from: u32, data: Vec<f32>) -> Chunk {
+    Chunk {
+        tag: Some(ChunkTag {
+            job: job.into(),
+            generation,
+            step,
+            bucket: 0,
+            phase: Phase::ReduceScatter as i32,
+            round: 0,
+            chunk: 0,
+            from_rank: from,
+        }),
+        data: Bytes::from(
+            data.iter()
+                .flat_map(|x| x.to_le_bytes())
+                .collect::<Vec<u8>>(),
+        ),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stale_foreign_and_malformed_chunks_are_rejected() {
+    let nodes = start(2, "test-job").await;
+    // Rank 0 is in generation 1 but never joins the all-reduce rank 1 waits in (8 floats,
+    // segments of 4).
+    nodes[0].mailbox.set_generation(1, 0);
+    let cfg = config(&nodes, 1, 1000, 1000, Duration::from_secs(5));
+    let mut ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
+    let waiting = tokio::spawn(async move {
+        let mut buf = vec![1.0f32; 8];
+        ring.all_reduce(3, &mut buf).await
+    });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut client = CollectiveClient::connect(nodes[1].addr.clone())
+        .await
+        .unwrap();
+    let e = client
+        .push_chunk(chunk("other-job", 1, 3, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::PermissionDenied, "{e}");
+    let e = client
+        .push_chunk(chunk("test-job", 0, 3, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::FailedPrecondition);
+    assert!(e.message().contains("stale chunk: generation 0"), "{e}");
+    let e = client
+        .push_chunk(chunk("test-job", 1, 2, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert!(e.message().contains("stale chunk: step 2"), "{e}");
+    let e = client
+        .push_chunk(Chunk {
+            tag: None,
+            data: Bytes::new(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument);
+    // Wrong length: refused, and the waiting round fails at once with the reason.
+    let t = Instant::now();
+    let e = client
+        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 3]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument);
+    assert!(e.message().contains("malformed chunk"), "{e}");
+    let err = waiting.await.unwrap().unwrap_err();
+    assert!(
+        matches!(err, CollectiveError::Peer(ref m, 1) if m.contains("malformed chunk")),
+        "{err}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(2));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dead_peer_fails_the_round_within_the_deadline() {
+    let nodes = start(2, "test-job").await;
+    // Rank 1's process dies: its server and listener are gone.
+    nodes[1].server.abort();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let cfg = config(&nodes, 0, 1000, 1000, Duration::from_secs(2));
+    let mut ring = Ring::new(cfg, nodes[0].mailbox.clone()).unwrap();
+    let t = Instant::now();
+    let err = ring.all_reduce(0, &mut [1.0f32; 16]).await.unwrap_err();
+    assert!(
+        t.elapsed() < Duration::from_secs(5),
+        "took {:?}",
+        t.elapsed()
+    );
+    assert!(matches!(err, CollectiveError::Send { to: 1, .. }), "{err}");
+    // A live peer that never sends: the wait times out.
+    let nodes2 = start(2, "test-job").await;
+    nodes2[1].mailbox.set_generation(1, 1);
+    let mut ring = Ring::new(
+        config(&nodes2, 0, 1000, 1000, Duration::from_secs(1)),
+        nodes2[0].mailbox.clone(),
+    )
+    .unwrap();
+    let t = Instant::now();
+    let err = ring.all_reduce(0, &mut [1.0f32; 16]).await.unwrap_err();
+    assert!(
+        matches!(err, CollectiveError::Timeout { from: 1, .. }),
+        "{err}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(3));
+}
