@@ -34,6 +34,9 @@ use tonic::{Request, Response, Status};
 /// Largest chunk payload: 1 MiB of f32.
 pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
 
+/// HTTP/2 flow-control window of collective connections (several chunks in flight).
+const WINDOW_BYTES: u32 = 16 << 20;
+
 #[derive(Debug, Error)]
 pub enum CollectiveError {
     #[error("rank {rank}: sending to rank {to} failed: {status}")]
@@ -291,7 +294,11 @@ impl Mailbox {
     async fn take(&self, key: Key, timeout: Duration) -> Result<Result<Bytes, String>, ()> {
         let deadline = tokio::time::Instant::now() + timeout;
         loop {
+            // Register as a waiter *before* looking, or a notification that lands between
+            // the look and the wait is lost (notify_waiters only wakes registered waiters).
             let notified = self.notify.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
             {
                 let mut s = self.state.lock().expect("mailbox");
                 if let Some(f) = s.failure.take() {
@@ -364,7 +371,11 @@ impl Ring {
                 reason: e.to_string(),
             })?
             .connect_timeout(cfg.timeout)
-            .timeout(cfg.timeout);
+            .timeout(cfg.timeout)
+            // HTTP/2's default 64 KiB windows throttle 1 MiB chunks to a crawl.
+            .initial_stream_window_size(WINDOW_BYTES)
+            .initial_connection_window_size(WINDOW_BYTES)
+            .tcp_nodelay(true);
         let next = CollectiveClient::new(endpoint.connect_lazy())
             .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
             .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
@@ -469,6 +480,9 @@ pub async fn serve(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
     tonic::transport::Server::builder()
+        .initial_stream_window_size(WINDOW_BYTES)
+        .initial_connection_window_size(WINDOW_BYTES)
+        .tcp_nodelay(true)
         .add_service(CollectiveService::server(mailbox))
         .serve_with_incoming_shutdown(
             tonic::transport::server::TcpIncoming::from(listener),
