@@ -52,6 +52,16 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     Ok(json!({ "steps": steps, "renders": renders }))
 }
 
+/// Saves benchmark figures (creating the folder) and returns the text.
+pub fn save_json(path: &std::path::Path, value: &serde_json::Value) -> Result<String> {
+    let text = serde_json::to_string_pretty(value)?;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(path, &text).with_context(|| format!("writing {}", path.display()))?;
+    Ok(text)
+}
+
 pub fn run(a: BenchModelArgs) -> Result<()> {
     if a.child {
         println!("{}", serde_json::to_string(&measure(&a)?)?);
@@ -93,11 +103,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         by_threads.insert(n.to_string(), v);
     }
     let report = serde_json::Value::Object(by_threads);
-    let text = serde_json::to_string_pretty(&report)?;
-    if let Some(dir) = a.out.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    std::fs::write(&a.out, &text)?;
+    let text = save_json(&a.out, &report)?;
     if a.json {
         println!("{text}");
         return Ok(());
@@ -170,11 +176,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     for &n in &a.floats {
         rows.push(osrt_trainer::bench_allreduce::bench_allreduce(n, a.repeats).await);
     }
-    let text = serde_json::to_string_pretty(&rows)?;
-    if let Some(dir) = a.out.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    std::fs::write(&a.out, &text)?;
+    let text = save_json(&a.out, &serde_json::to_value(&rows)?)?;
     if a.json {
         println!("{text}");
         return Ok(());

@@ -205,11 +205,7 @@ pub async fn bench(a: BenchDataArgs) -> Result<()> {
     let cfg = preset(&a.preset, a.image_size, None)?;
     let scratch = Location::parse("memory://bench-data/split")?;
     let r = osrt_dataset::bench::bench_data(&cfg, a.scenes, a.repeats, scratch).await?;
-    let json = serde_json::to_string_pretty(&r)?;
-    if let Some(dir) = a.out.parent() {
-        std::fs::create_dir_all(dir)?;
-    }
-    std::fs::write(&a.out, &json).with_context(|| format!("writing {}", a.out.display()))?;
+    let json = crate::bench::save_json(&a.out, &serde_json::to_value(&r)?)?;
     if a.json {
         println!("{json}");
     } else {

@@ -33,7 +33,8 @@ pub struct DataBench {
     pub read_without_masks: ReadFigures,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// Median of timings (upper median for even counts); shared by every benchmark.
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }

@@ -6,6 +6,7 @@ use crate::config::JobConfig;
 use crate::error::Result;
 use crate::step::{BatchTensors, Trainer};
 use candle_core::Device;
+use osrt_dataset::bench::median;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
 use osrt_model::{Config, Osrt, Params};
@@ -33,11 +34,6 @@ pub struct RenderFigures {
     pub image_size: u32,
     pub median_frame_s: f64,
     pub fps: f64,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 fn bench_scenes(n: u64, size: u32) -> Result<Vec<Scene>> {

@@ -2,6 +2,7 @@
 //! beside a raw TCP copy of the same bytes between two sockets of the same machine.
 
 use crate::collective::{Mailbox, Ring, RingConfig, serve};
+use osrt_dataset::bench::median;
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -17,11 +18,6 @@ pub struct AllReduceFigures {
     pub tcp_gb_per_s: f64,
     /// all-reduce throughput / raw TCP throughput.
     pub ratio: f64,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 async fn tcp_copy(bytes: usize) -> f64 {
