@@ -1,7 +1,7 @@
 //! Model-level tests: parameter counts, gradient flow, finite-difference gradient checks
 //! (in f64) and extreme inputs.
 
-use crate::decoder::{self, DecoderOutput};
+use crate::decoder::DecoderOutput;
 use crate::nn::{Block, TransformerConfig};
 use crate::params::{Params, normal_samples};
 use crate::ray_encoding::RayEncoding;
@@ -419,7 +419,6 @@ fn scene_editing_changes_the_slot_set() {
     assert_eq!(added.dims(), &[1, 4, 8]);
     assert!(drop_slot(&slots, 3).is_err());
     assert!(add_slot(&slots, &dropped, 2).is_err());
-    let _ = decoder::Config::SlotMixer(decoder::slot_mixer::Config::paper());
 }
 
 #[test]

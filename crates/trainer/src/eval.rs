@@ -152,7 +152,7 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
                 }
                 seg.update(&views);
             }
-            (None, _) => has_weights = false,
+            // No slot weights (transformer decoder) or no masks: no segmentation scores.
             _ => has_weights = false,
         }
     }
