@@ -163,6 +163,9 @@ pub struct BenchAllReduceArgs {
     /// Timed repeats per size (after one warm-up); the median is reported.
     #[arg(long, default_value_t = 5)]
     pub repeats: usize,
+    /// Floats per chunk (at most 262144 = 1 MiB).
+    #[arg(long, default_value_t = osrt_trainer::collective::MAX_CHUNK_FLOATS)]
+    pub chunk_floats: usize,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -174,7 +177,9 @@ pub struct BenchAllReduceArgs {
 pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     let mut rows = Vec::new();
     for &n in &a.floats {
-        rows.push(osrt_trainer::bench_allreduce::bench_allreduce(n, a.repeats).await);
+        rows.push(
+            osrt_trainer::bench_allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
+        );
     }
     let text = save_json(&a.out, &serde_json::to_value(&rows)?)?;
     if a.json {

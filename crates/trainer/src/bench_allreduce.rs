@@ -10,6 +10,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 #[derive(Debug, Clone, Serialize)]
 pub struct AllReduceFigures {
     pub floats: usize,
+    pub chunk_floats: usize,
     pub bytes: usize,
     pub median_allreduce_s: f64,
     /// Buffer bytes / all-reduce time.
@@ -46,7 +47,11 @@ async fn tcp_copy(bytes: usize) -> f64 {
 
 /// Median over `repeats` of a 2-rank all-reduce of `floats` values and of a TCP copy of
 /// the same number of bytes.
-pub async fn bench_allreduce(floats: usize, repeats: usize) -> AllReduceFigures {
+pub async fn bench_allreduce(
+    floats: usize,
+    repeats: usize,
+    chunk_floats: usize,
+) -> AllReduceFigures {
     let mut addrs = Vec::new();
     let mut mailboxes = Vec::new();
     for _ in 0..2 {
@@ -66,7 +71,7 @@ pub async fn bench_allreduce(floats: usize, repeats: usize) -> AllReduceFigures 
                 rank,
                 peers: addrs.clone(),
                 bucket_floats: 25 << 20,
-                chunk_floats: crate::collective::MAX_CHUNK_FLOATS,
+                chunk_floats,
                 timeout: Duration::from_secs(60),
             };
             Ring::new(cfg, mailboxes[rank].clone()).expect("ring")
@@ -96,6 +101,7 @@ pub async fn bench_allreduce(floats: usize, repeats: usize) -> AllReduceFigures 
     let bytes = floats * 4;
     AllReduceFigures {
         floats,
+        chunk_floats,
         bytes,
         median_allreduce_s: ar,
         allreduce_gb_per_s: bytes as f64 / ar / 1e9,

@@ -485,7 +485,9 @@ pub async fn serve(
         .tcp_nodelay(true)
         .add_service(CollectiveService::server(mailbox))
         .serve_with_incoming_shutdown(
-            tonic::transport::server::TcpIncoming::from(listener),
+            // Our own listener: its sockets need TCP_NODELAY here (the builder's setting
+            // applies only to listeners it binds), or Nagle delays the small acks.
+            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
             shutdown,
         )
         .await
