@@ -150,7 +150,8 @@ impl Layout {
     }
 }
 
-type Key = (u64, u32, i32, u32, u32);
+/// `(generation, step, bucket, phase, round, chunk)`
+type Key = (u64, u64, u32, i32, u32, u32);
 
 /// What is wrong with a chunk addressed to `rank` at step `min_step`, if anything.
 fn validate(
@@ -227,7 +228,8 @@ impl Mailbox {
         let mut s = self.state.lock().expect("mailbox");
         s.generation = generation;
         s.rank = rank;
-        s.chunks.clear();
+        // Keep chunks a faster peer already sent for this generation.
+        s.chunks.retain(|k, _| k.0 >= generation);
         s.failure = None;
     }
 
@@ -235,7 +237,8 @@ impl Mailbox {
         let mut s = self.state.lock().expect("mailbox");
         s.min_step = step;
         s.layout = Some(layout);
-        s.chunks.retain(|k, _| k.0 >= step);
+        let generation = s.generation;
+        s.chunks.retain(|k, _| k.0 > generation || k.1 >= step);
         s.failure = None;
     }
 
@@ -250,11 +253,26 @@ impl Mailbox {
                 tag.job, s.job
             )));
         }
-        if tag.generation != s.generation {
+        if tag.generation < s.generation {
             return Err(Status::failed_precondition(format!(
                 "stale chunk: generation {}, current generation {}",
                 tag.generation, s.generation
             )));
+        }
+        let key = (
+            tag.generation,
+            tag.step,
+            tag.bucket,
+            tag.phase,
+            tag.round,
+            tag.chunk,
+        );
+        if tag.generation > s.generation {
+            // A peer that joined the new generation first: keep it; the length is checked
+            // when the chunk is used.
+            s.chunks.insert(key, chunk.data);
+            self.notify.notify_waiters();
+            return Ok(());
         }
         if tag.step < s.min_step {
             return Err(Status::failed_precondition(format!(
@@ -269,10 +287,7 @@ impl Mailbox {
         }
         let Some(layout) = s.layout.clone() else {
             // The local worker has not reached this step yet: keep it, validate on use.
-            s.chunks.insert(
-                (tag.step, tag.bucket, tag.phase, tag.round, tag.chunk),
-                chunk.data,
-            );
+            s.chunks.insert(key, chunk.data);
             self.notify.notify_waiters();
             return Ok(());
         };
@@ -283,10 +298,7 @@ impl Mailbox {
             self.notify.notify_waiters();
             return Err(Status::invalid_argument(msg));
         }
-        s.chunks.insert(
-            (tag.step, tag.bucket, tag.phase, tag.round, tag.chunk),
-            chunk.data,
-        );
+        s.chunks.insert(key, chunk.data);
         self.notify.notify_waiters();
         Ok(())
     }
@@ -431,7 +443,14 @@ impl Ring {
                     }
                     let recv = layout.segment(b, layout.recv_segment(rank, phase, round));
                     for (c, range) in layout.chunks(recv).into_iter().enumerate() {
-                        let key = (step, b as u32, phase as i32, round as u32, c as u32);
+                        let key = (
+                            self.cfg.generation,
+                            step,
+                            b as u32,
+                            phase as i32,
+                            round as u32,
+                            c as u32,
+                        );
                         let data = match self.mailbox.take(key, self.cfg.timeout).await {
                             Ok(Ok(d)) => d,
                             Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),

@@ -184,6 +184,11 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
         .await
         .unwrap_err();
     assert!(e.message().contains("stale chunk: step 2"), "{e}");
+    // A chunk of a *newer* generation (a peer that joined it first) is kept, not refused.
+    client
+        .push_chunk(chunk("test-job", 2, 0, 0, vec![0.0; 4]))
+        .await
+        .unwrap();
     let e = client
         .push_chunk(Chunk {
             tag: None,
