@@ -2,6 +2,7 @@
 //! distributed batch job. This binary only parses arguments and calls the libraries.
 
 mod bench;
+mod cluster;
 mod data;
 mod train;
 
@@ -22,8 +23,12 @@ enum Command {
         #[command(subcommand)]
         command: data::DataCommand,
     },
-    /// Train a model (single process for now).
+    /// Train on this machine: a coordinator and N worker processes on loopback.
     Train(Box<train::TrainArgs>),
+    /// Run a job's coordinator (the cluster's side of `osrt train`).
+    Coordinator(Box<cluster::CoordinatorArgs>),
+    /// Run one worker of a job (registers with the coordinator, trains until done).
+    Worker(cluster::WorkerArgs),
     /// Evaluate a trained run on a split.
     Eval(train::EvalArgs),
     /// Benchmarks that print (and save) throughput figures.
@@ -49,12 +54,15 @@ async fn main() -> anyhow::Result<()> {
         .with_env_filter(
             EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
         )
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
     match cli.command {
         Command::Data { command } => data::run(command).await,
         Command::Train(args) => train::train(*args).await,
+        Command::Coordinator(args) => cluster::coordinator(*args).await,
+        Command::Worker(args) => cluster::worker(args).await,
         Command::Eval(args) => train::eval(args).await,
         Command::Bench {
             command: BenchCommand::Data(args),

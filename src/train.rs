@@ -6,7 +6,7 @@ use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
 use osrt_model::SlotInit;
 use osrt_trainer::run::eval_options;
-use osrt_trainer::{JobConfig, TrainOptions, evaluate, load_run};
+use osrt_trainer::{JobConfig, evaluate, load_run};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -24,12 +24,19 @@ pub struct TrainArgs {
     /// Dataset directory or URL; the default ./data is generated (clevr-lite) if absent.
     #[arg(long, default_value = DEFAULT_DATA)]
     pub data: String,
-    /// Worker processes (only 1 until the cluster lands).
-    #[arg(long, default_value_t = 1)]
+    /// Worker processes on this machine (a coordinator runs in this process).
+    #[arg(long, default_value_t = 2)]
     pub workers: usize,
-    /// Run folder (default: runs/<preset>-<unix time>).
+    /// Compute threads per worker (default: the machine's cores divided among workers).
     #[arg(long)]
-    pub run: Option<PathBuf>,
+    pub threads: Option<usize>,
+    /// Run folder or URL (default: runs/<preset>-<unix time>).
+    #[arg(long)]
+    pub run: Option<String>,
+    /// Continue the job in --run from its newest committed checkpoint (with the run's own
+    /// config; --max-steps counts from step 0).
+    #[arg(long)]
+    pub resume: bool,
     /// Stop after this many optimiser steps.
     #[arg(long)]
     pub max_steps: Option<u64>,
@@ -73,9 +80,9 @@ pub struct TrainArgs {
 
 #[derive(Args)]
 pub struct EvalArgs {
-    /// Run folder of a finished `osrt train`.
+    /// Run folder or URL of `osrt train` (its newest committed checkpoint is evaluated).
     #[arg(long)]
-    pub run: PathBuf,
+    pub run: String,
     /// Split to evaluate.
     #[arg(long, default_value = "test")]
     pub split: String,
@@ -173,20 +180,22 @@ async fn ensure_default_data(data: &str) -> Result<()> {
 }
 
 pub async fn train(a: TrainArgs) -> Result<()> {
-    if a.workers != 1 {
-        bail!(
-            "--workers {}: multi-worker training is not implemented yet (the cluster issue); use --workers 1",
-            a.workers
-        );
+    if a.workers == 0 {
+        bail!("--workers must be at least 1");
     }
-    let job = job_config(&a)?;
+    if a.resume && a.run.is_none() {
+        bail!("--resume needs the --run folder to continue");
+    }
+    let mut job = job_config(&a)?;
+    job.cluster.min_workers = a.workers;
+    job.cluster.max_workers = job.cluster.max_workers.max(a.workers);
     ensure_default_data(&a.data).await?;
     let run = a.run.clone().unwrap_or_else(|| {
         let now = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_secs())
             .unwrap_or(0);
-        PathBuf::from(format!("runs/{}-{now}", a.preset))
+        format!("runs/{}-{now}", a.preset)
     });
     if a.max_steps.is_none() && a.max_minutes.is_none() {
         eprintln!(
@@ -198,36 +207,53 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     } else {
         None
     });
-    eprintln!("run folder: {}", run.display());
-    let summary = osrt_trainer::train(TrainOptions {
-        data: a.data.clone(),
-        run: run.clone(),
-        job,
-        max_steps: a.max_steps,
-        max_minutes,
-        progress: std::io::stderr().is_terminal(),
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    let threads = a.threads.unwrap_or((cores / a.workers).max(1));
+    eprintln!(
+        "run folder: {run} ({} worker{} × {threads} thread{})",
+        a.workers,
+        if a.workers == 1 { "" } else { "s" },
+        if threads == 1 { "" } else { "s" }
+    );
+    let spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes)?;
+    let status = crate::cluster::run_local(crate::cluster::LocalJob {
+        spec,
+        workers: a.workers,
+        threads_per_worker: threads,
+        resume: a.resume,
     })
     .await?;
+    let loc = Location::parse(&run)?;
+    let metrics = osrt_trainer::run::read_file(&loc, osrt_trainer::run::METRICS_FILE)
+        .await?
+        .unwrap_or_default();
+    let last_eval = String::from_utf8_lossy(&metrics)
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .rfind(|v| v.get("psnr").is_some());
     println!(
-        "trained {} steps in {:.0} s ({} skipped); weights: {}",
-        summary.steps,
-        summary.wall_s,
-        summary.skipped,
-        run.join("weights.safetensors").display()
+        "trained to step {} ({} restarts); checkpoints: {run}/checkpoints",
+        status.last_checkpoint.unwrap_or(0),
+        status.restarts,
     );
-    if let Some(e) = summary.final_eval {
+    if let Some(e) = last_eval {
+        let f = |k: &str| e.get(k).and_then(|v| v.as_f64());
         println!(
             "validation: PSNR {:.2} dB (mean-colour baseline {:.2} dB), FG-ARI {}",
-            e.psnr,
-            e.baseline_psnr,
-            e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+            f("psnr").unwrap_or(f64::NAN),
+            f("baseline_psnr").unwrap_or(f64::NAN),
+            f("fg_ari").map_or("n/a".into(), |v| format!("{v:.3}"))
         );
     }
     Ok(())
 }
 
 pub async fn eval(a: EvalArgs) -> Result<()> {
-    let loaded = load_run(&a.run).with_context(|| format!("loading run {}", a.run.display()))?;
+    let loaded = load_run(&a.run)
+        .await
+        .with_context(|| format!("loading run {}", a.run))?;
     let data = a.data.clone().unwrap_or_else(|| loaded.info.data.clone());
     let loc = Location::parse(&data)?;
     let scenes = osrt_trainer::data::load_split(
@@ -250,11 +276,8 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
             })
         };
         println!(
-            "run {} on {}/{} ({} scenes)",
-            a.run.display(),
-            data,
-            a.split,
-            r.scenes
+            "run {} (step {}) on {}/{} ({} scenes)",
+            a.run, loaded.step, data, a.split, r.scenes
         );
         println!(
             "  PSNR        {:.2} dB (mean-colour baseline {:.2} dB)",

@@ -1,21 +1,11 @@
 //! The `osrt` binary end to end: generate a dataset, inspect it, and read it back with an
 //! independent Parquet implementation (pyarrow).
 
+mod common;
+
+use common::{osrt, read_jsonl};
 use std::path::Path;
 use std::process::Command;
-
-fn osrt(args: &[&str]) -> std::process::Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
-        .args(args)
-        .output()
-        .expect("run osrt");
-    assert!(
-        out.status.success(),
-        "osrt {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
 
 fn generate(dir: &Path) {
     osrt(&[
@@ -136,14 +126,6 @@ fn pyarrow_reads_generated_splits() {
     }
 }
 
-fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
-}
-
 #[test]
 fn train_then_eval_a_tiny_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -178,6 +160,8 @@ fn train_then_eval_a_tiny_run() {
             run.to_str().unwrap(),
             "--max-steps",
             "3",
+            "--workers",
+            "1",
         ]);
         let records = read_jsonl(&run.join("metrics.jsonl"));
         let train: Vec<_> = records.iter().filter(|r| r.get("loss").is_some()).collect();
@@ -193,7 +177,10 @@ fn train_then_eval_a_tiny_run() {
         for key in ["psnr", "fg_ari", "fg_ari_2d", "ari"] {
             assert!(evals.last().unwrap().get(key).is_some(), "{key}");
         }
-        assert!(run.join("weights.safetensors").is_file());
+        assert!(
+            run.join("checkpoints/step-000000003/MANIFEST.json")
+                .is_file()
+        );
         assert!(run.join("config.toml").is_file());
 
         let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--json"]);
@@ -227,5 +214,6 @@ fn train_then_eval_a_tiny_run() {
         .output()
         .unwrap();
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("already holds a run"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("is done; pass --resume"), "{err}");
 }

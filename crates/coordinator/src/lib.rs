@@ -1,3 +1,12 @@
-//! The coordinator: job spec and state, membership, shard plans, generations.
+//! The osrt coordinator: owns one job's spec and state, decides who trains in which
+//! generation, hands out plans, checks that replicas agree, and keeps the run's
+//! `metrics.jsonl` and `job.json` in the object store so a restarted coordinator resumes.
 //!
-//! Not yet written: this crate is a placeholder in the workspace layout. It exports nothing.
+//! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
+//! the loop that times out silent members and persists state.
+
+pub mod core;
+pub mod service;
+
+pub use crate::core::{Core, JobSpec, Persisted};
+pub use service::{Coordinator, JOB_FILE, StatusSnapshot};

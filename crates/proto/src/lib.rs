@@ -1,8 +1,12 @@
 //! The osrt gRPC protocol (`proto/osrt/v1/osrt.proto`), generated at build time with a
-//! vendored protoc. Hand-written conversions to domain types live with the services that
-//! use them and reject missing fields with typed errors.
+//! vendored protoc; the shared-token authentication both services use ([`auth`]); and the
+//! one place where protocol messages become domain types ([`convert`]), rejecting missing
+//! fields with typed errors.
 
-/// Protocol version: peers of another version are refused.
+pub mod auth;
+pub mod convert;
+
+/// Protocol version: peers of another version are refused at registration.
 pub const PROTOCOL_VERSION: u32 = 1;
 
 #[allow(clippy::all, missing_docs)]

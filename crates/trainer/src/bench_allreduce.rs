@@ -54,13 +54,19 @@ pub async fn bench_allreduce(
 ) -> AllReduceFigures {
     let mut addrs = Vec::new();
     let mut mailboxes = Vec::new();
+    let token = osrt_proto::auth::Token::generate();
     for _ in 0..2 {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .expect("bind");
         addrs.push(format!("http://{}", listener.local_addr().expect("addr")));
         let m = Mailbox::new("bench");
-        tokio::spawn(serve(listener, m.clone(), std::future::pending()));
+        tokio::spawn(serve(
+            listener,
+            m.clone(),
+            token.clone(),
+            std::future::pending(),
+        ));
         mailboxes.push(m);
     }
     let mut rings: Vec<Ring> = (0..2)
@@ -73,6 +79,7 @@ pub async fn bench_allreduce(
                 bucket_floats: 25 << 20,
                 chunk_floats,
                 timeout: Duration::from_secs(60),
+                token: token.clone(),
             };
             Ring::new(cfg, mailboxes[rank].clone()).expect("ring")
         })

@@ -19,6 +19,7 @@
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
 use bytes::Bytes;
+use osrt_proto::auth::{AttachToken, CheckToken, Token};
 use osrt_proto::v1::collective_client::CollectiveClient;
 use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
 use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
@@ -28,6 +29,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use thiserror::Error;
 use tokio::sync::Notify;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tonic::{Request, Response, Status};
 
@@ -76,6 +78,8 @@ pub struct RingConfig {
     pub chunk_floats: usize,
     /// Deadline of every RPC and of every wait for a chunk.
     pub timeout: Duration,
+    /// The job's shared token, attached to every chunk sent.
+    pub token: Token,
 }
 
 impl RingConfig {
@@ -207,6 +211,9 @@ struct MailboxState {
     chunks: HashMap<Key, Bytes>,
     /// A malformed chunk aimed at this rank fails the round that waits for it.
     failure: Option<String>,
+    /// Set by the worker when the coordinator moved on: every wait of this generation
+    /// fails at once instead of running into its deadline.
+    aborted: Option<String>,
 }
 
 /// Chunks received by this rank's server, waiting for the local all-reduce.
@@ -223,6 +230,11 @@ impl Mailbox {
         m
     }
 
+    /// The job this mailbox accepts chunks of (learnt at registration).
+    pub fn set_job(&self, job: &str) {
+        self.state.lock().expect("mailbox").job = job.to_string();
+    }
+
     /// Starts a new generation (membership changed): older traffic becomes stale.
     pub fn set_generation(&self, generation: u64, rank: usize) {
         let mut s = self.state.lock().expect("mailbox");
@@ -231,6 +243,13 @@ impl Mailbox {
         // Keep chunks a faster peer already sent for this generation.
         s.chunks.retain(|k, _| k.0 >= generation);
         s.failure = None;
+        s.aborted = None;
+    }
+
+    /// Fails the current and every later wait of this generation with `reason`.
+    pub fn abort(&self, reason: &str) {
+        self.state.lock().expect("mailbox").aborted = Some(reason.to_string());
+        self.notify.notify_waiters();
     }
 
     fn begin_step(&self, step: u64, layout: Layout) {
@@ -313,6 +332,9 @@ impl Mailbox {
             notified.as_mut().enable();
             {
                 let mut s = self.state.lock().expect("mailbox");
+                if let Some(a) = &s.aborted {
+                    return Ok(Err(a.clone()));
+                }
                 if let Some(f) = s.failure.take() {
                     return Ok(Err(f));
                 }
@@ -355,7 +377,7 @@ impl Collective for CollectiveService {
 pub struct Ring {
     cfg: RingConfig,
     mailbox: Arc<Mailbox>,
-    next: CollectiveClient<Channel>,
+    next: CollectiveClient<InterceptedService<Channel, AttachToken>>,
 }
 
 fn to_bytes(v: &[f32]) -> Bytes {
@@ -388,9 +410,12 @@ impl Ring {
             .initial_stream_window_size(WINDOW_BYTES)
             .initial_connection_window_size(WINDOW_BYTES)
             .tcp_nodelay(true);
-        let next = CollectiveClient::new(endpoint.connect_lazy())
-            .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
-            .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
+        let next = CollectiveClient::with_interceptor(
+            endpoint.connect_lazy(),
+            AttachToken(cfg.token.clone()),
+        )
+        .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
+        .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
         mailbox.set_generation(cfg.generation, cfg.rank);
         Ok(Self { cfg, mailbox, next })
     }
@@ -492,17 +517,28 @@ impl Ring {
     }
 }
 
-/// Serves a collective mailbox on `listener` until `shutdown` resolves.
+/// Serves a collective mailbox on `listener` until `shutdown` resolves, with the standard
+/// gRPC health service beside it; every collective call must carry `token`.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     mailbox: Arc<Mailbox>,
+    token: Token,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health
+        .set_serving::<CollectiveServer<CollectiveService>>()
+        .await;
+    let service = CollectiveService::server(mailbox);
     tonic::transport::Server::builder()
         .initial_stream_window_size(WINDOW_BYTES)
         .initial_connection_window_size(WINDOW_BYTES)
         .tcp_nodelay(true)
-        .add_service(CollectiveService::server(mailbox))
+        .add_service(health_service)
+        .add_service(InterceptedService::new(
+            service,
+            CheckToken::new(token, "collective"),
+        ))
         .serve_with_incoming_shutdown(
             // Our own listener: its sockets need TCP_NODELAY here (the builder's setting
             // applies only to listeners it binds), or Nagle delays the small acks.

@@ -18,6 +18,15 @@ pub enum TrainError {
     #[error("run folder {path}: {reason}")]
     Run { path: String, reason: String },
 
+    #[error("checkpoint {path}: {reason}")]
+    Checkpoint { path: String, reason: String },
+
+    #[error(transparent)]
+    Collective(#[from] crate::collective::CollectiveError),
+
+    #[error("cluster: {0}")]
+    Cluster(String),
+
     #[error("{path}: {source}")]
     Io {
         path: String,

@@ -1,21 +1,25 @@
 //! The worker side of osrt: job configuration, the train step (gradients as one flat
-//! buffer, AdamW applied from one), in-memory training data, evaluation, and the
-//! single-process training run. The gRPC collective and checkpoints arrive with the
-//! cluster.
+//! buffer, AdamW applied from one), evaluation, data sharding, the gRPC ring all-reduce,
+//! object-store checkpoints, and the worker process loop.
 
 pub mod bench;
 pub mod bench_allreduce;
+pub mod checkpoint;
 pub mod collective;
 pub mod config;
 pub mod data;
+pub mod distributed;
 pub mod error;
 pub mod eval;
 pub mod optim;
 pub mod run;
+pub mod shard;
 pub mod step;
+pub mod worker;
 
-pub use config::{JobConfig, TrainConfig};
+pub use config::{ClusterConfig, JobConfig, TrainConfig};
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
-pub use run::{LoadedRun, TrainOptions, load_run, train};
+pub use run::{LoadedRun, load_run};
 pub use step::{ApplyOutcome, StepGradients, Trainer};
+pub use worker::{WorkerOptions, run_worker};

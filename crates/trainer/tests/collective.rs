@@ -2,6 +2,7 @@
 //! malformed traffic, dead peers.
 
 use bytes::Bytes;
+use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::v1::collective_client::CollectiveClient;
 use osrt_proto::v1::{Chunk, ChunkTag, Phase};
 use osrt_trainer::collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, serve};
@@ -25,7 +26,7 @@ async fn start(n: usize, job: &str) -> Vec<Node> {
         let addr = format!("http://{}", listener.local_addr().unwrap());
         let mailbox = Mailbox::new(job);
         let (tx, rx) = oneshot::channel::<()>();
-        let server = tokio::spawn(serve(listener, mailbox.clone(), async move {
+        let server = tokio::spawn(serve(listener, mailbox.clone(), token(), async move {
             let _ = rx.await;
         }));
         nodes.push(Node {
@@ -53,7 +54,14 @@ fn config(
         bucket_floats: bucket,
         chunk_floats: chunk,
         timeout,
+        token: token(),
     }
+}
+
+/// One token for every node of a test process.
+fn token() -> Token {
+    static T: std::sync::OnceLock<Token> = std::sync::OnceLock::new();
+    T.get_or_init(Token::generate).clone()
 }
 
 fn random(n: usize, seed: u64) -> Vec<f32> {
@@ -165,9 +173,28 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
         ring.all_reduce(3, &mut buf).await
     });
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let mut client = CollectiveClient::connect(nodes[1].addr.clone())
+    // Without the job's token, or with another job's: refused before anything is parsed.
+    let mut bare = CollectiveClient::connect(nodes[1].addr.clone())
         .await
         .unwrap();
+    let e = bare
+        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
+    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut foreign =
+        CollectiveClient::with_interceptor(channel.clone(), AttachToken(Token::generate()));
+    let e = foreign
+        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
+    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
     let e = client
         .push_chunk(chunk("other-job", 1, 3, 0, vec![0.0; 4]))
         .await

@@ -1,0 +1,613 @@
+//! The coordinator's state machine.
+//!
+//! ```text
+//!   Waiting ──(≥ min_workers for join_grace, or max_workers)──▶ Running(generation g)
+//!   Running ──(member lost / joined / failed round)──▶ Waiting ──▶ Running(g + 1)
+//!   Running ──(final checkpoint committed)──▶ Done
+//!   any ──(max_restarts exceeded / fatal fault / replicas diverged)──▶ Failed
+//! ```
+//!
+//! A new generation restarts every member from the newest committed checkpoint; metrics
+//! records past that checkpoint belong to the abandoned timeline and are dropped, so
+//! `metrics.jsonl` always describes the steps the final weights went through.
+
+use osrt_proto::PROTOCOL_VERSION;
+use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
+use osrt_trainer::JobConfig;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+use tonic::Status;
+
+/// What the job is: fixed for its lifetime (a `--resume` may extend the limits).
+#[derive(Debug, Clone)]
+pub struct JobSpec {
+    pub job_id: String,
+    pub job: JobConfig,
+    /// The exact TOML handed to workers (its hash is checked against checkpoints).
+    pub job_toml: String,
+    pub data: String,
+    pub run: String,
+    pub max_steps: Option<u64>,
+    pub deadline_unix_s: Option<f64>,
+}
+
+/// The part of the state kept in `RUN/job.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Persisted {
+    pub job_id: String,
+    pub data: String,
+    pub max_steps: Option<u64>,
+    pub deadline_unix_s: Option<f64>,
+    pub generation: u64,
+    pub restarts: u32,
+    pub last_checkpoint: Option<u64>,
+    pub hash_checks: u64,
+    /// `waiting`, `running`, `done` or `failed`.
+    pub state: String,
+    pub message: String,
+}
+
+/// A worker's progress report: its step, optionally its parameter hash, and (rank 0)
+/// metrics records.
+#[derive(Debug, Clone)]
+pub struct Progress {
+    pub worker_id: u64,
+    pub generation: u64,
+    pub rank: usize,
+    pub step: u64,
+    pub param_hash: Option<String>,
+    pub records: Vec<String>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Member {
+    pub id: u64,
+    pub name: String,
+    pub addr: String,
+    pub threads: u32,
+    pub last_seen: Instant,
+    pub step: u64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Phase {
+    Waiting { since: Instant },
+    Running,
+    Done,
+    Failed(String),
+}
+
+#[derive(Debug)]
+pub struct Core {
+    pub spec: JobSpec,
+    pub phase: Phase,
+    pub generation: u64,
+    /// Worker ids in ring order (rank = index) of the current generation.
+    pub ring: Vec<u64>,
+    pub members: BTreeMap<u64, Member>,
+    next_id: u64,
+    pub restarts: u32,
+    pub last_checkpoint: Option<u64>,
+    pub hash_checks: u64,
+    /// step → rank → parameter hash, until every rank has reported.
+    hashes: BTreeMap<u64, BTreeMap<usize, String>>,
+    /// `(step, JSON line)` of metrics.jsonl.
+    pub records: Vec<(u64, String)>,
+    pub last_record: String,
+    /// Something persisted changed since the last save.
+    pub dirty_job: bool,
+    pub dirty_metrics: bool,
+}
+
+fn record_step(line: &str) -> Option<u64> {
+    serde_json::from_str::<serde_json::Value>(line)
+        .ok()?
+        .get("step")?
+        .as_u64()
+}
+
+impl Core {
+    pub fn new(spec: JobSpec, now: Instant) -> Self {
+        Self {
+            spec,
+            phase: Phase::Waiting { since: now },
+            generation: 0,
+            ring: Vec::new(),
+            members: BTreeMap::new(),
+            next_id: 1,
+            restarts: 0,
+            last_checkpoint: None,
+            hash_checks: 0,
+            hashes: BTreeMap::new(),
+            records: Vec::new(),
+            last_record: String::new(),
+            dirty_job: true,
+            dirty_metrics: false,
+        }
+    }
+
+    /// Continues a job from its persisted state and records (a restarted coordinator, or
+    /// `--resume`); `checkpoint` is the newest committed checkpoint found in the store.
+    pub fn restore(
+        &mut self,
+        p: &Persisted,
+        records: Vec<String>,
+        checkpoint: Option<u64>,
+        now: Instant,
+    ) {
+        self.generation = p.generation;
+        self.restarts = p.restarts;
+        self.hash_checks = p.hash_checks;
+        self.last_checkpoint = checkpoint;
+        // Without a checkpoint the job starts over, and so does its record.
+        self.records = records
+            .into_iter()
+            .filter_map(|l| record_step(&l).map(|s| (s, l)))
+            .filter(|(s, _)| checkpoint.is_some_and(|k| *s <= k))
+            .collect();
+        self.phase = Phase::Waiting { since: now };
+        self.dirty_job = true;
+        self.dirty_metrics = true;
+    }
+
+    pub fn persisted(&self) -> Persisted {
+        let (state, message) = match &self.phase {
+            Phase::Waiting { .. } => ("waiting", String::new()),
+            Phase::Running => ("running", String::new()),
+            Phase::Done => ("done", String::new()),
+            Phase::Failed(m) => ("failed", m.clone()),
+        };
+        Persisted {
+            job_id: self.spec.job_id.clone(),
+            data: self.spec.data.clone(),
+            max_steps: self.spec.max_steps,
+            deadline_unix_s: self.spec.deadline_unix_s,
+            generation: self.generation,
+            restarts: self.restarts,
+            last_checkpoint: self.last_checkpoint,
+            hash_checks: self.hash_checks,
+            state: state.into(),
+            message,
+        }
+    }
+
+    pub fn is_over(&self) -> bool {
+        matches!(self.phase, Phase::Done | Phase::Failed(_))
+    }
+
+    fn fail(&mut self, reason: String) {
+        if !self.is_over() {
+            tracing::error!(%reason, "job failed");
+            self.phase = Phase::Failed(reason);
+            self.dirty_job = true;
+        }
+    }
+
+    /// Abandons the current generation: everyone restarts from the last checkpoint.
+    fn regenerate(&mut self, reason: &str, counts_as_restart: bool, now: Instant) {
+        if self.is_over() {
+            return;
+        }
+        tracing::warn!(generation = self.generation, reason, "generation ends");
+        self.ring.clear();
+        self.hashes.clear();
+        self.phase = Phase::Waiting { since: now };
+        self.dirty_job = true;
+        if counts_as_restart {
+            self.restarts += 1;
+            let max = self.spec.job.cluster.max_restarts;
+            if self.restarts > max {
+                self.fail(format!(
+                    "{reason}; gave up after {max} restarts (cluster.max_restarts)"
+                ));
+            }
+        }
+    }
+
+    pub fn register(
+        &mut self,
+        protocol_version: u32,
+        name: String,
+        addr: String,
+        threads: u32,
+        now: Instant,
+    ) -> Result<u64, Status> {
+        if protocol_version != PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "protocol version {protocol_version}, this coordinator speaks {PROTOCOL_VERSION}"
+            )));
+        }
+        if addr.is_empty() || !addr.starts_with("http") {
+            return Err(Status::invalid_argument(format!(
+                "collective address `{addr}` is not an http(s) URL"
+            )));
+        }
+        if self.is_over() {
+            return Err(Status::failed_precondition("the job is over"));
+        }
+        let max = self.spec.job.cluster.max_workers;
+        if self.members.len() >= max {
+            return Err(Status::resource_exhausted(format!(
+                "the job already has {max} workers (cluster.max_workers)"
+            )));
+        }
+        let id = self.next_id;
+        self.next_id += 1;
+        tracing::info!(worker_id = id, %name, %addr, threads, "worker registered");
+        self.members.insert(
+            id,
+            Member {
+                id,
+                name,
+                addr,
+                threads,
+                last_seen: now,
+                step: 0,
+            },
+        );
+        if self.phase == Phase::Running {
+            self.regenerate(&format!("worker {id} joined"), false, now);
+        }
+        Ok(id)
+    }
+
+    fn member(&mut self, id: u64, now: Instant) -> Result<&mut Member, Status> {
+        let m = self.members.get_mut(&id).ok_or_else(|| {
+            Status::not_found(format!(
+                "unknown worker {id}: register again (the coordinator may have restarted)"
+            ))
+        })?;
+        m.last_seen = now;
+        Ok(m)
+    }
+
+    fn directive_for(&self, id: u64, generation: u64) -> Directive {
+        match self.phase {
+            Phase::Done | Phase::Failed(_) => Directive::Stop,
+            Phase::Running if generation == self.generation && self.ring.contains(&id) => {
+                Directive::Continue
+            }
+            _ => Directive::Restart,
+        }
+    }
+
+    pub fn heartbeat(
+        &mut self,
+        id: u64,
+        generation: u64,
+        step: u64,
+        now: Instant,
+    ) -> Result<(Directive, u64), Status> {
+        self.member(id, now)?.step = step;
+        Ok((self.directive_for(id, generation), self.generation))
+    }
+
+    /// The plan of member `id` if a generation newer than `after` includes it.
+    pub fn plan(&mut self, id: u64, after: u64, now: Instant) -> Result<PlanState, Status> {
+        self.member(id, now)?;
+        Ok(match &self.phase {
+            Phase::Done => PlanState::Done,
+            Phase::Failed(m) => PlanState::Failed(m.clone()),
+            Phase::Running if self.generation > after => {
+                match self.ring.iter().position(|&m| m == id) {
+                    Some(rank) => PlanState::Running(WorkerPlan {
+                        job: self.spec.job_id.clone(),
+                        generation: self.generation,
+                        rank,
+                        peers: self
+                            .ring
+                            .iter()
+                            .map(|m| self.members[m].addr.clone())
+                            .collect(),
+                        job_config_toml: self.spec.job_toml.clone(),
+                        data: self.spec.data.clone(),
+                        run: self.spec.run.clone(),
+                        resume_step: self.last_checkpoint,
+                        max_steps: self.spec.max_steps,
+                        deadline_unix_s: self.spec.deadline_unix_s,
+                    }),
+                    None => PlanState::Waiting,
+                }
+            }
+            _ => PlanState::Waiting,
+        })
+    }
+
+    /// Times out silent members and starts a generation when enough are present.
+    pub fn tick(&mut self, now: Instant) {
+        if self.is_over() {
+            return;
+        }
+        let timeout = Duration::from_secs_f64(self.spec.job.cluster.heartbeat_timeout_s);
+        let lost: Vec<u64> = self
+            .members
+            .values()
+            .filter(|m| now.duration_since(m.last_seen) > timeout)
+            .map(|m| m.id)
+            .collect();
+        for id in lost {
+            let m = self.members.remove(&id).expect("listed");
+            tracing::warn!(worker_id = id, name = %m.name, "worker lost (no heartbeat)");
+            if self.phase == Phase::Running && self.ring.contains(&id) {
+                self.regenerate(
+                    &format!(
+                        "worker {id} ({}) lost: no heartbeat for {timeout:?}",
+                        m.name
+                    ),
+                    true,
+                    now,
+                );
+            }
+        }
+        if let Phase::Waiting { since } = self.phase {
+            let c = &self.spec.job.cluster;
+            let n = self.members.len();
+            let grace = Duration::from_secs_f64(c.join_grace_s);
+            if n >= c.max_workers || (n >= c.min_workers && now.duration_since(since) >= grace) {
+                self.form();
+            }
+        }
+    }
+
+    fn form(&mut self) {
+        self.generation += 1;
+        self.ring = self.members.keys().copied().collect();
+        self.phase = Phase::Running;
+        self.hashes.clear();
+        let keep = self.last_checkpoint;
+        let before = self.records.len();
+        self.records.retain(|(s, _)| keep.is_some_and(|k| *s <= k));
+        if self.records.len() != before {
+            self.dirty_metrics = true;
+        }
+        self.dirty_job = true;
+        tracing::info!(
+            generation = self.generation,
+            world = self.ring.len(),
+            resume_step = ?self.last_checkpoint,
+            "generation starts"
+        );
+    }
+
+    pub fn progress(&mut self, p: Progress, now: Instant) -> Result<Directive, Status> {
+        let Progress {
+            worker_id: id,
+            generation,
+            rank,
+            step,
+            param_hash,
+            records,
+        } = p;
+        self.member(id, now)?.step = step;
+        let d = self.directive_for(id, generation);
+        if d != Directive::Continue {
+            return Ok(d);
+        }
+        if self.ring.get(rank) != Some(&id) {
+            return Err(Status::invalid_argument(format!(
+                "worker {id} reports rank {rank}, the ring has it at {:?}",
+                self.ring.iter().position(|&m| m == id)
+            )));
+        }
+        if rank == 0 {
+            for line in records {
+                let Some(s) = record_step(&line) else {
+                    return Err(Status::invalid_argument(
+                        "metrics record is not a JSON object with a `step`",
+                    ));
+                };
+                self.last_record = line.clone();
+                self.records.push((s, line));
+                self.dirty_metrics = true;
+            }
+        }
+        if let Some(h) = param_hash {
+            let world = self.ring.len();
+            let entry = self.hashes.entry(step).or_default();
+            entry.insert(rank, h);
+            if entry.len() == world {
+                let all = self.hashes.remove(&step).expect("present");
+                let first = all[&0].clone();
+                if all.values().all(|h| *h == first) {
+                    self.hash_checks += 1;
+                } else {
+                    let listing: Vec<String> =
+                        all.iter().map(|(r, h)| format!("rank {r}: {h}")).collect();
+                    self.fail(format!(
+                        "replicas diverged at step {step}: parameter hashes {}",
+                        listing.join(", ")
+                    ));
+                    return Ok(Directive::Stop);
+                }
+            }
+        }
+        Ok(Directive::Continue)
+    }
+
+    pub fn checkpoint(
+        &mut self,
+        id: u64,
+        generation: u64,
+        step: u64,
+        is_final: bool,
+        now: Instant,
+    ) -> Result<Directive, Status> {
+        self.member(id, now)?;
+        if self.last_checkpoint.is_none_or(|c| step > c) {
+            self.last_checkpoint = Some(step);
+            self.dirty_job = true;
+        }
+        if is_final && generation == self.generation && self.phase == Phase::Running {
+            tracing::info!(step, "final checkpoint committed: job done");
+            self.phase = Phase::Done;
+            self.dirty_job = true;
+            self.dirty_metrics = true;
+        }
+        Ok(self.directive_for(id, generation))
+    }
+
+    pub fn fault(
+        &mut self,
+        id: u64,
+        generation: u64,
+        reason: &str,
+        fatal: bool,
+        now: Instant,
+    ) -> Result<Directive, Status> {
+        self.member(id, now)?;
+        let msg = format!("worker {id}: {reason}");
+        if fatal {
+            self.fail(msg);
+        } else if generation == self.generation && self.phase == Phase::Running {
+            self.regenerate(&msg, true, now);
+        }
+        Ok(self.directive_for(id, generation))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(min: usize, max: usize, restarts: u32) -> JobSpec {
+        let mut job = JobConfig::preset("tiny").unwrap();
+        job.cluster.min_workers = min;
+        job.cluster.max_workers = max;
+        job.cluster.max_restarts = restarts;
+        job.cluster.join_grace_s = 0.0;
+        JobSpec {
+            job_id: "j".into(),
+            job_toml: job.to_toml(),
+            job,
+            data: "data".into(),
+            run: "run".into(),
+            max_steps: Some(10),
+            deadline_unix_s: None,
+        }
+    }
+
+    fn prog(
+        id: u64,
+        generation: u64,
+        rank: usize,
+        step: u64,
+        hash: Option<&str>,
+        records: Vec<String>,
+    ) -> Progress {
+        Progress {
+            worker_id: id,
+            generation,
+            rank,
+            step,
+            param_hash: hash.map(str::to_string),
+            records,
+        }
+    }
+
+    fn reg(c: &mut Core, now: Instant) -> u64 {
+        c.register(PROTOCOL_VERSION, "w".into(), "http://x:1".into(), 1, now)
+            .unwrap()
+    }
+
+    #[test]
+    fn a_generation_forms_at_min_workers_and_ranks_follow_registration() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(2, 2, 3), t);
+        let a = reg(&mut c, t);
+        c.tick(t);
+        assert!(matches!(c.phase, Phase::Waiting { .. }));
+        assert_eq!(c.plan(a, 0, t).unwrap(), PlanState::Waiting);
+        let b = reg(&mut c, t);
+        c.tick(t);
+        assert_eq!(c.phase, Phase::Running);
+        let PlanState::Running(p) = c.plan(b, 0, t).unwrap() else {
+            panic!()
+        };
+        assert_eq!(
+            (p.rank, p.world(), p.generation, p.resume_step),
+            (1, 2, 1, None)
+        );
+        // Already running this generation: wait for a newer one.
+        assert_eq!(c.plan(b, 1, t).unwrap(), PlanState::Waiting);
+    }
+
+    #[test]
+    fn a_lost_member_restarts_survivors_from_the_last_checkpoint() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(1, 2, 3), t);
+        let a = reg(&mut c, t);
+        let b = reg(&mut c, t);
+        c.tick(t);
+        c.checkpoint(a, 1, 5, false, t).unwrap();
+        for s in [0, 5, 6] {
+            let line = format!("{{\"step\":{s}}}");
+            c.progress(prog(a, 1, 0, s, None, vec![line]), t).unwrap();
+        }
+        let later = t + Duration::from_secs(4);
+        assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Continue);
+        c.tick(later);
+        assert!(!c.members.contains_key(&b), "b timed out");
+        assert_eq!(c.restarts, 1);
+        assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Restart);
+        c.tick(later);
+        let PlanState::Running(p) = c.plan(a, 1, later).unwrap() else {
+            panic!()
+        };
+        assert_eq!((p.generation, p.world(), p.resume_step), (2, 1, Some(5)));
+        let steps: Vec<u64> = c.records.iter().map(|(s, _)| *s).collect();
+        assert_eq!(steps, vec![0, 5], "records past the checkpoint are dropped");
+        // The unknown (timed-out) worker is told to register again.
+        assert_eq!(
+            c.heartbeat(b, 1, 6, later).unwrap_err().code(),
+            tonic::Code::NotFound
+        );
+    }
+
+    #[test]
+    fn diverged_hashes_fail_the_job_and_equal_ones_count() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(2, 2, 3), t);
+        let a = reg(&mut c, t);
+        let b = reg(&mut c, t);
+        c.tick(t);
+        c.progress(prog(a, 1, 0, 1, Some("aa"), vec![]), t).unwrap();
+        c.progress(prog(b, 1, 1, 1, Some("aa"), vec![]), t).unwrap();
+        assert_eq!(c.hash_checks, 1);
+        c.progress(prog(a, 1, 0, 2, Some("aa"), vec![]), t).unwrap();
+        let d = c.progress(prog(b, 1, 1, 2, Some("bb"), vec![]), t).unwrap();
+        assert_eq!(d, Directive::Stop);
+        let Phase::Failed(m) = &c.phase else { panic!() };
+        assert!(m.contains("replicas diverged at step 2"), "{m}");
+    }
+
+    #[test]
+    fn restarts_are_bounded_and_bad_registrations_refused() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(1, 1, 1), t);
+        let e = c
+            .register(99, "w".into(), "http://x:1".into(), 1, t)
+            .unwrap_err();
+        assert_eq!(e.code(), tonic::Code::FailedPrecondition);
+        let a = reg(&mut c, t);
+        let e = c
+            .register(PROTOCOL_VERSION, "w".into(), "http://y:1".into(), 1, t)
+            .unwrap_err();
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted);
+        c.tick(t);
+        c.fault(a, 1, "boom", false, t).unwrap();
+        assert_eq!(c.restarts, 1);
+        c.tick(t);
+        c.fault(a, 2, "boom again", false, t).unwrap();
+        let Phase::Failed(m) = &c.phase else { panic!() };
+        assert!(m.contains("gave up after 1 restarts"), "{m}");
+        assert_eq!(c.heartbeat(a, 2, 0, t).unwrap().0, Directive::Stop);
+        // A final checkpoint of the current generation finishes a job.
+        let mut c = Core::new(spec(1, 1, 1), t);
+        let a = reg(&mut c, t);
+        c.tick(t);
+        c.checkpoint(a, 1, 10, true, t).unwrap();
+        assert_eq!(c.phase, Phase::Done);
+        assert_eq!(c.plan(a, 1, t).unwrap(), PlanState::Done);
+    }
+}

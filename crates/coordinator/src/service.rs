@@ -1,0 +1,434 @@
+//! The Coordinator gRPC service over a shared [`Core`], the monitor loop (heartbeat
+//! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
+
+use crate::core::{Core, JobSpec, Persisted, Phase, Progress};
+use osrt_dataset::Location;
+use osrt_proto::auth::{CheckToken, Token};
+use osrt_proto::convert::Directive;
+use osrt_proto::v1;
+use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
+use osrt_trainer::run::{CONFIG_FILE, INFO_FILE, METRICS_FILE, RunInfo, read_file, write_file};
+use osrt_trainer::{JobConfig, TrainError, checkpoint};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::Notify;
+use tonic::service::interceptor::InterceptedService;
+use tonic::{Request, Response, Status};
+
+pub const JOB_FILE: &str = "job.json";
+
+/// How long a plan request waits for a change before answering `Waiting`.
+const PLAN_POLL: Duration = Duration::from_secs(2);
+
+struct Shared {
+    core: Mutex<Core>,
+    changed: Notify,
+    run: Location,
+}
+
+impl Shared {
+    fn with<T>(&self, f: impl FnOnce(&mut Core, Instant) -> T) -> T {
+        let out = f(
+            &mut self.core.lock().expect("coordinator state"),
+            Instant::now(),
+        );
+        self.changed.notify_waiters();
+        out
+    }
+}
+
+/// A job's coordinator, ready to serve.
+#[derive(Clone)]
+pub struct Coordinator {
+    shared: Arc<Shared>,
+}
+
+/// A copy of the job's status for displays (the launcher's progress bar).
+pub type StatusSnapshot = v1::JobStatus;
+
+fn run_err(run: &Location, name: &str, reason: impl std::fmt::Display) -> TrainError {
+    TrainError::Run {
+        path: run.describe(&run.path(name)),
+        reason: reason.to_string(),
+    }
+}
+
+impl Coordinator {
+    /// Opens the job in `spec.run`. A run folder with an unfinished `job.json` is a
+    /// restarted coordinator: the job continues from its newest committed checkpoint (its
+    /// own `config.toml` wins). `resume` continues a finished job with the new limits.
+    pub async fn open(mut spec: JobSpec, resume: bool) -> Result<Self, TrainError> {
+        let run = Location::parse(&spec.run)?;
+        let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
+            Some(b) => Some(
+                serde_json::from_slice(&b)
+                    .map_err(|e| run_err(&run, JOB_FILE, format!("unreadable: {e}")))?,
+            ),
+            None => None,
+        };
+        let now = Instant::now();
+        let core = match persisted {
+            None if resume => {
+                return Err(run_err(
+                    &run,
+                    JOB_FILE,
+                    "--resume: no job to resume in this run folder",
+                ));
+            }
+            None => {
+                let metrics = read_file(&run, METRICS_FILE).await?;
+                if metrics.is_some_and(|m| !m.is_empty()) {
+                    return Err(run_err(
+                        &run,
+                        METRICS_FILE,
+                        "the run folder already holds a run; choose a new --run or pass --resume",
+                    ));
+                }
+                write_file(&run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
+                let parameters =
+                    osrt_trainer::Trainer::new(spec.job.clone(), candle_core_device())?
+                        .num_parameters();
+                let info = RunInfo {
+                    data: spec.data.clone(),
+                    parameters,
+                    workers: spec.job.cluster.min_workers,
+                };
+                write_file(
+                    &run,
+                    INFO_FILE,
+                    serde_json::to_vec_pretty(&info).expect("serialises"),
+                )
+                .await?;
+                Core::new(spec, now)
+            }
+            Some(p) => {
+                let finished = p.state == "done" || p.state == "failed";
+                if finished && !resume {
+                    return Err(run_err(
+                        &run,
+                        JOB_FILE,
+                        format!(
+                            "the job in this run folder is {}; pass --resume to continue it with new limits, or choose a new --run",
+                            p.state
+                        ),
+                    ));
+                }
+                let text = read_file(&run, CONFIG_FILE)
+                    .await?
+                    .ok_or_else(|| run_err(&run, CONFIG_FILE, "missing"))?;
+                let text = String::from_utf8_lossy(&text).into_owned();
+                spec.job = JobConfig::from_toml(&run.describe(&run.path(CONFIG_FILE)), &text)?;
+                spec.job_toml = text;
+                spec.job_id = p.job_id.clone();
+                spec.data = p.data.clone();
+                if !resume {
+                    // A restarted coordinator keeps the job's limits.
+                    spec.max_steps = p.max_steps;
+                    spec.deadline_unix_s = p.deadline_unix_s;
+                }
+                let checkpoint = checkpoint::latest_verified(&run, None).await?;
+                let records = read_file(&run, METRICS_FILE)
+                    .await?
+                    .map(|b| {
+                        String::from_utf8_lossy(&b)
+                            .lines()
+                            .map(str::to_string)
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                tracing::info!(
+                    job = %p.job_id,
+                    generation = p.generation,
+                    checkpoint = ?checkpoint,
+                    "continuing the job in the run folder"
+                );
+                let mut core = Core::new(spec, now);
+                core.restore(&p, records, checkpoint, now);
+                core
+            }
+        };
+        Ok(Self {
+            shared: Arc::new(Shared {
+                core: Mutex::new(core),
+                changed: Notify::new(),
+                run,
+            }),
+        })
+    }
+
+    pub fn job_id(&self) -> String {
+        self.shared.core.lock().expect("state").spec.job_id.clone()
+    }
+
+    pub fn status(&self) -> StatusSnapshot {
+        status_of(&self.shared.core.lock().expect("state"), Instant::now())
+    }
+
+    /// Serves until the job is over (then keeps answering for `linger`, so every worker
+    /// learns the outcome) or `shutdown` resolves. Returns the final status.
+    pub async fn serve(
+        self,
+        listener: tokio::net::TcpListener,
+        token: Token,
+        linger: Duration,
+        shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+    ) -> Result<StatusSnapshot, TrainError> {
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health.set_serving::<CoordinatorServer<Service>>().await;
+        let service = InterceptedService::new(
+            CoordinatorServer::new(Service {
+                shared: self.shared.clone(),
+            }),
+            CheckToken::new(token, "coordinator"),
+        );
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(
+            tonic::transport::Server::builder()
+                .tcp_nodelay(true)
+                .add_service(health_service)
+                .add_service(service)
+                .serve_with_incoming_shutdown(
+                    tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
+                    async {
+                        let _ = stop_rx.await;
+                    },
+                ),
+        );
+        let result = self.monitor(linger, shutdown).await;
+        let _ = stop_tx.send(());
+        let _ = server.await;
+        result
+    }
+
+    /// Times out members, forms generations, persists state; returns when the job is over.
+    async fn monitor(
+        &self,
+        linger: Duration,
+        shutdown: impl std::future::Future<Output = ()>,
+    ) -> Result<StatusSnapshot, TrainError> {
+        tokio::pin!(shutdown);
+        let mut last_flush = Instant::now();
+        let mut over_since: Option<Instant> = None;
+        loop {
+            tokio::select! {
+                _ = &mut shutdown => break,
+                _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+            }
+            let (job, metrics, over) = self.shared.with(|c, now| {
+                c.tick(now);
+                let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
+                let flush = c.dirty_metrics
+                    && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
+                let metrics = flush.then(|| {
+                    c.dirty_metrics = false;
+                    let mut text = String::new();
+                    for (_, l) in &c.records {
+                        text.push_str(l);
+                        text.push('\n');
+                    }
+                    text
+                });
+                (job, metrics, c.is_over())
+            });
+            let run = &self.shared.run;
+            if let Some(p) = job {
+                write_file(
+                    run,
+                    JOB_FILE,
+                    serde_json::to_vec_pretty(&p).expect("serialises"),
+                )
+                .await?;
+            }
+            if let Some(text) = metrics {
+                write_file(run, METRICS_FILE, text.into_bytes()).await?;
+                last_flush = Instant::now();
+            }
+            if over {
+                let since = *over_since.get_or_insert_with(Instant::now);
+                if since.elapsed() >= linger {
+                    break;
+                }
+            }
+        }
+        Ok(self.status())
+    }
+}
+
+fn candle_core_device() -> candle_core::Device {
+    candle_core::Device::Cpu
+}
+
+fn status_of(c: &Core, now: Instant) -> StatusSnapshot {
+    let (state, message) = match &c.phase {
+        Phase::Waiting { .. } => (v1::JobState::Waiting, String::new()),
+        Phase::Running => (v1::JobState::Running, String::new()),
+        Phase::Done => (v1::JobState::Done, String::new()),
+        Phase::Failed(m) => (v1::JobState::Failed, m.clone()),
+    };
+    v1::JobStatus {
+        job: c.spec.job_id.clone(),
+        state: state as i32,
+        generation: c.generation,
+        step: c
+            .ring
+            .iter()
+            .filter_map(|id| c.members.get(id))
+            .map(|m| m.step)
+            .max()
+            .unwrap_or(0),
+        restarts: c.restarts,
+        last_checkpoint: c.last_checkpoint,
+        hash_checks: c.hash_checks,
+        members: c
+            .members
+            .values()
+            .map(|m| v1::MemberStatus {
+                worker_id: m.id,
+                name: m.name.clone(),
+                collective_addr: m.addr.clone(),
+                rank: c.ring.iter().position(|&x| x == m.id).map(|r| r as u32),
+                step: m.step,
+                last_seen_s: now.duration_since(m.last_seen).as_secs_f64(),
+            })
+            .collect(),
+        last_record: c.last_record.clone(),
+        message,
+    }
+}
+
+struct Service {
+    shared: Arc<Shared>,
+}
+
+impl Service {
+    fn check_job(&self, job: &str) -> Result<(), Status> {
+        let c = self.shared.core.lock().expect("state");
+        if job != c.spec.job_id {
+            return Err(Status::permission_denied(format!(
+                "message for job `{job}`, this coordinator runs job `{}`",
+                c.spec.job_id
+            )));
+        }
+        Ok(())
+    }
+}
+
+fn ack(d: Directive) -> Response<v1::Ack> {
+    Response::new(v1::Ack {
+        action: v1::Action::from(d) as i32,
+    })
+}
+
+#[tonic::async_trait]
+impl coordinator_server::Coordinator for Service {
+    async fn register(
+        &self,
+        request: Request<v1::RegisterRequest>,
+    ) -> Result<Response<v1::RegisterReply>, Status> {
+        let r = request.into_inner();
+        let (id, job) = self.shared.with(|c, now| {
+            c.register(
+                r.protocol_version,
+                r.name,
+                r.collective_addr,
+                r.threads,
+                now,
+            )
+            .map(|id| (id, c.spec.job_id.clone()))
+        })?;
+        Ok(Response::new(v1::RegisterReply { job, worker_id: id }))
+    }
+
+    async fn get_plan(
+        &self,
+        request: Request<v1::PlanRequest>,
+    ) -> Result<Response<v1::Plan>, Status> {
+        let r = request.into_inner();
+        self.check_job(&r.job)?;
+        let deadline = tokio::time::Instant::now() + PLAN_POLL;
+        loop {
+            let notified = self.shared.changed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            let (plan, job) = {
+                let mut c = self.shared.core.lock().expect("state");
+                let plan = c.plan(r.worker_id, r.after_generation, Instant::now())?;
+                (plan, c.spec.job_id.clone())
+            };
+            let waiting = plan == osrt_proto::convert::PlanState::Waiting;
+            if !waiting || tokio::time::timeout_at(deadline, notified).await.is_err() {
+                return Ok(Response::new(plan.into_proto(&job)));
+            }
+        }
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<v1::HeartbeatRequest>,
+    ) -> Result<Response<v1::HeartbeatReply>, Status> {
+        let r = request.into_inner();
+        self.check_job(&r.job)?;
+        let (d, generation) = self
+            .shared
+            .with(|c, now| c.heartbeat(r.worker_id, r.generation, r.step, now))?;
+        Ok(Response::new(v1::HeartbeatReply {
+            action: v1::Action::from(d) as i32,
+            generation,
+        }))
+    }
+
+    async fn report_progress(
+        &self,
+        request: Request<v1::ProgressReport>,
+    ) -> Result<Response<v1::Ack>, Status> {
+        let r = request.into_inner();
+        self.check_job(&r.job)?;
+        let d = self.shared.with(|c, now| {
+            c.progress(
+                Progress {
+                    worker_id: r.worker_id,
+                    generation: r.generation,
+                    rank: r.rank as usize,
+                    step: r.step,
+                    param_hash: r.param_hash,
+                    records: r.records,
+                },
+                now,
+            )
+        })?;
+        Ok(ack(d))
+    }
+
+    async fn report_checkpoint(
+        &self,
+        request: Request<v1::CheckpointReport>,
+    ) -> Result<Response<v1::Ack>, Status> {
+        let r = request.into_inner();
+        self.check_job(&r.job)?;
+        let d = self
+            .shared
+            .with(|c, now| c.checkpoint(r.worker_id, r.generation, r.step, r.r#final, now))?;
+        Ok(ack(d))
+    }
+
+    async fn report_fault(
+        &self,
+        request: Request<v1::FaultReport>,
+    ) -> Result<Response<v1::Ack>, Status> {
+        let r = request.into_inner();
+        self.check_job(&r.job)?;
+        tracing::warn!(worker_id = r.worker_id, generation = r.generation, fatal = r.fatal, reason = %r.reason, "fault reported");
+        let d = self
+            .shared
+            .with(|c, now| c.fault(r.worker_id, r.generation, &r.reason, r.fatal, now))?;
+        Ok(ack(d))
+    }
+
+    async fn get_status(
+        &self,
+        _request: Request<v1::StatusRequest>,
+    ) -> Result<Response<v1::JobStatus>, Status> {
+        let c = self.shared.core.lock().expect("state");
+        Ok(Response::new(status_of(&c, Instant::now())))
+    }
+}

@@ -1,0 +1,90 @@
+//! One data-parallel step's reduction: every rank's gradient, weighted by its real sample
+//! count, summed over the ring together with a few control values, so that every replica
+//! derives the same averaged gradient, loss and decisions from the same bytes.
+//!
+//! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop]` where `n`
+//! is the rank's scene count. `evaluate` and `stop` are set by rank 0 only (its clock
+//! decides), so after the sum every rank sees rank 0's decision. A non-finite value on any
+//! rank makes the sum non-finite on every rank, so all replicas skip the step together.
+
+use crate::collective::Ring;
+use crate::error::Result;
+use crate::step::StepGradients;
+
+/// Floats appended after the gradient.
+pub const CONTROL_FLOATS: usize = 4;
+
+/// Decisions rank 0 contributes to a step (ignored on other ranks).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Signals {
+    pub evaluate: bool,
+    pub stop: bool,
+}
+
+/// The step every replica takes.
+#[derive(Debug, Clone)]
+pub struct Reduced {
+    /// Sample-weighted mean gradient.
+    pub grads: Vec<f32>,
+    /// Sample-weighted mean loss.
+    pub loss: f64,
+    /// Scenes in the global batch.
+    pub samples: f64,
+    pub signals: Signals,
+}
+
+/// Sums `g` over the ring (`None` = a single worker) as all-reduce number `seq`.
+pub async fn reduce(
+    ring: Option<&mut Ring>,
+    seq: u64,
+    rank: usize,
+    g: StepGradients,
+    signals: Signals,
+) -> Result<Reduced> {
+    let n = g.samples as f32;
+    let mut buf = g.grads;
+    buf.iter_mut().for_each(|x| *x *= n);
+    let mine = if rank == 0 {
+        signals
+    } else {
+        Signals::default()
+    };
+    buf.extend([
+        n,
+        g.loss as f32 * n,
+        f32::from(u8::from(mine.evaluate)),
+        f32::from(u8::from(mine.stop)),
+    ]);
+    if let Some(ring) = ring {
+        ring.all_reduce(seq, &mut buf).await?;
+    }
+    let p = buf.len() - CONTROL_FLOATS;
+    let (total, loss_sum, evaluate, stop) = (buf[p], buf[p + 1], buf[p + 2], buf[p + 3]);
+    buf.truncate(p);
+    buf.iter_mut().for_each(|x| *x /= total);
+    Ok(Reduced {
+        grads: buf,
+        loss: (loss_sum / total) as f64,
+        samples: total as f64,
+        signals: Signals {
+            evaluate: evaluate > 0.5,
+            stop: stop > 0.5,
+        },
+    })
+}
+
+/// Makes every rank's `flat` equal to rank 0's (the initial weights come from one rank,
+/// never from independent seeds): the other ranks contribute zeros to a sum.
+pub async fn broadcast_from_rank0(
+    ring: Option<&mut Ring>,
+    seq: u64,
+    rank: usize,
+    flat: &mut [f32],
+) -> Result<()> {
+    let Some(ring) = ring else { return Ok(()) };
+    if rank != 0 {
+        flat.iter_mut().for_each(|x| *x = 0.0);
+    }
+    ring.all_reduce(seq, flat).await?;
+    Ok(())
+}

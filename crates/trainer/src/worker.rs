@@ -1,0 +1,785 @@
+//! The worker process: registers with the coordinator, asks for a plan, and trains its
+//! share of every step, all-reducing gradients with the other ranks, until the job is done.
+//!
+//! One **generation** = one fixed ring of members. A generation starts from the committed
+//! checkpoint the plan names (or from rank 0's fresh weights, broadcast over the ring) and
+//! ends when the job is finished, or is aborted: the coordinator moved to a new generation
+//! (a member was lost or joined), or a round failed here (dead peer, malformed chunk) —
+//! then the worker reports the fault and asks for the next plan.
+//!
+//! Every replica takes bit-identical steps: the data order, the ray sampling and the slot
+//! noise of a step derive from `(seed, step, rank, world)` ([`crate::shard`]), gradients are
+//! summed in fixed ring order, and rank 0's clock decides evaluation and stopping for all
+//! ([`crate::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
+
+use crate::checkpoint::{self, CheckpointState, Snapshot};
+use crate::collective::{Mailbox, Ring, RingConfig, serve};
+use crate::config::JobConfig;
+use crate::data::load_split;
+use crate::distributed::{Signals, broadcast_from_rank0, reduce};
+use crate::error::{Result, TrainError};
+use crate::eval::evaluate;
+use crate::shard::{EpochPlan, step_rng};
+use crate::step::{ApplyOutcome, Trainer};
+use candle_core::Device;
+use osrt_dataset::{BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch};
+use osrt_proto::PROTOCOL_VERSION;
+use osrt_proto::auth::{AttachToken, Token};
+use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
+use osrt_proto::v1;
+use osrt_proto::v1::coordinator_client::CoordinatorClient;
+use serde_json::json;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+
+pub type Client = CoordinatorClient<InterceptedService<Channel, AttachToken>>;
+
+pub struct WorkerOptions {
+    /// `http://host:port` of the coordinator.
+    pub coordinator: String,
+    /// Where this worker's collective server listens (port 0: any free port).
+    pub listen: SocketAddr,
+    /// Host name or IP the other workers reach this one at (default: the listen IP).
+    pub advertise: Option<String>,
+    pub threads: usize,
+    pub token: Token,
+    pub name: String,
+    /// Give up when the coordinator cannot be reached for this long.
+    pub coordinator_timeout: Duration,
+}
+
+/// Connects to the coordinator with the job's token on every call.
+pub fn coordinator_client(addr: &str, token: Token) -> Result<Client> {
+    let endpoint = Endpoint::from_shared(addr.to_string())
+        .map_err(|e| TrainError::Cluster(format!("coordinator address {addr}: {e}")))?
+        .connect_timeout(Duration::from_secs(5))
+        .timeout(Duration::from_secs(30))
+        .tcp_nodelay(true);
+    Ok(CoordinatorClient::with_interceptor(
+        endpoint.connect_lazy(),
+        AttachToken(token),
+    ))
+}
+
+fn unix_now() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// Retries `f` while the coordinator is unreachable, up to `limit`.
+async fn with_retry<T, F, Fut>(limit: Duration, what: &str, mut f: F) -> Result<T>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = std::result::Result<T, tonic::Status>>,
+{
+    let start = Instant::now();
+    loop {
+        match f().await {
+            Ok(v) => return Ok(v),
+            Err(s)
+                if matches!(
+                    s.code(),
+                    tonic::Code::Unavailable | tonic::Code::DeadlineExceeded
+                ) && start.elapsed() < limit =>
+            {
+                tracing::debug!(what, status = %s, "coordinator unreachable, retrying");
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+            Err(s) => {
+                return Err(TrainError::Cluster(format!(
+                    "{what}: coordinator answered {:?}: {}",
+                    s.code(),
+                    s.message()
+                )));
+            }
+        }
+    }
+}
+
+/// How a generation ended.
+enum Ended {
+    /// The job's final checkpoint is committed (rank 0) or the final step taken.
+    Finished,
+    /// Aborted; ask for the next plan. `report` = tell the coordinator why.
+    Aborted { reason: String, report: bool },
+    /// The coordinator no longer knows this worker (it restarted): register again.
+    Unknown,
+}
+
+/// Runs a worker until the job is done (Ok) or failed (Err).
+pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
+    let listener = tokio::net::TcpListener::bind(opts.listen)
+        .await
+        .map_err(|e| TrainError::Cluster(format!("cannot listen on {}: {e}", opts.listen)))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| TrainError::Cluster(e.to_string()))?;
+    let host = opts
+        .advertise
+        .clone()
+        .unwrap_or_else(|| local.ip().to_string());
+    let collective_addr = format!("http://{host}:{}", local.port());
+    // The job id is learnt at registration; the mailbox takes it then.
+    let mailbox = Mailbox::new("");
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(serve(
+        listener,
+        mailbox.clone(),
+        opts.token.clone(),
+        async {
+            let _ = stop_rx.await;
+        },
+    ));
+    let mut client = coordinator_client(&opts.coordinator, opts.token.clone())?;
+    let result = worker_loop(&opts, &mut client, &mailbox, &collective_addr).await;
+    let _ = stop_tx.send(());
+    let _ = server.await;
+    result
+}
+
+async fn register(
+    opts: &WorkerOptions,
+    client: &mut Client,
+    collective_addr: &str,
+) -> Result<(String, u64)> {
+    let req = v1::RegisterRequest {
+        protocol_version: PROTOCOL_VERSION,
+        name: opts.name.clone(),
+        collective_addr: collective_addr.to_string(),
+        threads: opts.threads as u32,
+    };
+    let reply = with_retry(opts.coordinator_timeout, "register", || {
+        let mut c = client.clone();
+        let r = req.clone();
+        async move { c.register(r).await.map(|r| r.into_inner()) }
+    })
+    .await?;
+    tracing::info!(job = %reply.job, worker_id = reply.worker_id, addr = collective_addr, "registered");
+    Ok((reply.job, reply.worker_id))
+}
+
+async fn worker_loop(
+    opts: &WorkerOptions,
+    client: &mut Client,
+    mailbox: &Arc<Mailbox>,
+    collective_addr: &str,
+) -> Result<()> {
+    let (mut job, mut worker_id) = register(opts, client, collective_addr).await?;
+    mailbox.set_job(&job);
+    let mut last_generation = 0;
+    loop {
+        let req = v1::PlanRequest {
+            job: job.clone(),
+            worker_id,
+            after_generation: last_generation,
+        };
+        let plan = with_retry(opts.coordinator_timeout, "get plan", || {
+            let mut c = client.clone();
+            let r = req.clone();
+            async move { c.get_plan(r).await.map(|r| r.into_inner()) }
+        })
+        .await;
+        let plan = match plan {
+            Ok(p) => p,
+            Err(e) if e.to_string().contains("NotFound") => {
+                (job, worker_id) = register(opts, client, collective_addr).await?;
+                mailbox.set_job(&job);
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
+        let plan = PlanState::try_from(plan)
+            .map_err(|e| TrainError::Cluster(format!("bad plan from the coordinator: {e}")))?;
+        let plan = match plan {
+            PlanState::Waiting => continue,
+            PlanState::Done => {
+                tracing::info!("job done");
+                return Ok(());
+            }
+            PlanState::Failed(msg) => {
+                return Err(TrainError::Cluster(format!("the job failed: {msg}")));
+            }
+            PlanState::Running(p) => p,
+        };
+        last_generation = plan.generation;
+        tracing::info!(
+            generation = plan.generation,
+            rank = plan.rank,
+            world = plan.world(),
+            resume_step = ?plan.resume_step,
+            "starting generation"
+        );
+        let ended = run_generation(opts, client, mailbox, worker_id, &plan).await;
+        match ended {
+            Ok(Ended::Finished) => {}
+            Ok(Ended::Unknown) => {
+                (job, worker_id) = register(opts, client, collective_addr).await?;
+                mailbox.set_job(&job);
+                last_generation = 0;
+            }
+            Ok(Ended::Aborted { reason, report }) => {
+                tracing::warn!(generation = plan.generation, %reason, "generation aborted");
+                if report {
+                    report_fault(client, &plan, worker_id, &reason, false).await;
+                }
+            }
+            Err(e) => {
+                let reason = e.to_string();
+                tracing::error!(generation = plan.generation, %reason, "generation failed");
+                report_fault(client, &plan, worker_id, &reason, is_fatal(&e)).await;
+                if is_fatal(&e) {
+                    return Err(e);
+                }
+            }
+        }
+    }
+}
+
+/// Errors that a restart cannot fix.
+fn is_fatal(e: &TrainError) -> bool {
+    matches!(
+        e,
+        TrainError::Config { .. } | TrainError::Dataset(_) | TrainError::TooManySkips { .. }
+    )
+}
+
+async fn report_fault(
+    client: &mut Client,
+    plan: &WorkerPlan,
+    worker_id: u64,
+    reason: &str,
+    fatal: bool,
+) {
+    let r = client
+        .report_fault(v1::FaultReport {
+            job: plan.job.clone(),
+            worker_id,
+            generation: plan.generation,
+            reason: reason.to_string(),
+            fatal,
+        })
+        .await;
+    if let Err(s) = r {
+        tracing::warn!(status = %s, "could not report the fault");
+    }
+}
+
+/// Shared between the training loop and the heartbeat task.
+struct Liveness {
+    step: AtomicU64,
+    abort: Mutex<Option<Ended>>,
+}
+
+impl Liveness {
+    fn take_abort(&self) -> Option<Ended> {
+        self.abort.lock().expect("liveness").take()
+    }
+}
+
+fn spawn_heartbeat(
+    client: Client,
+    plan: &WorkerPlan,
+    worker_id: u64,
+    every: Duration,
+    coordinator_timeout: Duration,
+    live: Arc<Liveness>,
+    mailbox: Arc<Mailbox>,
+) -> tokio::task::JoinHandle<()> {
+    let (job, generation) = (plan.job.clone(), plan.generation);
+    tokio::spawn(async move {
+        let mut last_ok = Instant::now();
+        loop {
+            tokio::time::sleep(every).await;
+            let mut c = client.clone();
+            let reply = c
+                .heartbeat(v1::HeartbeatRequest {
+                    job: job.clone(),
+                    worker_id,
+                    generation,
+                    step: live.step.load(Ordering::Relaxed),
+                })
+                .await;
+            let abort = |why: Ended, msg: &str| {
+                *live.abort.lock().expect("liveness") = Some(why);
+                mailbox.abort(msg);
+            };
+            match reply {
+                Ok(r) => {
+                    last_ok = Instant::now();
+                    let r = r.into_inner();
+                    match Directive::try_from(r.action) {
+                        Ok(Directive::Continue) if r.generation == generation => {}
+                        Ok(Directive::Stop) => {
+                            abort(
+                                Ended::Aborted {
+                                    reason: "the coordinator stopped the job".into(),
+                                    report: false,
+                                },
+                                "job stopped",
+                            );
+                            return;
+                        }
+                        _ => {
+                            let reason = format!(
+                                "the coordinator moved to generation {} (this is {generation})",
+                                r.generation
+                            );
+                            abort(
+                                Ended::Aborted {
+                                    reason: reason.clone(),
+                                    report: false,
+                                },
+                                &reason,
+                            );
+                            return;
+                        }
+                    }
+                }
+                Err(s) if s.code() == tonic::Code::NotFound => {
+                    abort(Ended::Unknown, "the coordinator does not know this worker");
+                    return;
+                }
+                Err(s) => {
+                    tracing::warn!(status = %s, "heartbeat failed");
+                    if last_ok.elapsed() > coordinator_timeout {
+                        abort(
+                            Ended::Aborted {
+                                reason: format!(
+                                    "coordinator unreachable for {coordinator_timeout:?}"
+                                ),
+                                report: false,
+                            },
+                            "coordinator unreachable",
+                        );
+                        return;
+                    }
+                }
+            }
+        }
+    })
+}
+
+/// The train split's row groups, listed once per generation.
+async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
+    Ok(SplitReader::open(data.join("train"))
+        .await?
+        .row_groups()
+        .await?)
+}
+
+/// This rank's scenes for one epoch, read straight from the store.
+async fn load_shard(data: &Location, plan: &EpochPlan) -> Result<Vec<Scene>> {
+    let reader = SplitReader::open(data.join("train")).await?;
+    let mut scenes = Vec::new();
+    for rg in &plan.row_groups {
+        scenes.extend(reader.read_row_group(rg, Columns::TRAIN).await?);
+    }
+    Ok(scenes)
+}
+
+struct Epoch {
+    plan: EpochPlan,
+    scenes: Vec<Scene>,
+    order: Vec<usize>,
+    start_step: u64,
+}
+
+async fn open_epoch(
+    data: &Location,
+    groups: &[RowGroupRef],
+    job: &JobConfig,
+    epoch: u64,
+    start_step: u64,
+    plan: &WorkerPlan,
+) -> Result<Epoch> {
+    let t = &job.train;
+    let ep = EpochPlan::new(groups, t.seed, epoch, plan.world(), plan.rank, t.batch_size)?;
+    let scenes = load_shard(data, &ep).await?;
+    let order = ep.scene_order(t.seed, scenes.len());
+    Ok(Epoch {
+        plan: ep,
+        scenes,
+        order,
+        start_step,
+    })
+}
+
+async fn run_generation(
+    opts: &WorkerOptions,
+    client: &mut Client,
+    mailbox: &Arc<Mailbox>,
+    worker_id: u64,
+    plan: &WorkerPlan,
+) -> Result<Ended> {
+    let job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
+    job.validate()?;
+    let cfg_hash = checkpoint::config_hash(&plan.job_config_toml);
+    let t = job.train.clone();
+    let c = job.cluster.clone();
+    let data = Location::parse(&plan.data)?;
+    let run = Location::parse(&plan.run)?;
+    let (rank, world) = (plan.rank, plan.world());
+
+    let live = Arc::new(Liveness {
+        step: AtomicU64::new(0),
+        abort: Mutex::new(None),
+    });
+    mailbox.set_generation(plan.generation, rank);
+    let heartbeat = spawn_heartbeat(
+        client.clone(),
+        plan,
+        worker_id,
+        Duration::from_secs_f64((c.heartbeat_timeout_s / 5.0).clamp(0.05, 1.0)),
+        opts.coordinator_timeout,
+        live.clone(),
+        mailbox.clone(),
+    );
+    let _stop_heartbeat = AbortOnDrop(heartbeat);
+
+    let mut ring = if world > 1 {
+        Some(Ring::new(
+            RingConfig {
+                job: plan.job.clone(),
+                generation: plan.generation,
+                rank,
+                peers: plan.peers.clone(),
+                bucket_floats: c.bucket_floats,
+                chunk_floats: c.chunk_floats,
+                timeout: Duration::from_secs_f64(c.rpc_timeout_s),
+                token: opts.token.clone(),
+            },
+            mailbox.clone(),
+        )?)
+    } else {
+        None
+    };
+    let aborted = |live: &Liveness, e: TrainError| -> Result<Ended> {
+        // A round that failed because the coordinator moved on is not a fault of its own.
+        if let Some(a) = live.take_abort() {
+            return Ok(a);
+        }
+        match e {
+            TrainError::Collective(err) => Ok(Ended::Aborted {
+                reason: err.to_string(),
+                report: true,
+            }),
+            other => Err(other),
+        }
+    };
+
+    let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), Device::Cpu))?;
+    let mut state = match plan.resume_step {
+        Some(step) => {
+            let st = checkpoint::load(&run, step, &mut trainer).await?;
+            if st.config_hash != cfg_hash {
+                return Err(TrainError::Config {
+                    path: run.describe(&run.path(&checkpoint::step_dir(step))),
+                    reason: "the checkpoint was written with another job config; resume with the run's own config.toml".into(),
+                });
+            }
+            st
+        }
+        None => {
+            let mut flat = trainer.params.flatten()?;
+            if let Err(e) = broadcast_from_rank0(ring.as_mut(), 0, rank, &mut flat).await {
+                return aborted(&live, e);
+            }
+            trainer.params.load_flat(&flat)?;
+            CheckpointState {
+                step: 0,
+                epoch: 0,
+                epoch_start_step: 0,
+                world_size: world,
+                rng: String::new(),
+                adam_t: 0,
+                skipped_total: 0,
+                wall_s: 0.0,
+                train_s: 0.0,
+                config_hash: cfg_hash.clone(),
+                val_fg_ari: None,
+                val_psnr: None,
+            }
+        }
+    };
+    // Another world size deals the data differently: continue with a fresh epoch.
+    if state.world_size != world {
+        state.epoch += 1;
+        state.epoch_start_step = state.step;
+        state.world_size = world;
+    }
+    state.rng = format!(
+        "ChaCha8 per step from (seed {}, step, rank, world {world})",
+        t.seed
+    );
+
+    let groups = list_row_groups(&data).await?;
+    let val = load_split(
+        &data,
+        "val",
+        Columns {
+            masks: true,
+            objects: false,
+        },
+        Some(t.eval_scenes),
+    )
+    .await?;
+    let mut epoch = open_epoch(
+        &data,
+        &groups,
+        &job,
+        state.epoch,
+        state.epoch_start_step,
+        plan,
+    )
+    .await?;
+    let batch_cfg = BatchConfig {
+        input_views: t.input_views,
+        input_selection: t.input_selection,
+        target_views: t.target_views,
+        rays_per_scene: Some(t.rays_per_scene),
+        with_masks: false,
+        salient_fraction: t.salient_fraction,
+    };
+    let eval_opts = crate::run::eval_options(&job);
+
+    let gen_start = Instant::now();
+    let (wall0, train0) = (state.wall_s, state.train_s);
+    let mut train_s = train0;
+    let mut last_eval = Instant::now();
+    let mut window = (Instant::now(), 0.0f64, 0.0f64, 0u64);
+    let mut pending_save: Option<tokio::task::JoinHandle<Result<u64>>> = None;
+    let wall = |gen_start: Instant| wall0 + gen_start.elapsed().as_secs_f64();
+    // A fresh job evaluates its initial weights: the curve starts at step 0. Every rank
+    // evaluates, so none waits for rank 0 in the first all-reduce.
+    if trainer.step == 0 {
+        let r = tokio::task::block_in_place(|| evaluate(&trainer.model, &val, &eval_opts))?;
+        if rank == 0 {
+            let record = eval_record(0, 0.0, 0.0, &r);
+            send_records(client, plan, worker_id, 0, None, vec![record]).await;
+        }
+    }
+
+    loop {
+        if let Some(a) = live.take_abort() {
+            return Ok(a);
+        }
+        let step = trainer.step;
+        if plan.max_steps.is_some_and(|m| step >= m) {
+            break;
+        }
+        live.step.store(step, Ordering::Relaxed);
+        if step - epoch.start_step >= epoch.plan.steps {
+            let next = epoch.plan.epoch + 1;
+            epoch = open_epoch(&data, &groups, &job, next, step, plan).await?;
+        }
+        let step_start = Instant::now();
+        let k = (step - epoch.start_step) as usize;
+        let b = epoch.plan.local_batch;
+        let refs: Vec<&Scene> = epoch.order[k * b..(k + 1) * b]
+            .iter()
+            .map(|&i| &epoch.scenes[i])
+            .collect();
+        let mut rng = step_rng(t.seed, step, rank, world);
+        let g = tokio::task::block_in_place(|| -> Result<_> {
+            let batch = build_batch(&refs, &batch_cfg, &mut rng)?;
+            trainer.gradients(&batch, &mut rng)
+        })?;
+        let signals = Signals {
+            evaluate: last_eval.elapsed().as_secs_f64() >= t.eval_every_s,
+            stop: plan.deadline_unix_s.is_some_and(|d| unix_now() >= d),
+        };
+        let reduced = match reduce(ring.as_mut(), step + 1, rank, g, signals).await {
+            Ok(r) => r,
+            Err(e) => return aborted(&live, e),
+        };
+        let outcome = tokio::task::block_in_place(|| trainer.apply(reduced.loss, reduced.grads))?;
+        train_s += step_start.elapsed().as_secs_f64();
+        if let ApplyOutcome::Skipped { .. } = outcome
+            && trainer.skipped_in_a_row >= t.max_consecutive_skips
+        {
+            return Err(TrainError::TooManySkips {
+                skipped: trainer.skipped_in_a_row,
+                limit: t.max_consecutive_skips,
+            });
+        }
+        let step = trainer.step;
+        live.step.store(step, Ordering::Relaxed);
+        window.1 += reduced.samples;
+        window.2 += reduced.loss;
+        window.3 += 1;
+
+        let mut records = Vec::new();
+        if rank == 0 && step % t.log_every == 0 {
+            let dt = window.0.elapsed().as_secs_f64().max(1e-9);
+            records.push(json!({
+                "step": step,
+                "wall_s": wall(gen_start),
+                "train_s": train_s,
+                "loss": window.2 / window.3 as f64,
+                "scenes_per_s": window.1 / dt,
+                "lr": t.lr_at(step - 1),
+                "skipped": trainer.skipped_total,
+                "epoch": epoch.plan.epoch,
+                "workers": world,
+            }));
+            window = (Instant::now(), 0.0, 0.0, 0);
+        }
+        let last = reduced.signals.stop || plan.max_steps.is_some_and(|m| step >= m);
+        if reduced.signals.evaluate || last {
+            // Every rank evaluates (identical weights, identical result): nobody idles in
+            // the next all-reduce waiting for rank 0.
+            let r = tokio::task::block_in_place(|| evaluate(&trainer.model, &val, &eval_opts))?;
+            state.val_fg_ari = r.fg_ari;
+            state.val_psnr = Some(r.psnr);
+            if rank == 0 {
+                records.push(eval_record(step, wall(gen_start), train_s, &r));
+            }
+            last_eval = Instant::now();
+        }
+        let hash = (step % c.hash_every == 0 || last)
+            .then(|| trainer.params.flatten().map(|f| checkpoint::param_hash(&f)))
+            .transpose()?;
+        if hash.is_some() || !records.is_empty() {
+            let directive = send_records(client, plan, worker_id, step, hash, records).await;
+            if directive == Some(Directive::Stop) {
+                return Ok(Ended::Aborted {
+                    reason: "the coordinator stopped the job".into(),
+                    report: false,
+                });
+            }
+        }
+        if rank == 0 && (step % c.checkpoint_every == 0 || last) {
+            if let Some(prev) = pending_save.take() {
+                prev.await
+                    .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+            }
+            let st = CheckpointState {
+                step,
+                epoch: epoch.plan.epoch,
+                epoch_start_step: epoch.start_step,
+                world_size: world,
+                adam_t: trainer.opt.t,
+                skipped_total: trainer.skipped_total,
+                wall_s: wall(gen_start),
+                train_s,
+                ..state.clone()
+            };
+            let snap = tokio::task::block_in_place(|| Snapshot::take(&trainer, st))?;
+            let task = tokio::spawn(commit_and_report(
+                snap,
+                run.clone(),
+                client.clone(),
+                plan.clone(),
+                worker_id,
+                last,
+                c.keep_last,
+            ));
+            if last {
+                task.await
+                    .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+            } else {
+                pending_save = Some(task);
+            }
+        }
+        if last {
+            break;
+        }
+    }
+    if let Some(prev) = pending_save.take() {
+        prev.await
+            .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+    }
+    Ok(Ended::Finished)
+}
+
+async fn commit_and_report(
+    snap: Snapshot,
+    run: Location,
+    mut client: Client,
+    plan: WorkerPlan,
+    worker_id: u64,
+    last: bool,
+    keep_last: usize,
+) -> Result<u64> {
+    let step = snap.commit(&run).await?;
+    client
+        .report_checkpoint(v1::CheckpointReport {
+            job: plan.job.clone(),
+            worker_id,
+            generation: plan.generation,
+            step,
+            r#final: last,
+        })
+        .await
+        .map_err(|s| TrainError::Cluster(format!("reporting checkpoint {step}: {s}")))?;
+    match checkpoint::apply_retention(&run, keep_last).await {
+        Ok(deleted) if !deleted.is_empty() => tracing::debug!(?deleted, "old checkpoints deleted"),
+        Ok(_) => {}
+        Err(e) => tracing::warn!(error = %e, "retention failed"),
+    }
+    Ok(step)
+}
+
+/// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer.
+async fn send_records(
+    client: &mut Client,
+    plan: &WorkerPlan,
+    worker_id: u64,
+    step: u64,
+    param_hash: Option<String>,
+    records: Vec<serde_json::Value>,
+) -> Option<Directive> {
+    let r = client
+        .report_progress(v1::ProgressReport {
+            job: plan.job.clone(),
+            worker_id,
+            generation: plan.generation,
+            rank: plan.rank as u32,
+            step,
+            param_hash,
+            records: records.iter().map(|r| r.to_string()).collect(),
+        })
+        .await;
+    match r {
+        Ok(a) => Directive::try_from(a.into_inner().action).ok(),
+        Err(s) => {
+            tracing::warn!(status = %s, "progress report failed");
+            None
+        }
+    }
+}
+
+pub fn eval_record(
+    step: u64,
+    wall_s: f64,
+    train_s: f64,
+    r: &crate::eval::EvalResult,
+) -> serde_json::Value {
+    json!({
+        "step": step,
+        "wall_s": wall_s,
+        "train_s": train_s,
+        "psnr": r.psnr,
+        "baseline_psnr": r.baseline_psnr,
+        "fg_ari": r.fg_ari,
+        "fg_ari_2d": r.fg_ari_2d,
+        "ari": r.ari,
+        "ratio": r.ratio,
+        "render_fps": r.render_fps,
+        "eval_scenes": r.scenes,
+    })
+}
+
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}

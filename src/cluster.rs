@@ -1,0 +1,340 @@
+//! `osrt coordinator`, `osrt worker`, and the local launcher behind `osrt train`: a
+//! coordinator in this process and N worker processes of this same binary on loopback,
+//! started with exactly the flags and environment a cluster's pods use.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use osrt_coordinator::{Coordinator, JobSpec};
+use osrt_proto::auth::{TOKEN_ENV, Token};
+use osrt_proto::v1;
+use osrt_trainer::{JobConfig, WorkerOptions, run_worker};
+use std::io::IsTerminal;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// glibc allocator settings for workers: keep freed tensors' pages instead of returning
+/// them to the kernel after every step (page faults were 5–10 % of a step).
+const WORKER_MALLOC_ENV: [(&str, &str); 3] = [
+    ("MALLOC_MMAP_THRESHOLD_", "33554432"),
+    ("MALLOC_TRIM_THRESHOLD_", "4294967296"),
+    ("MALLOC_TOP_PAD_", "268435456"),
+];
+
+#[derive(Args)]
+pub struct CoordinatorArgs {
+    /// Job config (TOML, a full `JobConfig`); default: the `--preset`.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Named job preset when no --config is given: clevr-lite-cpu, tiny, paper.
+    #[arg(long, default_value = "clevr-lite-cpu")]
+    pub preset: String,
+    /// Dataset directory or URL (read by the workers).
+    #[arg(long)]
+    pub data: String,
+    /// Run folder or URL: config, metrics, job state and checkpoints.
+    #[arg(long)]
+    pub run: String,
+    /// Address the Coordinator service listens on.
+    #[arg(long, default_value = "0.0.0.0:7070")]
+    pub listen: SocketAddr,
+    #[arg(long)]
+    pub max_steps: Option<u64>,
+    #[arg(long)]
+    pub max_minutes: Option<f64>,
+    /// Continue the job in --run (a finished one too) with the limits given here.
+    #[arg(long)]
+    pub resume: bool,
+    /// Override cluster.min_workers / max_workers / max_restarts of the config.
+    #[arg(long)]
+    pub min_workers: Option<usize>,
+    #[arg(long)]
+    pub max_workers: Option<usize>,
+    #[arg(long)]
+    pub max_restarts: Option<u32>,
+    /// Seconds to keep answering after the job is over, so every worker hears it.
+    #[arg(long, default_value_t = 3.0)]
+    pub linger_s: f64,
+}
+
+#[derive(Args)]
+pub struct WorkerArgs {
+    /// `http://host:port` of the coordinator.
+    #[arg(long, env = "OSRT_COORDINATOR")]
+    pub coordinator: String,
+    /// Address of this worker's Collective service.
+    #[arg(long, default_value = "0.0.0.0:7071", env = "OSRT_WORKER_LISTEN")]
+    pub listen: SocketAddr,
+    /// Host name the other workers reach this one at (a pod's stable DNS name).
+    #[arg(long, env = "OSRT_ADVERTISE")]
+    pub advertise: Option<String>,
+    /// Compute threads (candle's pool); the process re-executes itself to apply it.
+    #[arg(long, env = "OSRT_THREADS")]
+    pub threads: Option<usize>,
+    /// Give up after the coordinator has been unreachable this long.
+    #[arg(long, default_value_t = 60.0)]
+    pub coordinator_timeout_s: f64,
+}
+
+fn unix_now() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+fn job_id() -> String {
+    format!("job-{}", &Token::generate().as_str()[..12])
+}
+
+/// The job with the command line's overrides applied.
+pub fn spec(
+    job: JobConfig,
+    data: &str,
+    run: &str,
+    max_steps: Option<u64>,
+    max_minutes: Option<f64>,
+) -> Result<JobSpec> {
+    job.validate()?;
+    Ok(JobSpec {
+        job_id: job_id(),
+        job_toml: job.to_toml(),
+        job,
+        data: data.to_string(),
+        run: run.to_string(),
+        max_steps,
+        deadline_unix_s: max_minutes.map(|m| unix_now() + m * 60.0),
+    })
+}
+
+pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
+    let token = Token::from_env()?;
+    let mut job = match &a.config {
+        Some(p) => JobConfig::load(p)?,
+        None => JobConfig::preset(&a.preset)?,
+    };
+    if let Some(v) = a.min_workers {
+        job.cluster.min_workers = v;
+    }
+    if let Some(v) = a.max_workers {
+        job.cluster.max_workers = v;
+    }
+    if let Some(v) = a.max_restarts {
+        job.cluster.max_restarts = v;
+    }
+    if a.max_steps.is_none() && a.max_minutes.is_none() && !a.resume {
+        bail!("give the job a limit: --max-steps N and/or --max-minutes M");
+    }
+    let spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes)?;
+    let coord = Coordinator::open(spec, a.resume).await?;
+    let listener = tokio::net::TcpListener::bind(a.listen)
+        .await
+        .with_context(|| format!("listening on {}", a.listen))?;
+    eprintln!(
+        "coordinator of {} listening on {}",
+        coord.job_id(),
+        listener.local_addr()?
+    );
+    let status = coord
+        .serve(
+            listener,
+            token,
+            Duration::from_secs_f64(a.linger_s),
+            shutdown_signal(),
+        )
+        .await?;
+    report_end(&status)
+}
+
+async fn shutdown_signal() {
+    let _ = tokio::signal::ctrl_c().await;
+}
+
+fn report_end(status: &v1::JobStatus) -> Result<()> {
+    match v1::JobState::try_from(status.state) {
+        Ok(v1::JobState::Done) => {
+            eprintln!(
+                "job {} done: step {}, last checkpoint {:?}, {} restarts, {} parameter-hash checks agreed",
+                status.job,
+                status.last_checkpoint.unwrap_or(0),
+                status.last_checkpoint,
+                status.restarts,
+                status.hash_checks
+            );
+            Ok(())
+        }
+        Ok(v1::JobState::Failed) => bail!("job {} failed: {}", status.job, status.message),
+        _ => bail!("job {} interrupted (state {:?})", status.job, status.state),
+    }
+}
+
+/// Re-executes this process with `RAYON_NUM_THREADS=n` unless already set so: candle
+/// reads it once, at its first parallel op. Returns `Some(exit code)` in the parent.
+fn reexec_with_threads(n: usize) -> Result<Option<i32>> {
+    if std::env::var("RAYON_NUM_THREADS").ok().as_deref() == Some(&n.to_string()) {
+        return Ok(None);
+    }
+    let status = std::process::Command::new(std::env::current_exe()?)
+        .args(std::env::args_os().skip(1))
+        .env("RAYON_NUM_THREADS", n.to_string())
+        .status()?;
+    Ok(Some(status.code().unwrap_or(1)))
+}
+
+pub async fn worker(a: WorkerArgs) -> Result<()> {
+    if let Some(n) = a.threads
+        && let Some(code) = reexec_with_threads(n)?
+    {
+        std::process::exit(code);
+    }
+    let token = Token::from_env()?;
+    let threads = std::env::var("RAYON_NUM_THREADS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| {
+            std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(1)
+        });
+    let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "localhost".into());
+    run_worker(WorkerOptions {
+        coordinator: a.coordinator,
+        listen: a.listen,
+        advertise: a.advertise,
+        threads,
+        token,
+        name: format!("{host}:{}", std::process::id()),
+        coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
+    })
+    .await?;
+    Ok(())
+}
+
+/// What `osrt train` runs: a local cluster of `workers` processes.
+pub struct LocalJob {
+    pub spec: JobSpec,
+    pub workers: usize,
+    pub threads_per_worker: usize,
+    pub resume: bool,
+}
+
+fn spawn_worker(coordinator: &str, threads: usize, token: &Token) -> Result<tokio::process::Child> {
+    let mut cmd = tokio::process::Command::new(std::env::current_exe()?);
+    cmd.args([
+        "worker",
+        "--coordinator",
+        coordinator,
+        "--listen",
+        "127.0.0.1:0",
+        "--threads",
+        &threads.to_string(),
+    ])
+    .env(TOKEN_ENV, token.as_str())
+    .env("RAYON_NUM_THREADS", threads.to_string())
+    .kill_on_drop(true);
+    for (k, v) in WORKER_MALLOC_ENV {
+        if std::env::var_os(k).is_none() {
+            cmd.env(k, v);
+        }
+    }
+    Ok(cmd.spawn()?)
+}
+
+fn parse_record(s: &str) -> Option<serde_json::Value> {
+    serde_json::from_str(s).ok()
+}
+
+/// Runs the job on loopback; returns the final status.
+pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
+    let token = Token::generate();
+    let max_steps = job.spec.max_steps;
+    let max_restarts = job.spec.job.cluster.max_restarts;
+    let coord = Coordinator::open(job.spec, job.resume).await?;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let addr = format!("http://{}", listener.local_addr()?);
+    let status_view = coord.clone();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let server =
+        tokio::spawn(
+            coord.serve(listener, token.clone(), Duration::from_secs(2), async {
+                let _ = stop_rx.await;
+            }),
+        );
+    let mut children = Vec::new();
+    for _ in 0..job.workers {
+        children.push(spawn_worker(&addr, job.threads_per_worker, &token)?);
+    }
+    let bar = if std::io::stderr().is_terminal() {
+        let b = match max_steps {
+            Some(n) => ProgressBar::new(n),
+            None => ProgressBar::no_length(),
+        };
+        b.set_style(
+            ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        b
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut respawned = 0u32;
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
+    let mut server = server;
+    let status = loop {
+        tokio::select! {
+            r = &mut server => break r??,
+            _ = &mut ctrl_c => {
+                let _ = stop_tx.send(());
+                bar.finish_and_clear();
+                bail!("interrupted; the job continues from its last checkpoint with `osrt train --resume --run RUN`");
+            }
+            _ = tokio::time::sleep(Duration::from_millis(250)) => {}
+        }
+        let s = status_view.status();
+        bar.set_position(s.step);
+        if let Some(r) = parse_record(&s.last_record) {
+            let loss = r.get("loss").and_then(|v| v.as_f64());
+            let sps = r.get("scenes_per_s").and_then(|v| v.as_f64());
+            if let (Some(loss), Some(sps)) = (loss, sps) {
+                bar.set_message(format!(
+                    "loss {loss:.5} {sps:.1} scenes/s gen {}",
+                    s.generation
+                ));
+            }
+        }
+        // A worker that died while the job runs is replaced (as a Job controller would).
+        let over = matches!(
+            v1::JobState::try_from(s.state),
+            Ok(v1::JobState::Done | v1::JobState::Failed)
+        );
+        for child in children.iter_mut() {
+            if let Ok(Some(exit)) = child.try_wait()
+                && !over
+            {
+                if respawned >= max_restarts {
+                    let _ = stop_tx.send(());
+                    bail!("worker exited ({exit}) and {max_restarts} replacements are used up");
+                }
+                tracing::warn!(%exit, "worker exited; starting a replacement");
+                *child = spawn_worker(&addr, job.threads_per_worker, &token)?;
+                respawned += 1;
+            }
+        }
+    };
+    bar.finish_and_clear();
+    for mut c in children {
+        match tokio::time::timeout(Duration::from_secs(10), c.wait()).await {
+            Ok(_) => {}
+            Err(_) => {
+                let _ = c.kill().await;
+            }
+        }
+    }
+    report_end(&status)?;
+    Ok(status)
+}

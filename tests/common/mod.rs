@@ -1,0 +1,143 @@
+//! Helpers shared by the end-to-end tests: run the `osrt` binary, read JSON lines, start
+//! a coordinator and workers as separate processes the way a cluster's pods do.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+pub fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_osrt")
+}
+
+/// Runs `osrt args…` and asserts success.
+pub fn osrt(args: &[&str]) -> Output {
+    let out = Command::new(bin()).args(args).output().expect("run osrt");
+    assert!(
+        out.status.success(),
+        "osrt {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+pub fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+pub fn read_json(path: &Path) -> Option<serde_json::Value> {
+    let text = std::fs::read_to_string(path).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+/// A small dataset for cluster tests: 8×8 views, 8 scenes per row group.
+pub fn tiny_dataset(dir: &Path, train: usize) -> PathBuf {
+    let data = dir.join("data");
+    osrt(&[
+        "data",
+        "generate",
+        "--out",
+        data.to_str().unwrap(),
+        "--train",
+        &train.to_string(),
+        "--val",
+        "4",
+        "--test",
+        "4",
+        "--image-size",
+        "8",
+        "--antialias",
+        "1",
+        "--scenes-per-row-group",
+        "8",
+    ]);
+    data
+}
+
+/// A free loopback port (bound and released; the race is harmless in tests).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+pub const TOKEN: &str = "test-token-0123456789abcdef";
+
+/// Kills the process when dropped, so a failing test leaves nothing running.
+pub struct Proc(pub Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proc {
+    pub fn wait_for_exit(&mut self, limit: Duration) -> std::process::ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(s) = self.0.try_wait().unwrap() {
+                return s;
+            }
+            assert!(
+                start.elapsed() < limit,
+                "process did not exit within {limit:?}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+pub fn coordinator(port: u16, data: &Path, run: &Path, extra: &[&str]) -> Proc {
+    let mut cmd = Command::new(bin());
+    cmd.args(["coordinator", "--preset", "tiny", "--data"])
+        .arg(data)
+        .arg("--run")
+        .arg(run)
+        .args(["--listen", &format!("127.0.0.1:{port}")])
+        .args(extra)
+        .env("OSRT_TOKEN", TOKEN)
+        .stdout(Stdio::null());
+    Proc(cmd.spawn().expect("start coordinator"))
+}
+
+pub fn worker(port: u16) -> Proc {
+    let mut cmd = Command::new(bin());
+    cmd.args([
+        "worker",
+        "--coordinator",
+        &format!("http://127.0.0.1:{port}"),
+        "--listen",
+        "127.0.0.1:0",
+        "--threads",
+        "1",
+    ])
+    .env("OSRT_TOKEN", TOKEN)
+    .stdout(Stdio::null());
+    Proc(cmd.spawn().expect("start worker"))
+}
+
+/// Polls `RUN/job.json` until `pred` holds.
+pub fn wait_job(run: &Path, limit: Duration, pred: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+    let start = Instant::now();
+    loop {
+        if let Some(j) = read_json(&run.join("job.json"))
+            && pred(&j)
+        {
+            return j;
+        }
+        assert!(
+            start.elapsed() < limit,
+            "job state not reached within {limit:?}: {:?}",
+            read_json(&run.join("job.json"))
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
