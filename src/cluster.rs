@@ -169,24 +169,24 @@ fn report_end(status: &v1::JobStatus) -> Result<()> {
     }
 }
 
-/// Re-executes this process with `RAYON_NUM_THREADS=n` unless already set so: candle
-/// reads it once, at its first parallel op. Returns `Some(exit code)` in the parent.
-fn reexec_with_threads(n: usize) -> Result<Option<i32>> {
+/// Replaces this process by itself with `RAYON_NUM_THREADS=n` unless already set so:
+/// candle sizes its thread pool from it once, at its first parallel op. `exec` keeps the
+/// process id, so signals (a pod's SIGTERM, a test's SIGKILL) still reach the worker.
+fn reexec_with_threads(n: usize) -> Result<()> {
+    use std::os::unix::process::CommandExt;
     if std::env::var("RAYON_NUM_THREADS").ok().as_deref() == Some(&n.to_string()) {
-        return Ok(None);
+        return Ok(());
     }
-    let status = std::process::Command::new(std::env::current_exe()?)
+    let err = std::process::Command::new(std::env::current_exe()?)
         .args(std::env::args_os().skip(1))
         .env("RAYON_NUM_THREADS", n.to_string())
-        .status()?;
-    Ok(Some(status.code().unwrap_or(1)))
+        .exec();
+    Err(err).context("re-executing the worker with its thread count")
 }
 
 pub async fn worker(a: WorkerArgs) -> Result<()> {
-    if let Some(n) = a.threads
-        && let Some(code) = reexec_with_threads(n)?
-    {
-        std::process::exit(code);
+    if let Some(n) = a.threads {
+        reexec_with_threads(n)?;
     }
     let token = Token::from_env()?;
     let threads = std::env::var("RAYON_NUM_THREADS")

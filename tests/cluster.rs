@@ -52,9 +52,17 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     assert!(l.iter().all(|(_, x)| x.is_finite()));
     let first: f64 = l[..5].iter().map(|x| x.1).sum::<f64>() / 5.0;
     let last: f64 = l[25..].iter().map(|x| x.1).sum::<f64>() / 5.0;
-    assert!(last < first, "loss should fall: first 5 {first}, last 5 {last}");
+    assert!(
+        last < first,
+        "loss should fall: first 5 {first}, last 5 {last}"
+    );
     let records = read_jsonl(&run.join("metrics.jsonl"));
-    assert!(records.iter().filter(|r| r.get("loss").is_some()).all(|r| r["workers"] == 2));
+    assert!(
+        records
+            .iter()
+            .filter(|r| r.get("loss").is_some())
+            .all(|r| r["workers"] == 2)
+    );
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done");
     assert_eq!(job["restarts"], 0);
@@ -66,7 +74,9 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     rt.block_on(osrt_trainer::checkpoint::verify(&loc, 30))
         .expect("the final checkpoint verifies");
     // Retention: the newest 3 (keep_last) plus the best by validation FG-ARI at most.
-    let kept = rt.block_on(osrt_trainer::checkpoint::list_steps(&loc)).unwrap();
+    let kept = rt
+        .block_on(osrt_trainer::checkpoint::list_steps(&loc))
+        .unwrap();
     assert!(kept.len() <= 4 && kept[..3] == [30, 25, 20], "{kept:?}");
 }
 
@@ -107,7 +117,10 @@ fn a_torn_or_corrupt_checkpoint_is_skipped() {
     std::fs::remove_file(run.join("checkpoints/step-000000010/MANIFEST.json")).unwrap();
     let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--split", "test"]);
     let text = String::from_utf8(out.stdout).unwrap();
-    assert!(text.contains("(step 5)"), "evaluated the newest verified one: {text}");
+    assert!(
+        text.contains("(step 5)"),
+        "evaluated the newest verified one: {text}"
+    );
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains("SHA-256"), "the corrupt one is named: {err}");
     assert!(err.contains("torn"), "the torn one is named: {err}");
@@ -124,11 +137,20 @@ fn a_killed_worker_does_not_hang_the_job() {
     let data = tiny_dataset(dir.path(), 64);
     let run = dir.path().join("run");
     let port = free_port();
+    // A deadline, not a step count, ends this job: it runs long enough to be killed
+    // mid-way on any machine.
     let mut coord = coordinator(
         port,
         &data,
         &run,
-        &["--max-steps", "400", "--min-workers", "1", "--max-workers", "2"],
+        &[
+            "--max-minutes",
+            "0.25",
+            "--min-workers",
+            "1",
+            "--max-workers",
+            "2",
+        ],
     );
     let _a = worker(port);
     let mut b = worker(port);
@@ -151,10 +173,15 @@ fn a_killed_worker_does_not_hang_the_job() {
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done", "{job}");
     assert!(job["restarts"].as_u64().unwrap() >= 1);
-    assert_eq!(job["last_checkpoint"], 400);
     let l = losses(&run);
-    assert_eq!(l.last().unwrap().0, 400);
+    assert_eq!(Some(l.last().unwrap().0), job["last_checkpoint"].as_u64());
     assert!(l.windows(2).all(|w| w[0].0 < w[1].0), "one timeline");
+    // After the loss the survivor trained alone.
+    let records = read_jsonl(&run.join("metrics.jsonl"));
+    assert!(
+        records.iter().any(|r| r["workers"] == 1),
+        "a 1-worker generation"
+    );
 }
 
 #[test]
@@ -163,7 +190,7 @@ fn a_restarted_coordinator_resumes_the_job() {
     let data = tiny_dataset(dir.path(), 64);
     let run = dir.path().join("run");
     let port = free_port();
-    let args = ["--max-steps", "300", "--min-workers", "2"];
+    let args = ["--max-minutes", "0.2", "--min-workers", "2"];
     let mut coord = coordinator(port, &data, &run, &args);
     let mut a = worker(port);
     let mut b = worker(port);
@@ -179,7 +206,7 @@ fn a_restarted_coordinator_resumes_the_job() {
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done", "{job}");
     assert!(job["generation"].as_u64().unwrap() >= 2, "{job}");
-    assert_eq!(job["last_checkpoint"], 300);
+    assert!(job["last_checkpoint"].as_u64().unwrap() > 10, "{job}");
     assert!(a.wait_for_exit(Duration::from_secs(30)).success());
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
 }
@@ -227,10 +254,8 @@ fn calls_without_the_job_token_are_refused_and_health_answers() {
             .unwrap_err();
         assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
         let right = osrt_proto::auth::Token::new(TOKEN).unwrap();
-        let mut ok = CoordinatorClient::with_interceptor(
-            channel,
-            osrt_proto::auth::AttachToken(right),
-        );
+        let mut ok =
+            CoordinatorClient::with_interceptor(channel, osrt_proto::auth::AttachToken(right));
         let s = ok
             .get_status(osrt_proto::v1::StatusRequest {})
             .await

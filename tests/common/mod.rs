@@ -125,7 +125,11 @@ pub fn worker(port: u16) -> Proc {
 }
 
 /// Polls `RUN/job.json` until `pred` holds.
-pub fn wait_job(run: &Path, limit: Duration, pred: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
+pub fn wait_job(
+    run: &Path,
+    limit: Duration,
+    pred: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
     let start = Instant::now();
     loop {
         if let Some(j) = read_json(&run.join("job.json"))

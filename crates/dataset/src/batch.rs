@@ -175,6 +175,37 @@ fn target_view_ids(scene: &Scene, inputs: &[usize], which: TargetViews) -> Resul
     Ok(ids)
 }
 
+impl Batch {
+    /// Scenes `range` of this batch, with exactly their sampled rays (data-parallel
+    /// workers' shares of one global batch).
+    pub fn slice(&self, range: std::ops::Range<usize>) -> Batch {
+        assert!(range.end <= self.batch_size && range.start <= range.end);
+        let img = self.input_views * self.height * self.width * 3;
+        let tgt = self.rays_per_scene * 3;
+        let k = self.rays_per_scene;
+        let cut = |v: &Vec<f32>, per: usize| v[range.start * per..range.end * per].to_vec();
+        Batch {
+            scene_ids: self.scene_ids[range.clone()].to_vec(),
+            batch_size: range.len(),
+            input_views: self.input_views,
+            height: self.height,
+            width: self.width,
+            input_images: cut(&self.input_images, img),
+            input_origins: cut(&self.input_origins, img),
+            input_directions: cut(&self.input_directions, img),
+            rays_per_scene: k,
+            target_origins: cut(&self.target_origins, tgt),
+            target_directions: cut(&self.target_directions, tgt),
+            target_rgb: cut(&self.target_rgb, tgt),
+            target_masks: self
+                .target_masks
+                .as_ref()
+                .map(|m| m[range.start * k..range.end * k].to_vec()),
+            target_pixels: self.target_pixels[range.start * k..range.end * k].to_vec(),
+        }
+    }
+}
+
 /// Builds one batch. The RNG draws input views (when random) then target rays, scene by
 /// scene in order, so the same RNG state and scenes give the same batch.
 pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> Result<Batch> {

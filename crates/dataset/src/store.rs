@@ -97,7 +97,11 @@ impl Location {
             reason,
         };
         std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create directory: {e}")))?;
-        let fs = LocalFileSystem::new_with_prefix(dir).map_err(|e| err(e.to_string()))?;
+        // Deleting a folder's last file removes the folder (checkpoint retention), as on
+        // object stores where folders are only prefixes.
+        let fs = LocalFileSystem::new_with_prefix(dir)
+            .map_err(|e| err(e.to_string()))?
+            .with_automatic_cleanup(true);
         Ok(Self {
             store: Arc::new(fs),
             prefix: Path::default(),
