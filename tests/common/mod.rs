@@ -145,3 +145,78 @@ pub fn wait_job(
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+/// Runs `osrt args…` with extra environment variables and asserts success.
+pub fn osrt_env(args: &[&str], env: &[(String, String)]) -> Output {
+    let out = Command::new(bin())
+        .args(args)
+        .envs(env.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .output()
+        .expect("run osrt");
+    assert!(
+        out.status.success(),
+        "osrt {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// A local S3-compatible server (moto) with the given buckets; `None` when moto is not
+/// installed outside CI (CI installs it, so there it must run).
+pub struct S3Server {
+    proc: Proc,
+    pub port: u16,
+}
+
+impl S3Server {
+    pub fn start(buckets: &[&str]) -> Option<Self> {
+        use std::io::BufRead;
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/s3_server.py");
+        let mut child = Command::new("python3")
+            .arg(script)
+            .args(buckets)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("python3");
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        let Some(port) = line.strip_prefix("PORT ") else {
+            let status = child.wait().unwrap();
+            assert!(
+                status.code() == Some(77) && std::env::var_os("CI").is_none(),
+                "S3 server did not start ({status}): {line}"
+            );
+            eprintln!("skipped: moto[server] not installed");
+            return None;
+        };
+        let port = port.trim().parse().unwrap();
+        Some(Self {
+            proc: Proc(child),
+            port,
+        })
+    }
+
+    /// Exactly the variables a pod gets from its Secret and ConfigMap.
+    pub fn env(&self) -> Vec<(String, String)> {
+        [
+            ("AWS_ENDPOINT", format!("http://127.0.0.1:{}", self.port)),
+            ("AWS_ALLOW_HTTP", "true".into()),
+            ("AWS_ACCESS_KEY_ID", "test".into()),
+            ("AWS_SECRET_ACCESS_KEY", "test".into()),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect()
+    }
+}
+
+impl Drop for S3Server {
+    fn drop(&mut self) {
+        // Closing stdin stops the server; the Proc guard kills it if it lingers.
+        drop(self.proc.0.stdin.take());
+    }
+}

@@ -89,6 +89,9 @@ pub struct Core {
     next_id: u64,
     pub restarts: u32,
     pub last_checkpoint: Option<u64>,
+    /// The checkpoint the current generation started from (fixed at formation: a late
+    /// report of an abandoned generation's checkpoint must not split the ring).
+    pub resume_step: Option<u64>,
     pub hash_checks: u64,
     /// step → rank → parameter hash, until every rank has reported.
     hashes: BTreeMap<u64, BTreeMap<usize, String>>,
@@ -118,6 +121,7 @@ impl Core {
             next_id: 1,
             restarts: 0,
             last_checkpoint: None,
+            resume_step: None,
             hash_checks: 0,
             hashes: BTreeMap::new(),
             records: Vec::new(),
@@ -303,7 +307,7 @@ impl Core {
                         job_config_toml: self.spec.job_toml.clone(),
                         data: self.spec.data.clone(),
                         run: self.spec.run.clone(),
-                        resume_step: self.last_checkpoint,
+                        resume_step: self.resume_step,
                         max_steps: self.spec.max_steps,
                         deadline_unix_s: self.spec.deadline_unix_s,
                     }),
@@ -341,18 +345,27 @@ impl Core {
             }
         }
         if let Phase::Waiting { since } = self.phase {
+            // Only members heard from since the last generation ended take part: a peer
+            // that just failed a round may be dead but not yet timed out.
+            let eligible: Vec<u64> = self
+                .members
+                .values()
+                .filter(|m| m.last_seen >= since)
+                .map(|m| m.id)
+                .collect();
             let c = &self.spec.job.cluster;
-            let n = self.members.len();
+            let n = eligible.len();
             let grace = Duration::from_secs_f64(c.join_grace_s);
             if n >= c.max_workers || (n >= c.min_workers && now.duration_since(since) >= grace) {
-                self.form();
+                self.form(eligible);
             }
         }
     }
 
-    fn form(&mut self) {
+    fn form(&mut self, ring: Vec<u64>) {
         self.generation += 1;
-        self.ring = self.members.keys().copied().collect();
+        self.ring = ring;
+        self.resume_step = self.last_checkpoint;
         self.phase = Phase::Running;
         self.hashes.clear();
         let keep = self.last_checkpoint;
@@ -434,6 +447,16 @@ impl Core {
         now: Instant,
     ) -> Result<Directive, Status> {
         self.member(id, now)?;
+        if generation != self.generation {
+            // An abandoned generation's checkpoint (committed just before it was aborted):
+            // valid, but not on the timeline the current generation follows.
+            tracing::info!(
+                step,
+                generation,
+                "checkpoint of an earlier generation ignored"
+            );
+            return Ok(self.directive_for(id, generation));
+        }
         if self.last_checkpoint.is_none_or(|c| step > c) {
             self.last_checkpoint = Some(step);
             self.dirty_job = true;
@@ -562,6 +585,33 @@ mod tests {
             c.heartbeat(b, 1, 6, later).unwrap_err().code(),
             tonic::Code::NotFound
         );
+    }
+
+    #[test]
+    fn a_failed_round_does_not_re_admit_a_silent_peer() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(1, 2, 3), t);
+        let a = reg(&mut c, t);
+        let b = reg(&mut c, t);
+        c.tick(t);
+        c.checkpoint(a, 1, 5, false, t).unwrap();
+        // b died; a's round fails and a reports it at once, long before b times out.
+        let t1 = t + Duration::from_millis(500);
+        c.fault(a, 1, "sending to rank 1 failed", false, t1)
+            .unwrap();
+        let t2 = t1 + Duration::from_millis(1100);
+        c.plan(a, 1, t2).unwrap();
+        c.tick(t2);
+        let PlanState::Running(p) = c.plan(a, 1, t2).unwrap() else {
+            panic!("{:?}", c.phase)
+        };
+        assert_eq!((p.world(), p.generation, p.resume_step), (1, 2, Some(5)));
+        assert_eq!(c.restarts, 1);
+        // A late report of generation 1's next checkpoint does not move generation 2's
+        // starting point.
+        c.checkpoint(a, 1, 10, false, t2).unwrap();
+        assert_eq!(c.last_checkpoint, Some(5));
+        let _ = b;
     }
 
     #[test]

@@ -378,14 +378,28 @@ pub struct Ring {
     cfg: RingConfig,
     mailbox: Arc<Mailbox>,
     next: CollectiveClient<InterceptedService<Channel, AttachToken>>,
+    /// See [`FAULT_ENV`].
+    fault: Option<(usize, u64)>,
 }
 
+/// Little-endian bytes of `v` (a fixed-size loop the compiler vectorises).
 fn to_bytes(v: &[f32]) -> Bytes {
-    let mut b = Vec::with_capacity(v.len() * 4);
-    for x in v {
-        b.extend_from_slice(&x.to_le_bytes());
+    let mut b = vec![0u8; v.len() * 4];
+    for (dst, x) in b.chunks_exact_mut(4).zip(v) {
+        dst.copy_from_slice(&x.to_le_bytes());
     }
     Bytes::from(b)
+}
+
+/// Test hook: `OSRT_FAULT_MALFORMED_CHUNK=RANK:SEQ` makes rank RANK send a chunk one
+/// float short in all-reduce SEQ of generation 1, so tests can prove that a malformed
+/// chunk fails the round and the job goes on. Unset in normal runs.
+pub const FAULT_ENV: &str = "OSRT_FAULT_MALFORMED_CHUNK";
+
+fn fault_injection() -> Option<(usize, u64)> {
+    let v = std::env::var(FAULT_ENV).ok()?;
+    let (r, s) = v.split_once(':')?;
+    Some((r.parse().ok()?, s.parse().ok()?))
 }
 
 impl Ring {
@@ -417,7 +431,12 @@ impl Ring {
         .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
         .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
         mailbox.set_generation(cfg.generation, cfg.rank);
-        Ok(Self { cfg, mailbox, next })
+        Ok(Self {
+            cfg,
+            mailbox,
+            next,
+            fault: fault_injection(),
+        })
     }
 
     pub fn layout(&self, len: usize) -> Layout {
@@ -430,6 +449,10 @@ impl Ring {
     }
 
     /// Sums `buf` over all ranks in place; every rank ends with identical bytes.
+    ///
+    /// Within a ring round every chunk is sent at once (HTTP/2 multiplexes them on one
+    /// connection) while the chunks from the predecessor are received and applied as they
+    /// arrive; rounds depend on each other and run in order.
     pub async fn all_reduce(&mut self, step: u64, buf: &mut [f32]) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         if w == 1 {
@@ -438,79 +461,118 @@ impl Ring {
         let layout = self.layout(buf.len());
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
+        let inject = self.fault == Some((rank, step)) && self.cfg.generation == 1;
         for b in 0..layout.buckets.len() {
             for phase in [Phase::ReduceScatter, Phase::AllGather] {
                 for round in 0..w - 1 {
                     let send = layout.segment(b, layout.send_segment(rank, phase, round));
-                    for (c, range) in layout.chunks(send).into_iter().enumerate() {
-                        let tag = ChunkTag {
-                            job: self.cfg.job.clone(),
-                            generation: self.cfg.generation,
-                            step,
-                            bucket: b as u32,
-                            phase: phase as i32,
-                            round: round as u32,
-                            chunk: c as u32,
-                            from_rank: rank as u32,
-                        };
-                        let mut req = Request::new(Chunk {
-                            tag: Some(tag),
-                            data: to_bytes(&buf[range]),
-                        });
-                        req.set_timeout(self.cfg.timeout);
-                        self.next.push_chunk(req).await.map_err(|status| {
-                            CollectiveError::Send {
-                                rank,
-                                to: (rank + 1) % w,
-                                status,
+                    let requests: Vec<Request<Chunk>> = layout
+                        .chunks(send)
+                        .into_iter()
+                        .enumerate()
+                        .map(|(c, range)| {
+                            let mut data = to_bytes(&buf[range]);
+                            if inject && c == 0 {
+                                data.truncate(data.len().saturating_sub(4));
                             }
-                        })?;
-                    }
-                    let recv = layout.segment(b, layout.recv_segment(rank, phase, round));
-                    for (c, range) in layout.chunks(recv).into_iter().enumerate() {
-                        let key = (
-                            self.cfg.generation,
-                            step,
-                            b as u32,
-                            phase as i32,
-                            round as u32,
-                            c as u32,
-                        );
-                        let data = match self.mailbox.take(key, self.cfg.timeout).await {
-                            Ok(Ok(d)) => d,
-                            Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
-                            Err(()) => {
-                                return Err(CollectiveError::Timeout {
+                            let tag = ChunkTag {
+                                job: self.cfg.job.clone(),
+                                generation: self.cfg.generation,
+                                step,
+                                bucket: b as u32,
+                                phase: phase as i32,
+                                round: round as u32,
+                                chunk: c as u32,
+                                from_rank: rank as u32,
+                            };
+                            let mut req = Request::new(Chunk {
+                                tag: Some(tag),
+                                data,
+                            });
+                            req.set_timeout(self.cfg.timeout);
+                            req
+                        })
+                        .collect();
+                    let next = (rank + 1) % w;
+                    let sends = futures::future::try_join_all(requests.into_iter().map(|req| {
+                        let mut client = self.next.clone();
+                        async move {
+                            client
+                                .push_chunk(req)
+                                .await
+                                .map_err(|status| CollectiveError::Send {
                                     rank,
-                                    from: (rank + w - 1) % w,
-                                    bucket: b,
-                                    phase,
-                                    round,
-                                    timeout: self.cfg.timeout,
-                                });
-                            }
-                        };
-                        if data.len() != range.len() * 4 {
-                            return Err(CollectiveError::Peer(
-                                format!(
-                                    "chunk {c} of bucket {b} has {} bytes, expected {}",
-                                    data.len(),
-                                    range.len() * 4
-                                ),
-                                rank,
-                            ));
+                                    to: next,
+                                    status,
+                                })
                         }
-                        let dst = &mut buf[range];
-                        for (d, src) in dst.iter_mut().zip(data.chunks_exact(4)) {
-                            let v = f32::from_le_bytes([src[0], src[1], src[2], src[3]]);
-                            if phase == Phase::ReduceScatter {
-                                *d += v;
-                            } else {
-                                *d = v;
-                            }
-                        }
-                    }
+                    }));
+                    let recv = layout.segment(b, layout.recv_segment(rank, phase, round));
+                    let receive = self.receive(step, b, phase, round, &layout, recv, buf);
+                    // The first failure ends the round: a dead successor fails the sends
+                    // at once, a dead predecessor the receive at its deadline.
+                    tokio::try_join!(sends, receive)?;
                 }
+            }
+        }
+        Ok(())
+    }
+
+    /// Receives the chunks of segment `seg` for one round and adds (reduce-scatter) or
+    /// copies (all-gather) them into `buf`.
+    #[allow(clippy::too_many_arguments)]
+    async fn receive(
+        &self,
+        step: u64,
+        b: usize,
+        phase: Phase,
+        round: usize,
+        layout: &Layout,
+        seg: Range<usize>,
+        buf: &mut [f32],
+    ) -> Result<(), CollectiveError> {
+        let (rank, w) = (self.cfg.rank, self.cfg.world());
+        for (c, range) in layout.chunks(seg).into_iter().enumerate() {
+            let key = (
+                self.cfg.generation,
+                step,
+                b as u32,
+                phase as i32,
+                round as u32,
+                c as u32,
+            );
+            let data = match self.mailbox.take(key, self.cfg.timeout).await {
+                Ok(Ok(d)) => d,
+                Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
+                Err(()) => {
+                    return Err(CollectiveError::Timeout {
+                        rank,
+                        from: (rank + w - 1) % w,
+                        bucket: b,
+                        phase,
+                        round,
+                        timeout: self.cfg.timeout,
+                    });
+                }
+            };
+            if data.len() != range.len() * 4 {
+                return Err(CollectiveError::Peer(
+                    format!(
+                        "chunk {c} of bucket {b} has {} bytes, expected {}",
+                        data.len(),
+                        range.len() * 4
+                    ),
+                    rank,
+                ));
+            }
+            let dst = &mut buf[range];
+            let src = data
+                .chunks_exact(4)
+                .map(|s| f32::from_le_bytes([s[0], s[1], s[2], s[3]]));
+            if phase == Phase::ReduceScatter {
+                dst.iter_mut().zip(src).for_each(|(d, v)| *d += v);
+            } else {
+                dst.iter_mut().zip(src).for_each(|(d, v)| *d = v);
             }
         }
         Ok(())

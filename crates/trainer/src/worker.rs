@@ -82,10 +82,13 @@ where
     loop {
         match f().await {
             Ok(v) => return Ok(v),
+            // Unreachable, or full until a lost member times out: both pass.
             Err(s)
                 if matches!(
                     s.code(),
-                    tonic::Code::Unavailable | tonic::Code::DeadlineExceeded
+                    tonic::Code::Unavailable
+                        | tonic::Code::DeadlineExceeded
+                        | tonic::Code::ResourceExhausted
                 ) && start.elapsed() < limit =>
             {
                 tracing::debug!(what, status = %s, "coordinator unreachable, retrying");
@@ -440,7 +443,7 @@ async fn run_generation(
         live.clone(),
         mailbox.clone(),
     );
-    let _stop_heartbeat = AbortOnDrop(heartbeat);
+    let _stop_heartbeat = AbortOnDrop(Some(heartbeat));
 
     let mut ring = if world > 1 {
         Some(Ring::new(
@@ -553,7 +556,9 @@ async fn run_generation(
     let mut train_s = train0;
     let mut last_eval = Instant::now();
     let mut window = (Instant::now(), 0.0f64, 0.0f64, 0u64);
-    let mut pending_save: Option<tokio::task::JoinHandle<Result<u64>>> = None;
+    // A save still running when the generation is aborted is cancelled (its checkpoint
+    // stays torn: no manifest); a finished generation awaits it.
+    let mut pending_save: Option<AbortOnDrop<Result<u64>>> = None;
     let wall = |gen_start: Instant| wall0 + gen_start.elapsed().as_secs_f64();
     // A fresh job evaluates its initial weights: the curve starts at step 0. Every rank
     // evaluates, so none waits for rank 0 in the first all-reduce.
@@ -656,8 +661,7 @@ async fn run_generation(
         }
         if rank == 0 && (step % c.checkpoint_every == 0 || last) {
             if let Some(prev) = pending_save.take() {
-                prev.await
-                    .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+                prev.join().await?;
             }
             let st = CheckpointState {
                 step,
@@ -680,9 +684,9 @@ async fn run_generation(
                 last,
                 c.keep_last,
             ));
+            let task = AbortOnDrop(Some(task));
             if last {
-                task.await
-                    .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+                task.join().await?;
             } else {
                 pending_save = Some(task);
             }
@@ -692,8 +696,7 @@ async fn run_generation(
         }
     }
     if let Some(prev) = pending_save.take() {
-        prev.await
-            .map_err(|e| TrainError::Cluster(format!("checkpoint task: {e}")))??;
+        prev.join().await?;
     }
     Ok(Ended::Finished)
 }
@@ -776,10 +779,22 @@ pub fn eval_record(
     })
 }
 
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
+/// A task that is cancelled if its handle is dropped before it is joined.
+struct AbortOnDrop<T>(Option<tokio::task::JoinHandle<T>>);
 
-impl Drop for AbortOnDrop {
+impl<T> AbortOnDrop<Result<T>> {
+    async fn join(mut self) -> Result<T> {
+        let handle = self.0.take().expect("joined once");
+        handle
+            .await
+            .map_err(|e| TrainError::Cluster(format!("background task: {e}")))?
+    }
+}
+
+impl<T> Drop for AbortOnDrop<T> {
     fn drop(&mut self) {
-        self.0.abort();
+        if let Some(h) = &self.0 {
+            h.abort();
+        }
     }
 }
