@@ -203,3 +203,103 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     println!("saved to {}", a.out.display());
     Ok(())
 }
+
+#[derive(Args)]
+pub struct BenchClusterArgs {
+    /// Job preset to train.
+    #[arg(long, default_value = "clevr-lite-cpu")]
+    pub preset: String,
+    /// Dataset (the default ./data is generated if absent, as by `osrt train`).
+    #[arg(long, default_value = "data")]
+    pub data: String,
+    /// Steps per configuration; the first `--warmup` are not counted.
+    #[arg(long, default_value_t = 40)]
+    pub steps: u64,
+    #[arg(long, default_value_t = 8)]
+    pub warmup: u64,
+    /// Configurations as WORKERSxTHREADS.
+    #[arg(long, value_delimiter = ',', default_value = "1x1,1x2,2x1")]
+    pub configs: Vec<String>,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Where the JSON figures are saved.
+    #[arg(long, default_value = "target/bench/cluster.json")]
+    pub out: std::path::PathBuf,
+}
+
+/// Training throughput of whole local clusters (`osrt train` in a child process per
+/// configuration): the median of the logged global scenes/s after warm-up.
+pub fn cluster(a: BenchClusterArgs) -> Result<()> {
+    let exe = std::env::current_exe()?;
+    let tmp = std::env::temp_dir().join(format!("osrt-bench-cluster-{}", std::process::id()));
+    let mut rows = Vec::new();
+    for c in &a.configs {
+        let (w, t) = c
+            .split_once('x')
+            .and_then(|(w, t)| Some((w.parse::<usize>().ok()?, t.parse::<usize>().ok()?)))
+            .with_context(|| format!("configuration `{c}`: expected WORKERSxTHREADS, e.g. 2x1"))?;
+        let run = tmp.join(c);
+        eprintln!("training {} steps with {w} worker(s) × {t} thread(s)…", a.steps);
+        let out = std::process::Command::new(&exe)
+            .args(["train", "--preset", &a.preset, "--data", &a.data])
+            .args(["--workers", &w.to_string(), "--threads", &t.to_string()])
+            .args(["--max-steps", &a.steps.to_string(), "--eval-every-s", "1e9"])
+            .arg("--run")
+            .arg(&run)
+            .output()
+            .context("running osrt train")?;
+        if !out.status.success() {
+            bail!(
+                "osrt train ({c}) failed:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let text = std::fs::read_to_string(run.join("metrics.jsonl"))?;
+        let sps: Vec<f64> = text
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter(|r| r["step"].as_u64().is_some_and(|s| s > a.warmup))
+            .filter_map(|r| r["scenes_per_s"].as_f64())
+            .collect();
+        if sps.is_empty() {
+            bail!("no training records after warm-up for {c}: raise --steps");
+        }
+        let median = osrt_dataset::bench::median(sps);
+        rows.push(json!({"config": c, "workers": w, "threads": t, "median_scenes_per_s": median}));
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    let base = |cfg: &str| {
+        rows.iter()
+            .find(|r| r["config"] == cfg)
+            .and_then(|r| r["median_scenes_per_s"].as_f64())
+    };
+    let report = json!({
+        "preset": a.preset,
+        "steps": a.steps,
+        "warmup": a.warmup,
+        "rows": rows,
+        "speedup_2x1_over_1x1": base("2x1").zip(base("1x1")).map(|(x, y)| x / y),
+        "speedup_2x1_over_1x2": base("2x1").zip(base("1x2")).map(|(x, y)| x / y),
+    });
+    let text = save_json(&a.out, &report)?;
+    if a.json {
+        println!("{text}");
+        return Ok(());
+    }
+    println!("training throughput of local clusters ({}):", a.preset);
+    for r in report["rows"].as_array().expect("rows") {
+        println!(
+            "  {:>4}: {:>7.2} scenes/s",
+            r["config"].as_str().unwrap_or("?"),
+            r["median_scenes_per_s"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    for k in ["speedup_2x1_over_1x1", "speedup_2x1_over_1x2"] {
+        if let Some(v) = report[k].as_f64() {
+            println!("  {k}: {v:.2}×");
+        }
+    }
+    println!("saved to {}", a.out.display());
+    Ok(())
+}

@@ -46,6 +46,8 @@ enum BenchCommand {
     Model(bench::BenchModelArgs),
     /// Ring all-reduce throughput of 2 ranks on loopback beside a raw TCP copy.
     Allreduce(bench::BenchAllReduceArgs),
+    /// Training throughput of local clusters: 1×1, 1×2 and 2×1 workers × threads.
+    Cluster(bench::BenchClusterArgs),
 }
 
 #[tokio::main]
@@ -73,5 +75,8 @@ async fn main() -> anyhow::Result<()> {
         Command::Bench {
             command: BenchCommand::Allreduce(args),
         } => bench::allreduce(args).await,
+        Command::Bench {
+            command: BenchCommand::Cluster(args),
+        } => bench::cluster(args),
     }
 }
