@@ -240,7 +240,10 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
             .and_then(|(w, t)| Some((w.parse::<usize>().ok()?, t.parse::<usize>().ok()?)))
             .with_context(|| format!("configuration `{c}`: expected WORKERSxTHREADS, e.g. 2x1"))?;
         let run = tmp.join(c);
-        eprintln!("training {} steps with {w} worker(s) × {t} thread(s)…", a.steps);
+        eprintln!(
+            "training {} steps with {w} worker(s) × {t} thread(s)…",
+            a.steps
+        );
         let out = std::process::Command::new(&exe)
             .args(["train", "--preset", &a.preset, "--data", &a.data])
             .args(["--workers", &w.to_string(), "--threads", &t.to_string()])
