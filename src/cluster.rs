@@ -25,36 +25,37 @@ const WORKER_MALLOC_ENV: [(&str, &str); 3] = [
 #[derive(Args)]
 pub struct CoordinatorArgs {
     /// Job config (TOML, a full `JobConfig`); default: the `--preset`.
-    #[arg(long)]
+    #[arg(long, env = "OSRT_CONFIG")]
     pub config: Option<PathBuf>,
     /// Named job preset when no --config is given: clevr-lite-cpu, tiny, paper.
-    #[arg(long, default_value = "clevr-lite-cpu")]
+    #[arg(long, env = "OSRT_PRESET", default_value = "clevr-lite-cpu")]
     pub preset: String,
     /// Dataset directory or URL (read by the workers).
-    #[arg(long)]
+    #[arg(long, env = "OSRT_DATA")]
     pub data: String,
     /// Run folder or URL: config, metrics, job state and checkpoints.
-    #[arg(long)]
+    #[arg(long, env = "OSRT_RUN")]
     pub run: String,
     /// Address the Coordinator service listens on.
-    #[arg(long, default_value = "0.0.0.0:7070")]
+    #[arg(long, env = "OSRT_LISTEN", default_value = "0.0.0.0:7070")]
     pub listen: SocketAddr,
-    #[arg(long)]
+    #[arg(long, env = "OSRT_MAX_STEPS")]
     pub max_steps: Option<u64>,
-    #[arg(long)]
+    #[arg(long, env = "OSRT_MAX_MINUTES")]
     pub max_minutes: Option<f64>,
     /// Continue the job in --run (a finished one too) with the limits given here.
-    #[arg(long)]
+    #[arg(long, env = "OSRT_RESUME")]
     pub resume: bool,
     /// Override cluster.min_workers / max_workers / max_restarts of the config.
-    #[arg(long)]
+    #[arg(long, env = "OSRT_MIN_WORKERS")]
     pub min_workers: Option<usize>,
-    #[arg(long)]
+    #[arg(long, env = "OSRT_MAX_WORKERS")]
     pub max_workers: Option<usize>,
-    #[arg(long)]
+    #[arg(long, env = "OSRT_MAX_RESTARTS")]
     pub max_restarts: Option<u32>,
-    /// Seconds to keep answering after the job is over, so every worker hears it.
-    #[arg(long, default_value_t = 3.0)]
+    /// Seconds to keep answering after the job is over, so every worker hears it (a
+    /// Deployment sets it long: its pod must not exit and be restarted).
+    #[arg(long, env = "OSRT_LINGER_S", default_value_t = 3.0)]
     pub linger_s: f64,
 }
 

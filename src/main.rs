@@ -29,6 +29,11 @@ enum Command {
     Coordinator(Box<cluster::CoordinatorArgs>),
     /// Run one worker of a job (registers with the coordinator, trains until done).
     Worker(cluster::WorkerArgs),
+    /// Print a job preset as a TOML job config (a starting point for --config).
+    Config {
+        #[arg(long, default_value = "clevr-lite-cpu")]
+        preset: String,
+    },
     /// Evaluate a trained run on a split.
     Eval(train::EvalArgs),
     /// Benchmarks that print (and save) throughput figures.
@@ -66,6 +71,10 @@ async fn main() -> anyhow::Result<()> {
         Command::Coordinator(args) => cluster::coordinator(*args).await,
         Command::Worker(args) => cluster::worker(args).await,
         Command::Eval(args) => train::eval(args).await,
+        Command::Config { preset } => {
+            print!("{}", osrt_trainer::JobConfig::preset(&preset)?.to_toml());
+            Ok(())
+        }
         Command::Bench {
             command: BenchCommand::Data(args),
         } => data::bench(args).await,

@@ -1,0 +1,68 @@
+"""Renders what the pods of deploy/k8s run: for the coordinator Deployment and the worker
+Job, the container args, the environment (envFrom ConfigMaps/Secrets resolved from the
+manifests, `$(VAR)` references kept, fieldRef/resourceFieldRef described) and the files
+mounted from ConfigMaps. Prints JSON. Exit 77: PyYAML missing."""
+import glob
+import json
+import os
+import re
+import sys
+
+try:
+    import yaml
+except ImportError as e:  # pragma: no cover
+    print(f"PyYAML not installed: {e}", file=sys.stderr)
+    sys.exit(77)
+
+folder = sys.argv[1]
+docs = []
+for path in sorted(glob.glob(os.path.join(folder, "*.yaml"))):
+    if os.path.basename(path) == "kustomization.yaml":
+        continue
+    with open(path) as f:
+        docs.extend(d for d in yaml.safe_load_all(f) if d)
+
+config_maps = {d["metadata"]["name"]: d.get("data", {}) for d in docs if d["kind"] == "ConfigMap"}
+secrets = {d["metadata"]["name"]: d.get("stringData", {}) for d in docs if d["kind"] == "Secret"}
+ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def render(pod_spec):
+    c = pod_spec["containers"][0]
+    env = {}
+    for ref in c.get("envFrom", []):
+        if "configMapRef" in ref:
+            source = config_maps[ref["configMapRef"]["name"]]
+        else:
+            source = secrets[ref["secretRef"]["name"]]
+        # Kubernetes skips keys that are not valid variable names (job.toml).
+        env.update({k: {"value": v} for k, v in source.items() if ENV_NAME.match(k)})
+    for e in c.get("env", []):
+        if "value" in e:
+            env[e["name"]] = {"value": e["value"]}
+        elif "fieldRef" in e["valueFrom"]:
+            env[e["name"]] = {"fieldRef": e["valueFrom"]["fieldRef"]["fieldPath"]}
+        else:
+            r = e["valueFrom"]["resourceFieldRef"]
+            limits = c["resources"]["limits"]
+            env[e["name"]] = {"resourceFieldRef": r["resource"], "value": str(limits[r["resource"].split(".")[1]])}
+    files = {}
+    volumes = {v["name"]: v for v in pod_spec.get("volumes", [])}
+    for m in c.get("volumeMounts", []):
+        v = volumes[m["name"]]
+        if "configMap" in v:
+            data = config_maps[v["configMap"]["name"]]
+            for item in v["configMap"].get("items", [{"key": k, "path": k} for k in data]):
+                files[os.path.join(m["mountPath"], item["path"])] = data[item["key"]]
+    return {"args": c.get("args", []), "env": env, "files": files,
+            "ports": [p["containerPort"] for p in c.get("ports", [])]}
+
+
+out = {}
+for d in docs:
+    if d["kind"] == "Deployment" and d["metadata"]["name"] == "osrt-coordinator":
+        out["coordinator"] = render(d["spec"]["template"]["spec"])
+    if d["kind"] == "Job" and d["metadata"]["name"] == "osrt-workers":
+        out["worker"] = render(d["spec"]["template"]["spec"])
+        out["worker"]["parallelism"] = d["spec"]["parallelism"]
+print(json.dumps(out, indent=2))
