@@ -244,6 +244,10 @@ impl Mailbox {
         s.chunks.retain(|k, _| k.0 >= generation);
         s.failure = None;
         s.aborted = None;
+        // A new generation restarts from a checkpoint: its steps may be lower than the
+        // last generation's, so nothing about them is stale yet.
+        s.min_step = 0;
+        s.layout = None;
     }
 
     /// Fails the current and every later wait of this generation with `reason`.

@@ -330,7 +330,7 @@ fn spawn_heartbeat(
                         }
                         _ => {
                             let reason = format!(
-                                "the coordinator moved to generation {} (this is {generation})",
+                                "the coordinator ended generation {generation} (now at {})",
                                 r.generation
                             );
                             abort(
