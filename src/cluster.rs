@@ -283,7 +283,15 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         ProgressBar::hidden()
     };
     let mut respawned = 0u32;
-    let ctrl_c = tokio::signal::ctrl_c();
+    // Ctrl-C or SIGTERM: stop the workers too (they would otherwise wait out the
+    // coordinator timeout).
+    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    let ctrl_c = async move {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = sigterm.recv() => {}
+        }
+    };
     tokio::pin!(ctrl_c);
     let mut server = server;
     let status = loop {
@@ -292,6 +300,9 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             _ = &mut ctrl_c => {
                 let _ = stop_tx.send(());
                 bar.finish_and_clear();
+                for c in children.iter_mut() {
+                    let _ = c.start_kill();
+                }
                 bail!("interrupted; the job continues from its last checkpoint with `osrt train --resume --run RUN`");
             }
             _ = tokio::time::sleep(Duration::from_millis(250)) => {}

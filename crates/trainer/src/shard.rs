@@ -72,13 +72,16 @@ impl EpochPlan {
         rank: usize,
         batch: usize,
     ) -> Result<Self> {
+        // Data that cannot be dealt is a configuration problem: no restart fixes it.
+        let bad = |reason: String| TrainError::Config {
+            path: "data plan".into(),
+            reason,
+        };
         if world == 0 || rank >= world {
-            return Err(TrainError::Cluster(format!(
-                "rank {rank} outside a ring of {world}"
-            )));
+            return Err(bad(format!("rank {rank} outside a ring of {world}")));
         }
         if batch < world {
-            return Err(TrainError::Cluster(format!(
+            return Err(bad(format!(
                 "batch size {batch} is smaller than the {world} workers: every worker needs at least one scene per step"
             )));
         }
@@ -101,7 +104,7 @@ impl EpochPlan {
             }
         }
         if steps == 0 {
-            return Err(TrainError::Cluster(format!(
+            return Err(bad(format!(
                 "{} row groups cannot give each of {world} workers {} scenes per step: use fewer workers, a smaller batch or smaller row groups",
                 all.len(),
                 sizes[0]
