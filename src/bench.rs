@@ -175,6 +175,7 @@ pub struct BenchAllReduceArgs {
 }
 
 pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
+    crate::cluster::reexec_with_worker_allocator()?;
     let mut rows = Vec::new();
     for &n in &a.floats {
         rows.push(

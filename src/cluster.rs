@@ -16,7 +16,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 /// glibc allocator settings for workers: keep freed tensors' pages instead of returning
 /// them to the kernel after every step (page faults were 5–10 % of a step).
-const WORKER_MALLOC_ENV: [(&str, &str); 3] = [
+pub const WORKER_MALLOC_ENV: [(&str, &str); 3] = [
     ("MALLOC_MMAP_THRESHOLD_", "33554432"),
     ("MALLOC_TRIM_THRESHOLD_", "4294967296"),
     ("MALLOC_TOP_PAD_", "268435456"),
@@ -168,6 +168,23 @@ fn report_end(status: &v1::JobStatus) -> Result<()> {
         Ok(v1::JobState::Failed) => bail!("job {} failed: {}", status.job, status.message),
         _ => bail!("job {} interrupted (state {:?})", status.job, status.state),
     }
+}
+
+/// Replaces this process by itself with the workers' allocator settings unless they are
+/// set, so a benchmark measures what workers run with.
+pub fn reexec_with_worker_allocator() -> Result<()> {
+    use std::os::unix::process::CommandExt;
+    if WORKER_MALLOC_ENV
+        .iter()
+        .all(|(k, _)| std::env::var_os(k).is_some())
+    {
+        return Ok(());
+    }
+    let err = std::process::Command::new(std::env::current_exe()?)
+        .args(std::env::args_os().skip(1))
+        .envs(WORKER_MALLOC_ENV)
+        .exec();
+    Err(err).context("re-executing with the workers' allocator settings")
 }
 
 /// Replaces this process by itself with `RAYON_NUM_THREADS=n` unless already set so:
