@@ -67,7 +67,7 @@ pub struct TrainArgs {
     /// Override slot-attention iterations.
     #[arg(long)]
     pub iterations: Option<usize>,
-    /// Override the slot init: learned or random.
+    /// Override the slot init: learned, random, or tokens (an option beyond the paper).
     #[arg(long)]
     pub slot_init: Option<String>,
     /// Override seconds between validation runs.
@@ -140,7 +140,8 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
         sa.init = match v.as_str() {
             "learned" => SlotInit::Learned,
             "random" => SlotInit::Random,
-            other => bail!("unknown slot init `{other}`: expected learned or random"),
+            "tokens" => SlotInit::Tokens,
+            other => bail!("unknown slot init `{other}`: expected learned, random or tokens"),
         };
     }
     job.validate()?;

@@ -98,7 +98,7 @@ fn run(model: &Osrt, x: &Inputs) -> Result<(DecoderOutput, Tensor)> {
 fn decoder_variants(base: Config) -> Vec<(String, Config)> {
     let mut out = Vec::new();
     for kind in ["slot_mixer", "spatial_broadcast", "transformer"] {
-        for init in [SlotInit::Learned, SlotInit::Random] {
+        for init in [SlotInit::Learned, SlotInit::Random, SlotInit::Tokens] {
             let mut c = base.clone().with_decoder(kind).unwrap();
             c.slot_attention.init = init;
             out.push((format!("{kind}/{init:?}"), c));
@@ -223,7 +223,7 @@ fn gradcheck_encoder_block() {
 
 #[test]
 fn gradcheck_slot_attention() {
-    for init in [SlotInit::Learned, SlotInit::Random] {
+    for init in [SlotInit::Learned, SlotInit::Random, SlotInit::Tokens] {
         let p = Params::new(3);
         let mut cfg = Config::tiny().slot_attention;
         cfg.init = init;

@@ -95,7 +95,7 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
                     model.device(),
                 )?)
             }
-            SlotInit::Learned => None,
+            SlotInit::Learned | SlotInit::Tokens => None,
         };
         let slots = model
             .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?
