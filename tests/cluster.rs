@@ -9,7 +9,9 @@ use osrt_dataset::Location;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-fn train(data: &Path, run: &Path, steps: u64, extra: &[&str]) {
+/// `osrt train` of the tiny preset with 2 workers × 1 thread.
+fn train_env(data: &str, run: &str, steps: u64, extra: &[&str], env: &[(String, String)]) {
+    let steps = steps.to_string();
     let mut args = vec![
         "train",
         "--preset",
@@ -19,14 +21,24 @@ fn train(data: &Path, run: &Path, steps: u64, extra: &[&str]) {
         "--threads",
         "1",
         "--data",
-        data.to_str().unwrap(),
+        data,
         "--run",
-        run.to_str().unwrap(),
+        run,
+        "--max-steps",
+        &steps,
     ];
-    let steps = steps.to_string();
-    args.extend(["--max-steps", &steps]);
     args.extend(extra);
-    osrt(&args);
+    osrt_env(&args, env);
+}
+
+fn train(data: &Path, run: &Path, steps: u64, extra: &[&str]) {
+    train_env(
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        steps,
+        extra,
+        &[],
+    );
 }
 
 fn losses(run: &Path) -> Vec<(u64, f64)> {
@@ -298,49 +310,10 @@ fn checkpoints_to_and_resumes_from_s3() {
         return;
     };
     let env = s3.env();
-    osrt_env(
-        &[
-            "data",
-            "generate",
-            "--out",
-            "s3://osrt/data",
-            "--train",
-            "32",
-            "--val",
-            "4",
-            "--test",
-            "4",
-            "--image-size",
-            "8",
-            "--antialias",
-            "1",
-            "--scenes-per-row-group",
-            "8",
-        ],
-        &env,
-    );
+    tiny_dataset_at("s3://osrt/data", 32, &env);
     let run = "s3://osrt/runs/a";
-    let train = |steps: &str, extra: &[&str]| {
-        let mut args = vec![
-            "train",
-            "--preset",
-            "tiny",
-            "--workers",
-            "2",
-            "--threads",
-            "1",
-            "--data",
-            "s3://osrt/data",
-            "--run",
-            run,
-            "--max-steps",
-            steps,
-        ];
-        args.extend(extra);
-        osrt_env(&args, &env);
-    };
-    train("6", &[]);
-    train("10", &["--resume"]);
+    train_env("s3://osrt/data", run, 6, &[], &env);
+    train_env("s3://osrt/data", run, 10, &["--resume"], &env);
     let out = osrt_env(&["eval", "--run", run, "--json"], &env);
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(r["psnr"].as_f64().unwrap().is_finite());
@@ -389,24 +362,7 @@ fn a_malformed_chunk_fails_its_round_and_the_job_goes_on() {
     let run = dir.path().join("run");
     // Rank 1 sends a chunk one float short in all-reduce 8 (step 7) of generation 1.
     let env = [("OSRT_FAULT_MALFORMED_CHUNK".to_string(), "1:8".to_string())];
-    osrt_env(
-        &[
-            "train",
-            "--preset",
-            "tiny",
-            "--workers",
-            "2",
-            "--threads",
-            "1",
-            "--data",
-            data.to_str().unwrap(),
-            "--run",
-            run.to_str().unwrap(),
-            "--max-steps",
-            "20",
-        ],
-        &env,
-    );
+    train_env(data.to_str().unwrap(), run.to_str().unwrap(), 20, &[], &env);
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done", "{job}");
     assert_eq!(job["restarts"], 1, "one failed round, one restart: {job}");

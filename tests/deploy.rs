@@ -115,6 +115,21 @@ fn pod_env(
     out
 }
 
+/// Starts the binary as the pod would: its args, exactly `env` (plus PATH), nothing else.
+fn start_pod(rendered: &serde_json::Value, env: Vec<(String, String)>) -> Proc {
+    let args: Vec<String> = serde_json::from_value(rendered["args"].clone()).unwrap();
+    Proc(
+        Command::new(bin())
+            .args(&args)
+            .env_clear()
+            .env("PATH", std::env::var("PATH").unwrap_or_default())
+            .envs(env)
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap(),
+    )
+}
+
 #[test]
 fn the_pods_command_lines_run_the_job_against_s3() {
     let Some(s3) = S3Server::start(&["osrt"]) else {
@@ -201,17 +216,7 @@ fn the_pods_command_lines_run_the_job_against_s3() {
     o.insert("OSRT_MAX_STEPS", "4".into());
     o.insert("OSRT_LINGER_S", "2".into());
     let env = pod_env(coord, &o, &BTreeMap::new());
-    let args: Vec<String> = serde_json::from_value(coord["args"].clone()).unwrap();
-    let mut coordinator = Proc(
-        Command::new(bin())
-            .args(&args)
-            .env_clear()
-            .env("PATH", std::env::var("PATH").unwrap_or_default())
-            .envs(env)
-            .stdout(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
+    let mut coordinator = start_pod(coord, env);
     let n = worker["parallelism"].as_u64().unwrap();
     let mut workers = Vec::new();
     for index in 0..n {
@@ -229,17 +234,7 @@ fn the_pods_command_lines_run_the_job_against_s3() {
         let env = pod_env(worker, &o, &fields);
         let threads = env.iter().find(|(k, _)| k == "OSRT_THREADS").unwrap();
         assert_eq!(threads.1, "2", "threads follow limits.cpu");
-        let args: Vec<String> = serde_json::from_value(worker["args"].clone()).unwrap();
-        workers.push(Proc(
-            Command::new(bin())
-                .args(&args)
-                .env_clear()
-                .env("PATH", std::env::var("PATH").unwrap_or_default())
-                .envs(env)
-                .stdout(Stdio::null())
-                .spawn()
-                .unwrap(),
-        ));
+        workers.push(start_pod(worker, env));
     }
     let status = coordinator.wait_for_exit(Duration::from_secs(180));
     assert!(status.success(), "coordinator pod: {status}");

@@ -12,13 +12,7 @@ pub fn bin() -> &'static str {
 
 /// Runs `osrt args…` and asserts success.
 pub fn osrt(args: &[&str]) -> Output {
-    let out = Command::new(bin()).args(args).output().expect("run osrt");
-    assert!(
-        out.status.success(),
-        "osrt {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
+    osrt_env(args, &[])
 }
 
 pub fn read_jsonl(path: &Path) -> Vec<serde_json::Value> {
@@ -37,25 +31,33 @@ pub fn read_json(path: &Path) -> Option<serde_json::Value> {
 /// A small dataset for cluster tests: 8×8 views, 8 scenes per row group.
 pub fn tiny_dataset(dir: &Path, train: usize) -> PathBuf {
     let data = dir.join("data");
-    osrt(&[
-        "data",
-        "generate",
-        "--out",
-        data.to_str().unwrap(),
-        "--train",
-        &train.to_string(),
-        "--val",
-        "4",
-        "--test",
-        "4",
-        "--image-size",
-        "8",
-        "--antialias",
-        "1",
-        "--scenes-per-row-group",
-        "8",
-    ]);
+    tiny_dataset_at(data.to_str().unwrap(), train, &[]);
     data
+}
+
+/// The same at any location (`s3://…` with the server's variables in `env`).
+pub fn tiny_dataset_at(out: &str, train: usize, env: &[(String, String)]) {
+    osrt_env(
+        &[
+            "data",
+            "generate",
+            "--out",
+            out,
+            "--train",
+            &train.to_string(),
+            "--val",
+            "4",
+            "--test",
+            "4",
+            "--image-size",
+            "8",
+            "--antialias",
+            "1",
+            "--scenes-per-row-group",
+            "8",
+        ],
+        env,
+    );
 }
 
 /// A free loopback port (bound and released; the race is harmless in tests).
