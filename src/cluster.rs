@@ -7,6 +7,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use osrt_coordinator::{Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
+use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_trainer::{JobConfig, WorkerOptions, run_worker};
 use std::io::IsTerminal;
@@ -141,6 +142,7 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
         .serve(
             listener,
             token,
+            Tls::from_env()?,
             Duration::from_secs_f64(a.linger_s),
             shutdown_signal(),
         )
@@ -222,6 +224,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
         advertise: a.advertise,
         threads,
         token,
+        tls: Tls::from_env()?,
         name: format!("{host}:{}", std::process::id()),
         coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
     })
@@ -273,12 +276,18 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let addr = format!("http://{}", listener.local_addr()?);
     let status_view = coord.clone();
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let server =
-        tokio::spawn(
-            coord.serve(listener, token.clone(), Duration::from_secs(2), async {
+    let server = tokio::spawn(
+        // Loopback only: no TLS.
+        coord.serve(
+            listener,
+            token.clone(),
+            None,
+            Duration::from_secs(2),
+            async {
                 let _ = stop_rx.await;
-            }),
-        );
+            },
+        ),
+    );
     let mut children = Vec::new();
     for _ in 0..job.workers {
         children.push(spawn_worker(&addr, job.threads_per_worker, &token)?);

@@ -379,3 +379,68 @@ fn a_malformed_chunk_fails_its_round_and_the_job_goes_on() {
     train(&data, &clean, 20, &[]);
     assert_eq!(losses(&clean), l);
 }
+
+#[test]
+fn a_job_runs_over_mutual_tls_and_plaintext_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/make_certs.py"))
+        .arg(dir.path())
+        .output()
+        .expect("python3");
+    if out.status.code() == Some(77) && std::env::var_os("CI").is_none() {
+        eprintln!("skipped: python cryptography not installed");
+        return;
+    }
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let pem = |f: &str| dir.path().join(f).to_str().unwrap().to_string();
+    let env = vec![
+        ("OSRT_TLS_CERT".to_string(), pem("cert.pem")),
+        ("OSRT_TLS_KEY".to_string(), pem("key.pem")),
+        ("OSRT_TLS_CA".to_string(), pem("ca.pem")),
+    ];
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let mut coord = coordinator_env(
+        port,
+        &data,
+        &run,
+        &["--max-steps", "8", "--min-workers", "2"],
+        &env,
+    );
+    let url = format!("https://127.0.0.1:{port}");
+    let mut a = worker_env(&url, &env);
+    let mut b = worker_env(&url, &env);
+    // A plaintext client gets no answer from the TLS port.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        use osrt_proto::v1::coordinator_client::CoordinatorClient;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let token = osrt_proto::auth::Token::new(TOKEN).unwrap();
+        let channel = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{port}"))
+            .unwrap()
+            .connect_lazy();
+        let mut plain =
+            CoordinatorClient::with_interceptor(channel, osrt_proto::auth::AttachToken(token));
+        let r = tokio::time::timeout(
+            Duration::from_secs(10),
+            plain.get_status(osrt_proto::v1::StatusRequest {}),
+        )
+        .await;
+        assert!(
+            !matches!(r, Ok(Ok(_))),
+            "a plaintext call to the TLS coordinator succeeded"
+        );
+    });
+    assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
+    assert!(a.wait_for_exit(Duration::from_secs(30)).success());
+    assert!(b.wait_for_exit(Duration::from_secs(30)).success());
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    assert_eq!(job["hash_checks"], 8, "{job}");
+}

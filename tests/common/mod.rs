@@ -98,7 +98,18 @@ impl Proc {
 }
 
 pub fn coordinator(port: u16, data: &Path, run: &Path, extra: &[&str]) -> Proc {
+    coordinator_env(port, data, run, extra, &[])
+}
+
+pub fn coordinator_env(
+    port: u16,
+    data: &Path,
+    run: &Path,
+    extra: &[&str],
+    env: &[(String, String)],
+) -> Proc {
     let mut cmd = Command::new(bin());
+    cmd.envs(env.iter().map(|(k, v)| (k.as_str(), v.as_str())));
     cmd.args(["coordinator", "--preset", "tiny", "--data"])
         .arg(data)
         .arg("--run")
@@ -111,11 +122,16 @@ pub fn coordinator(port: u16, data: &Path, run: &Path, extra: &[&str]) -> Proc {
 }
 
 pub fn worker(port: u16) -> Proc {
+    worker_env(&format!("http://127.0.0.1:{port}"), &[])
+}
+
+pub fn worker_env(coordinator: &str, env: &[(String, String)]) -> Proc {
     let mut cmd = Command::new(bin());
+    cmd.envs(env.iter().map(|(k, v)| (k.as_str(), v.as_str())));
     cmd.args([
         "worker",
         "--coordinator",
-        &format!("http://127.0.0.1:{port}"),
+        coordinator,
         "--listen",
         "127.0.0.1:0",
         "--threads",

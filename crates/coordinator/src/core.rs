@@ -394,7 +394,10 @@ impl Core {
         } = p;
         self.member(id, now)?.step = step;
         let d = self.directive_for(id, generation);
-        if d != Directive::Continue {
+        // The last generation's final reports can arrive after rank 0 committed the final
+        // checkpoint (Done): they still count, and a divergence still fails the job.
+        let finishing = self.phase == Phase::Done && generation == self.generation;
+        if d != Directive::Continue && !finishing {
             return Ok(d);
         }
         if self.ring.get(rank) != Some(&id) {
@@ -427,15 +430,19 @@ impl Core {
                 } else {
                     let listing: Vec<String> =
                         all.iter().map(|(r, h)| format!("rank {r}: {h}")).collect();
-                    self.fail(format!(
+                    let reason = format!(
                         "replicas diverged at step {step}: parameter hashes {}",
                         listing.join(", ")
-                    ));
+                    );
+                    tracing::error!(%reason, "job failed");
+                    self.phase = Phase::Failed(reason);
+                    self.dirty_job = true;
                     return Ok(Directive::Stop);
                 }
+                self.dirty_job = true;
             }
         }
-        Ok(Directive::Continue)
+        Ok(d)
     }
 
     pub fn checkpoint(

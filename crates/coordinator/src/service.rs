@@ -170,6 +170,7 @@ impl Coordinator {
         self,
         listener: tokio::net::TcpListener,
         token: Token,
+        tls: Option<osrt_proto::tls::Tls>,
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<StatusSnapshot, TrainError> {
@@ -182,8 +183,14 @@ impl Coordinator {
             CheckToken::new(token, "coordinator"),
         );
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(tls) = &tls {
+            builder = builder
+                .tls_config(tls.server())
+                .map_err(|e| TrainError::Cluster(format!("coordinator TLS configuration: {e}")))?;
+        }
         let server = tokio::spawn(
-            tonic::transport::Server::builder()
+            builder
                 .tcp_nodelay(true)
                 .add_service(health_service)
                 .add_service(service)

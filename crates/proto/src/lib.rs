@@ -5,6 +5,7 @@
 
 pub mod auth;
 pub mod convert;
+pub mod tls;
 
 /// Protocol version: peers of another version are refused at registration.
 pub const PROTOCOL_VERSION: u32 = 1;

@@ -65,6 +65,7 @@ pub async fn bench_allreduce(
             listener,
             m.clone(),
             token.clone(),
+            None,
             std::future::pending(),
         ));
         mailboxes.push(m);
@@ -80,6 +81,7 @@ pub async fn bench_allreduce(
                 chunk_floats,
                 timeout: Duration::from_secs(60),
                 token: token.clone(),
+                tls: None,
             };
             Ring::new(cfg, mailboxes[rank].clone()).expect("ring")
         })

@@ -20,6 +20,7 @@
 
 use bytes::Bytes;
 use osrt_proto::auth::{AttachToken, CheckToken, Token};
+use osrt_proto::tls::Tls;
 use osrt_proto::v1::collective_client::CollectiveClient;
 use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
 use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
@@ -80,6 +81,8 @@ pub struct RingConfig {
     pub timeout: Duration,
     /// The job's shared token, attached to every chunk sent.
     pub token: Token,
+    /// TLS for the connection to the next rank (peers are then `https://`).
+    pub tls: Option<Tls>,
 }
 
 impl RingConfig {
@@ -417,11 +420,15 @@ impl Ring {
             )));
         }
         let addr = cfg.peers[(cfg.rank + 1) % w].clone();
-        let endpoint = Endpoint::from_shared(addr.clone())
-            .map_err(|e| CollectiveError::Connect {
-                addr: addr.clone(),
-                reason: e.to_string(),
-            })?
+        let connect_err = |e: tonic::transport::Error| CollectiveError::Connect {
+            addr: addr.clone(),
+            reason: e.to_string(),
+        };
+        let mut endpoint = Endpoint::from_shared(addr.clone()).map_err(connect_err)?;
+        if let Some(tls) = &cfg.tls {
+            endpoint = endpoint.tls_config(tls.client()).map_err(connect_err)?;
+        }
+        let endpoint = endpoint
             .connect_timeout(cfg.timeout)
             .timeout(cfg.timeout)
             // HTTP/2's default 64 KiB windows throttle 1 MiB chunks to a crawl.
@@ -584,11 +591,13 @@ impl Ring {
 }
 
 /// Serves a collective mailbox on `listener` until `shutdown` resolves, with the standard
-/// gRPC health service beside it; every collective call must carry `token`.
+/// gRPC health service beside it; every collective call must carry `token`; with `tls`,
+/// connections are mutual TLS.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     mailbox: Arc<Mailbox>,
     token: Token,
+    tls: Option<Tls>,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -596,7 +605,11 @@ pub async fn serve(
         .set_serving::<CollectiveServer<CollectiveService>>()
         .await;
     let service = CollectiveService::server(mailbox);
-    tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = &tls {
+        builder = builder.tls_config(tls.server())?;
+    }
+    builder
         .initial_stream_window_size(WINDOW_BYTES)
         .initial_connection_window_size(WINDOW_BYTES)
         .tcp_nodelay(true)

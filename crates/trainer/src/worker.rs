@@ -26,6 +26,7 @@ use osrt_dataset::{BatchConfig, Columns, Location, RowGroupRef, Scene, SplitRead
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
+use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use serde_json::json;
@@ -47,15 +48,23 @@ pub struct WorkerOptions {
     pub advertise: Option<String>,
     pub threads: usize,
     pub token: Token,
+    /// Mutual TLS for both services (see `osrt_proto::tls`).
+    pub tls: Option<Tls>,
     pub name: String,
     /// Give up when the coordinator cannot be reached for this long.
     pub coordinator_timeout: Duration,
 }
 
 /// Connects to the coordinator with the job's token on every call.
-pub fn coordinator_client(addr: &str, token: Token) -> Result<Client> {
-    let endpoint = Endpoint::from_shared(addr.to_string())
-        .map_err(|e| TrainError::Cluster(format!("coordinator address {addr}: {e}")))?
+pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result<Client> {
+    let bad = |e: tonic::transport::Error| {
+        TrainError::Cluster(format!("coordinator address {addr}: {e}"))
+    };
+    let mut endpoint = Endpoint::from_shared(addr.to_string()).map_err(bad)?;
+    if let Some(tls) = tls {
+        endpoint = endpoint.tls_config(tls.client()).map_err(bad)?;
+    }
+    let endpoint = endpoint
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(30))
         .tcp_nodelay(true);
@@ -127,7 +136,8 @@ pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
         .advertise
         .clone()
         .unwrap_or_else(|| local.ip().to_string());
-    let collective_addr = format!("http://{host}:{}", local.port());
+    let scheme = Tls::scheme(opts.tls.as_ref());
+    let collective_addr = format!("{scheme}://{host}:{}", local.port());
     // The job id is learnt at registration; the mailbox takes it then.
     let mailbox = Mailbox::new("");
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -135,11 +145,12 @@ pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
         listener,
         mailbox.clone(),
         opts.token.clone(),
+        opts.tls.clone(),
         async {
             let _ = stop_rx.await;
         },
     ));
-    let mut client = coordinator_client(&opts.coordinator, opts.token.clone())?;
+    let mut client = coordinator_client(&opts.coordinator, opts.token.clone(), opts.tls.as_ref())?;
     let result = worker_loop(&opts, &mut client, &mailbox, &collective_addr).await;
     let _ = stop_tx.send(());
     let _ = server.await;
@@ -456,6 +467,7 @@ async fn run_generation(
                 chunk_floats: c.chunk_floats,
                 timeout: Duration::from_secs_f64(c.rpc_timeout_s),
                 token: opts.token.clone(),
+                tls: opts.tls.clone(),
             },
             mailbox.clone(),
         )?)

@@ -26,9 +26,15 @@ async fn start(n: usize, job: &str) -> Vec<Node> {
         let addr = format!("http://{}", listener.local_addr().unwrap());
         let mailbox = Mailbox::new(job);
         let (tx, rx) = oneshot::channel::<()>();
-        let server = tokio::spawn(serve(listener, mailbox.clone(), token(), async move {
-            let _ = rx.await;
-        }));
+        let server = tokio::spawn(serve(
+            listener,
+            mailbox.clone(),
+            token(),
+            None,
+            async move {
+                let _ = rx.await;
+            },
+        ));
         nodes.push(Node {
             addr,
             mailbox,
@@ -55,6 +61,7 @@ fn config(
         chunk_floats: chunk,
         timeout,
         token: token(),
+        tls: None,
     }
 }
 

@@ -35,7 +35,13 @@ async fn two_half_batches_step_like_one_full_batch() {
         let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         addrs.push(format!("http://{}", l.local_addr().unwrap()));
         let m = Mailbox::new("eq");
-        tokio::spawn(serve(l, m.clone(), token.clone(), std::future::pending()));
+        tokio::spawn(serve(
+            l,
+            m.clone(),
+            token.clone(),
+            None,
+            std::future::pending(),
+        ));
         boxes.push(m);
     }
     let mut rings: Vec<Ring> = (0..2)
@@ -50,6 +56,7 @@ async fn two_half_batches_step_like_one_full_batch() {
                     chunk_floats: 1000,
                     timeout: Duration::from_secs(10),
                     token: token.clone(),
+                    tls: None,
                 },
                 boxes[rank].clone(),
             )
