@@ -158,10 +158,9 @@ fn report_end(status: &v1::JobStatus) -> Result<()> {
     match v1::JobState::try_from(status.state) {
         Ok(v1::JobState::Done) => {
             eprintln!(
-                "job {} done: step {}, last checkpoint {:?}, {} restarts, {} parameter-hash checks agreed",
+                "job {} done: final checkpoint at step {}, {} restarts, {} parameter-hash checks agreed",
                 status.job,
                 status.last_checkpoint.unwrap_or(0),
-                status.last_checkpoint,
                 status.restarts,
                 status.hash_checks
             );

@@ -86,7 +86,7 @@ impl Coordinator {
                 }
                 write_file(&run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
                 let parameters =
-                    osrt_trainer::Trainer::new(spec.job.clone(), candle_core_device())?
+                    osrt_trainer::Trainer::new(spec.job.clone(), candle_core::Device::Cpu)?
                         .num_parameters();
                 let info = RunInfo {
                     data: spec.data.clone(),
@@ -259,10 +259,6 @@ impl Coordinator {
         }
         Ok(self.status())
     }
-}
-
-fn candle_core_device() -> candle_core::Device {
-    candle_core::Device::Cpu
 }
 
 fn status_of(c: &Core, now: Instant) -> StatusSnapshot {

@@ -27,6 +27,13 @@ pub enum TrainError {
     #[error("cluster: {0}")]
     Cluster(String),
 
+    #[error("{what}: the coordinator answered {code:?}: {message}")]
+    Coordinator {
+        what: String,
+        code: tonic::Code,
+        message: String,
+    },
+
     #[error("{path}: {source}")]
     Io {
         path: String,

@@ -104,11 +104,11 @@ where
                 tokio::time::sleep(Duration::from_millis(250)).await;
             }
             Err(s) => {
-                return Err(TrainError::Cluster(format!(
-                    "{what}: coordinator answered {:?}: {}",
-                    s.code(),
-                    s.message()
-                )));
+                return Err(TrainError::Coordinator {
+                    what: what.to_string(),
+                    code: s.code(),
+                    message: s.message().to_string(),
+                });
             }
         }
     }
@@ -201,7 +201,10 @@ async fn worker_loop(
         .await;
         let plan = match plan {
             Ok(p) => p,
-            Err(e) if e.to_string().contains("NotFound") => {
+            Err(TrainError::Coordinator {
+                code: tonic::Code::NotFound,
+                ..
+            }) => {
                 (job, worker_id) = register(opts, client, collective_addr).await?;
                 mailbox.set_job(&job);
                 continue;
