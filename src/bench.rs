@@ -4,6 +4,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use osrt_model::fused::with_fused;
 use osrt_trainer::JobConfig;
 use osrt_trainer::bench::{bench_render, bench_step};
 use serde_json::json;
@@ -40,7 +41,12 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let mut steps = Vec::new();
     for p in &a.presets {
         let job = JobConfig::preset(p)?;
-        steps.push(bench_step(p, &job, a.image_size, a.steps)?);
+        // The same step with candle's composed ops, for the fused ops' speed-up.
+        for fused in [true, false] {
+            steps.push(with_fused(fused, || {
+                bench_step(p, &job, a.image_size, a.steps)
+            })?);
+        }
     }
     let model = JobConfig::preset(&a.presets[0])?.model;
     let mut renders = Vec::new();
@@ -112,8 +118,13 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         println!("{threads} thread(s):");
         for s in v["steps"].as_array().expect("array") {
             println!(
-                "  train step {:<16} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} rays, {}px)",
+                "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} rays, {}px)",
                 s["preset"].as_str().unwrap_or(""),
+                if s["fused"] == true {
+                    "fused"
+                } else {
+                    "composed"
+                },
                 s["median_step_s"].as_f64().unwrap_or(0.0) * 1e3,
                 s["scenes_per_s"].as_f64().unwrap_or(0.0),
                 s["median_forward_backward_s"].as_f64().unwrap_or(0.0) * 1e3,
@@ -122,6 +133,18 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
                 s["rays_per_scene"],
                 s["image_size"]
             );
+        }
+        let steps = v["steps"].as_array().expect("array");
+        for p in &a.presets {
+            let t = |fused: bool| {
+                steps
+                    .iter()
+                    .find(|s| s["preset"] == p.as_str() && s["fused"] == fused)
+                    .and_then(|s| s["median_step_s"].as_f64())
+            };
+            if let (Some(f), Some(c)) = (t(true), t(false)) {
+                println!("  {p}: fused ops make the step {:.2}× as fast", c / f);
+            }
         }
         let renders = v["renders"].as_array().expect("array");
         for r in renders {

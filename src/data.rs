@@ -46,6 +46,9 @@ pub struct GenerateArgs {
     /// narrower one shows the objects larger.
     #[arg(long)]
     pub fov_deg: Option<f64>,
+    /// Views per scene (default: the preset's); fixed rigs spread them evenly in azimuth.
+    #[arg(long)]
+    pub views: Option<usize>,
     /// Scenes per Parquet row group (the sharding unit).
     #[arg(long, default_value_t = 32)]
     pub scenes_per_row_group: usize,
@@ -103,8 +106,12 @@ fn preset(
     image_size: Option<u32>,
     antialias: Option<u32>,
     fov_deg: Option<f64>,
+    views: Option<usize>,
 ) -> Result<GeneratorConfig> {
     let mut cfg = GeneratorConfig::preset(name)?;
+    if let Some(v) = views {
+        cfg.cameras = cfg.cameras.with_views(v);
+    }
     if let Some(f) = fov_deg {
         cfg.fov_deg = f;
     }
@@ -119,7 +126,7 @@ fn preset(
 }
 
 async fn generate(a: GenerateArgs) -> Result<()> {
-    let cfg = preset(&a.preset, a.image_size, a.antialias, a.fov_deg)?;
+    let cfg = preset(&a.preset, a.image_size, a.antialias, a.fov_deg, a.views)?;
     let loc = Location::parse(&a.out)?;
     let sizes = SplitSizes {
         train: a.train,
@@ -214,7 +221,7 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
 }
 
 pub async fn bench(a: BenchDataArgs) -> Result<()> {
-    let cfg = preset(&a.preset, a.image_size, None, None)?;
+    let cfg = preset(&a.preset, a.image_size, None, None, None)?;
     let scratch = Location::parse("memory://bench-data/split")?;
     let r = osrt_dataset::bench::bench_data(&cfg, a.scenes, a.repeats, scratch).await?;
     let json = crate::bench::save_json(&a.out, &serde_json::to_value(&r)?)?;

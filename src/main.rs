@@ -4,6 +4,8 @@
 mod bench;
 mod cluster;
 mod data;
+mod render;
+mod sweep;
 mod train;
 
 use clap::{Parser, Subcommand};
@@ -36,6 +38,14 @@ enum Command {
     },
     /// Evaluate a trained run on a split.
     Eval(train::EvalArgs),
+    /// Novel views of a scene along a camera path with slot segmentations (PNG frames and
+    /// a GIF), and scene editing: drop a slot, add one from another scene.
+    Render(Box<render::RenderArgs>),
+    /// Train and evaluate every point of a sweep file (resumable), then write its tables,
+    /// charts and report page.
+    Sweep(sweep::SweepArgs),
+    /// Charts and a static HTML page of a run or a sweep (error against run time).
+    Report(sweep::ReportArgs),
     /// Benchmarks that print (and save) throughput figures.
     Bench {
         #[command(subcommand)]
@@ -71,6 +81,9 @@ async fn main() -> anyhow::Result<()> {
         Command::Coordinator(args) => cluster::coordinator(*args).await,
         Command::Worker(args) => cluster::worker(args).await,
         Command::Eval(args) => train::eval(args).await,
+        Command::Render(args) => render::render(*args).await,
+        Command::Sweep(args) => sweep::sweep(args).await,
+        Command::Report(args) => sweep::report(args).await,
         Command::Config { preset } => {
             print!("{}", osrt_trainer::JobConfig::preset(&preset)?.to_toml());
             Ok(())

@@ -6,7 +6,7 @@ use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
 use osrt_model::SlotInit;
 use osrt_trainer::run::eval_options;
-use osrt_trainer::{JobConfig, evaluate, load_run};
+use osrt_trainer::{JobConfig, evaluate, load_run_with_slots};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -92,6 +92,16 @@ pub struct EvalArgs {
     /// Evaluate at most this many scenes.
     #[arg(long)]
     pub scenes: Option<usize>,
+    /// Input views at test time (default: as trained; more than trained with is the
+    /// paper's §4.3 study). Novel target views need scenes with more views than this.
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Feed grey-level input images (robustness study); targets stay in colour.
+    #[arg(long)]
+    pub grayscale: bool,
+    /// Slots at test time (random slot init only), e.g. more slots on the `ood` split.
+    #[arg(long)]
+    pub slots: Option<usize>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -137,19 +147,14 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
         sa.iterations = v;
     }
     if let Some(v) = &a.slot_init {
-        sa.init = match v.as_str() {
-            "learned" => SlotInit::Learned,
-            "random" => SlotInit::Random,
-            "tokens" => SlotInit::Tokens,
-            other => bail!("unknown slot init `{other}`: expected learned, random or tokens"),
-        };
+        sa.init = v.parse::<SlotInit>().map_err(anyhow::Error::msg)?;
     }
     job.validate()?;
     Ok(job)
 }
 
 /// Generates the embedded default dataset if `./data` holds none.
-async fn ensure_default_data(data: &str) -> Result<()> {
+pub async fn ensure_default_data(data: &str) -> Result<()> {
     if data != DEFAULT_DATA {
         return Ok(());
     }
@@ -251,23 +256,65 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     Ok(())
 }
 
-pub async fn eval(a: EvalArgs) -> Result<()> {
-    let loaded = load_run(&a.run)
+/// How to evaluate a run: split, dataset (default: the one the run trained on) and the
+/// test-time changes of `osrt eval`.
+#[derive(Debug, Clone, Default)]
+pub struct EvalRequest {
+    pub split: String,
+    pub data: Option<String>,
+    pub scenes: Option<usize>,
+    pub views: Option<usize>,
+    pub grayscale: bool,
+    pub slots: Option<usize>,
+}
+
+/// A run's newest committed checkpoint evaluated as `req` asks; returns the checkpoint's
+/// step, the dataset and the result.
+pub async fn evaluate_run(
+    run: &str,
+    req: &EvalRequest,
+) -> Result<(u64, String, osrt_trainer::EvalResult)> {
+    let split = req.split.as_str();
+    let loaded = load_run_with_slots(run, req.slots)
         .await
-        .with_context(|| format!("loading run {}", a.run))?;
-    let data = a.data.clone().unwrap_or_else(|| loaded.info.data.clone());
+        .with_context(|| format!("loading run {run}"))?;
+    let data = req.data.clone().unwrap_or_else(|| loaded.info.data.clone());
     let loc = Location::parse(&data)?;
     let scenes = osrt_trainer::data::load_split(
         &loc,
-        &a.split,
+        split,
         Columns {
             masks: true,
-            objects: false,
+            objects: true,
         },
-        a.scenes,
+        req.scenes,
     )
     .await?;
-    let r = evaluate(&loaded.trainer.model, &scenes, &eval_options(&loaded.job))?;
+    let mut opts = eval_options(&loaded.job);
+    opts.grayscale = req.grayscale;
+    if let Some(v) = req.views {
+        let fewest = scenes.iter().map(|s| s.views.len()).min().unwrap_or(0);
+        if v == 0 || v > fewest {
+            bail!(
+                "--views {v}: {data}/{split} has scenes with only {fewest} views (need 1..={fewest})"
+            );
+        }
+        opts.input_views = v;
+    }
+    let r = evaluate(&loaded.trainer.model, &scenes, &opts)?;
+    Ok((loaded.step, data, r))
+}
+
+pub async fn eval(a: EvalArgs) -> Result<()> {
+    let req = EvalRequest {
+        split: a.split.clone(),
+        data: a.data.clone(),
+        scenes: a.scenes,
+        views: a.views,
+        grayscale: a.grayscale,
+        slots: a.slots,
+    };
+    let (step, data, r) = evaluate_run(&a.run, &req).await?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
@@ -277,8 +324,8 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
             })
         };
         println!(
-            "run {} (step {}) on {}/{} ({} scenes)",
-            a.run, loaded.step, data, a.split, r.scenes
+            "run {} (step {step}) on {data}/{} ({} scenes)",
+            a.run, a.split, r.scenes
         );
         println!(
             "  PSNR        {:.2} dB (mean-colour baseline {:.2} dB)",
@@ -289,6 +336,18 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
         println!("  ARI         {}", show(r.ari));
         println!("  ratio       {}", show(r.ratio));
         println!("  render fps  {:.1}", r.render_fps);
+        if !r.by_objects.is_empty() {
+            println!("  FG-ARI by object count:");
+            for o in &r.by_objects {
+                println!(
+                    "    {:>2} objects  {:>4} scenes  FG-ARI {}  ARI {}",
+                    o.objects,
+                    o.scenes,
+                    o.fg_ari.map_or("n/a".into(), |v| format!("{v:.4}")),
+                    o.ari.map_or("n/a".into(), |v| format!("{v:.4}")),
+                );
+            }
+        }
     }
     Ok(())
 }

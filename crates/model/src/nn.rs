@@ -7,7 +7,7 @@
 //! do: `candle_nn::ops::softmax` and the LayerNorm below.
 
 use candle_core::{D, Module, Result, Tensor};
-use candle_nn::{Init, Linear, VarBuilder};
+use candle_nn::{Init, VarBuilder};
 use serde::{Deserialize, Serialize};
 
 /// Linear layer with PyTorch's default init: weight and bias ~ U(−1/√in, 1/√in).
@@ -23,7 +23,45 @@ pub fn linear(in_dim: usize, out_dim: usize, bias: bool, vb: VarBuilder) -> Resu
     } else {
         None
     };
-    Ok(Linear::new(w, b))
+    Ok(Linear { weight: w, bias: b })
+}
+
+/// `x Wᵀ + b`, as `candle_nn::Linear` computes it, with the bias added by the fused op
+/// (its gradient is one column sum instead of candle's broadcast reduction).
+#[derive(Debug, Clone)]
+pub struct Linear {
+    weight: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Linear {
+    pub fn weight(&self) -> &Tensor {
+        &self.weight
+    }
+}
+
+impl Module for Linear {
+    /// `[.., in] → [.., out]`
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        // A plain 2-D matmul where the input allows it: candle's broadcast matmul is slower.
+        let w = self.weight.t()?;
+        let y = match *x.dims() {
+            [b1, b2, m, k] if x.is_contiguous() => x
+                .reshape((b1 * b2 * m, k))?
+                .matmul(&w)?
+                .reshape((b1, b2, m, ()))?,
+            [b, m, k] if x.is_contiguous() => {
+                x.reshape((b * m, k))?.matmul(&w)?.reshape((b, m, ()))?
+            }
+            [b1, b2, _, _] => x.matmul(&self.weight.broadcast_left((b1, b2))?.t()?)?,
+            [b, _, _] => x.matmul(&self.weight.broadcast_left(b)?.t()?)?,
+            _ => x.matmul(&w)?,
+        };
+        match &self.bias {
+            Some(b) => crate::fused::bias_add(&y, b),
+            None => Ok(y),
+        }
+    }
 }
 
 /// LayerNorm over the last dimension, composed from differentiable ops. Safe on constant
@@ -48,13 +86,7 @@ impl LayerNorm {
 impl Module for LayerNorm {
     /// `[.., d] → [.., d]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let mean = x.mean_keepdim(D::Minus1)?;
-        let centred = x.broadcast_sub(&mean)?;
-        let var = centred.sqr()?.mean_keepdim(D::Minus1)?;
-        let normed = centred.broadcast_div(&(var + self.eps)?.sqrt()?)?;
-        normed
-            .broadcast_mul(&self.weight)?
-            .broadcast_add(&self.bias)
+        crate::fused::layer_norm(x, &self.weight, &self.bias, self.eps)
     }
 }
 
@@ -71,7 +103,7 @@ impl Activation {
         match self {
             Activation::Relu => x.relu(),
             // erf-based GELU, as in the reference transformer.
-            Activation::Gelu => x.gelu_erf(),
+            Activation::Gelu => crate::fused::gelu(x),
             Activation::LeakyRelu => {
                 // max(x, 0.01·x): differentiable through candle's maximum.
                 x.maximum(&(x * 0.01)?)

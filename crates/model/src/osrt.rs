@@ -194,6 +194,21 @@ impl Osrt {
         })
     }
 
+    /// Standard-normal slot noise `[b, k, slot_dim]` for random slot init, drawn from the
+    /// caller's seeded RNG (candle's own RNG cannot be seeded); `None` for other inits.
+    pub fn slot_noise(&self, b: usize, rng: &mut impl rand::Rng) -> Result<Option<Tensor>> {
+        let sa = &self.cfg.slot_attention;
+        if sa.init != SlotInit::Random {
+            return Ok(None);
+        }
+        let n = b * sa.num_slots * sa.slot_dim;
+        Ok(Some(Tensor::from_vec(
+            crate::params::normal_samples(rng, n),
+            (b, sa.num_slots, sa.slot_dim),
+            self.device(),
+        )?))
+    }
+
     /// Every tensor of the model lives on this device.
     pub fn device(&self) -> &Device {
         self.rays.device()

@@ -4,9 +4,9 @@
 //! so that a slot that wins no token divides by ε, not by zero. Slots are updated by a
 //! GRU cell followed by a pre-LayerNorm residual MLP. Keys and values are computed once.
 
-use crate::nn::{Activation, LayerNorm, Mlp, linear};
+use crate::nn::{Activation, LayerNorm, Linear, Mlp, linear};
 use candle_core::{D, Module, Result, Tensor};
-use candle_nn::{Init, Linear, VarBuilder};
+use candle_nn::{Init, VarBuilder};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -22,6 +22,22 @@ pub enum SlotInit {
     /// of two scenes differ by ~0.3 % at initialisation and a small model never learns
     /// to tell scenes apart (docs/time-to-quality.md).
     Tokens,
+}
+
+impl std::str::FromStr for SlotInit {
+    type Err = String;
+
+    /// The names the configs use: `learned`, `random`, `tokens`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "learned" => Ok(Self::Learned),
+            "random" => Ok(Self::Random),
+            "tokens" => Ok(Self::Tokens),
+            other => Err(format!(
+                "unknown slot init `{other}`: expected learned, random or tokens"
+            )),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -22,6 +22,8 @@ pub struct StepFigures {
     pub batch_size: usize,
     pub rays_per_scene: usize,
     pub image_size: u32,
+    /// Whether the fused ops (osrt_model::fused) were on.
+    pub fused: bool,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
     pub scenes_per_s: f64,
@@ -47,7 +49,7 @@ fn bench_scenes(n: u64, size: u32) -> Result<Vec<Scene>> {
 }
 
 /// Median time of a full optimiser step (batch build excluded) over `steps` after one
-/// warm-up step.
+/// warm-up step, with the fused ops as this thread has them (`fused::with_fused`).
 pub fn bench_step(
     preset: &str,
     job: &JobConfig,
@@ -86,6 +88,7 @@ pub fn bench_step(
         batch_size: job.train.batch_size,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
+        fused: osrt_model::fused::enabled(),
         median_step_s: m,
         median_forward_backward_s: median(fb_s),
         scenes_per_s: job.train.batch_size as f64 / m,

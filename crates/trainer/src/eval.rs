@@ -3,11 +3,11 @@
 //! decoder's render speed.
 
 use crate::error::Result;
+use crate::render::{Decoded, decode_rays};
 use crate::step::BatchTensors;
-use candle_core::{D, Tensor};
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch};
+use osrt_model::Osrt;
 use osrt_model::metrics::{Psnr, Segmentation};
-use osrt_model::{Osrt, SlotInit};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -28,10 +28,18 @@ pub struct EvalResult {
     /// Target views rendered per second of decoding (slots → image).
     pub render_fps: f64,
     pub segmentation: bool,
+    /// FG-ARI per number of objects in the scene (ascending), where segmentation is scored.
+    pub by_objects: Vec<ObjectCountScore>,
 }
 
-/// Rays decoded per forward pass (bounds memory on large images).
-const CHUNK: usize = 4096;
+/// Segmentation scores of the scenes with one object count.
+#[derive(Debug, Clone, Serialize)]
+pub struct ObjectCountScore {
+    pub objects: usize,
+    pub scenes: usize,
+    pub fg_ari: Option<f64>,
+    pub ari: Option<f64>,
+}
 
 pub struct EvalOptions {
     pub input_views: usize,
@@ -42,15 +50,12 @@ pub struct EvalOptions {
     pub seed: u64,
 }
 
-/// Slot-weight argmax per ray: `[b, r, k]` → `[b, r]` as u32.
-fn argmax(weights: &Tensor) -> Result<Vec<Vec<u32>>> {
-    Ok(weights.argmax(D::Minus1)?.to_vec2::<u32>()?)
-}
-
 pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
     let mut psnr = Psnr::default();
     let mut baseline = Psnr::default();
     let mut seg = Segmentation::default();
+    let mut seg_by_objects: std::collections::BTreeMap<usize, (usize, Segmentation)> =
+        Default::default();
     let mut has_weights = true;
     let mut decode_s = 0.0;
     let mut frames = 0usize;
@@ -85,40 +90,14 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
             }
         }
         let t = BatchTensors::new(&batch, model.device())?;
-        let noise = match model.cfg.slot_attention.init {
-            SlotInit::Random => {
-                let sa = &model.cfg.slot_attention;
-                let n = sa.num_slots * sa.slot_dim;
-                Some(Tensor::from_vec(
-                    osrt_model::params::normal_samples(&mut rng, n),
-                    (1, sa.num_slots, sa.slot_dim),
-                    model.device(),
-                )?)
-            }
-            SlotInit::Learned | SlotInit::Tokens => None,
-        };
+        let noise = model.slot_noise(1, &mut rng)?;
         let slots = model
             .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?
             .slots;
         let r = batch.rays_per_scene;
         let start = Instant::now();
-        let mut rgb = Vec::with_capacity(r * 3);
-        let mut labels: Option<Vec<u32>> = Some(Vec::with_capacity(r));
-        let mut off = 0;
-        while off < r {
-            let len = CHUNK.min(r - off);
-            let out = model.decode(
-                &slots,
-                &t.target_origins.narrow(1, off, len)?,
-                &t.target_directions.narrow(1, off, len)?,
-            )?;
-            rgb.extend(out.rgb.flatten_all()?.to_vec1::<f32>()?);
-            match (&out.weights, labels.as_mut()) {
-                (Some(w), Some(l)) => l.extend(argmax(w)?.remove(0)),
-                _ => labels = None,
-            }
-            off += len;
-        }
+        let Decoded { rgb, labels, .. } =
+            decode_rays(model, &slots, &t.target_origins, &t.target_directions)?;
         decode_s += start.elapsed().as_secs_f64();
         let n_views: std::collections::BTreeSet<u32> =
             batch.target_pixels.iter().map(|p| p.0).collect();
@@ -151,6 +130,11 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
                     s = e;
                 }
                 seg.update(&views);
+                if let Some(n) = scene.num_objects() {
+                    let (count, s) = seg_by_objects.entry(n).or_default();
+                    *count += 1;
+                    s.update(&views);
+                }
             }
             // No slot weights (transformer decoder) or no masks: no segmentation scores.
             _ => has_weights = false,
@@ -172,5 +156,21 @@ pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<Ev
             0.0
         },
         segmentation,
+        by_objects: if segmentation {
+            seg_by_objects
+                .into_iter()
+                .map(|(objects, (scenes, s))| {
+                    let c = s.compute();
+                    ObjectCountScore {
+                        objects,
+                        scenes,
+                        fg_ari: c.fg_ari,
+                        ari: c.ari,
+                    }
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
     })
 }

@@ -77,6 +77,14 @@ pub struct LoadedRun {
 }
 
 pub async fn load_run(run: &str) -> Result<LoadedRun> {
+    load_run_with_slots(run, None).await
+}
+
+/// [`load_run`] with the model built for `num_slots` slots instead of the trained count
+/// (evaluating scenes with more objects than training had, paper §4.3). Only random slot
+/// init has weights independent of the slot count; the learned and tokens inits hold one
+/// embedding per slot and are refused with a clear error.
+pub async fn load_run_with_slots(run: &str, num_slots: Option<usize>) -> Result<LoadedRun> {
     let loc = Location::parse(run)?;
     let missing = |name: &str| TrainError::Run {
         path: loc.describe(&loc.path(name)),
@@ -96,6 +104,28 @@ pub async fn load_run(run: &str) -> Result<LoadedRun> {
         path: loc.describe(&loc.path(INFO_FILE)),
         reason: e.to_string(),
     })?;
+    let mut job = job;
+    if let Some(k) = num_slots {
+        let sa = &mut job.model.slot_attention;
+        if k != sa.num_slots && sa.init != osrt_model::SlotInit::Random {
+            return Err(TrainError::Config {
+                path: loc.describe(&loc.path(CONFIG_FILE)),
+                reason: format!(
+                    "trained with {:?} slot init and {} slots: its weights hold one \
+                     embedding per slot, so it cannot be evaluated with {k} slots (only \
+                     random slot init can change the slot count)",
+                    sa.init, sa.num_slots
+                ),
+            });
+        }
+        if k == 0 {
+            return Err(TrainError::Config {
+                path: "--slots".into(),
+                reason: "the slot count must be at least 1".into(),
+            });
+        }
+        sa.num_slots = k;
+    }
     let mut trainer = Trainer::new(job.clone(), Device::Cpu)?;
     let step = checkpoint::latest_verified(&loc, None)
         .await?

@@ -9,8 +9,7 @@ use crate::error::Result;
 use crate::optim::{AdamW, clip_global_norm};
 use candle_core::{Device, Tensor};
 use osrt_dataset::Batch;
-use osrt_model::params::normal_samples;
-use osrt_model::{Osrt, Params, SlotInit};
+use osrt_model::{Osrt, Params};
 use rand::Rng;
 
 /// Tensors of a batch.
@@ -103,16 +102,7 @@ impl Trainer {
 
     /// Standard-normal slot noise for random slot init (from the caller's seeded RNG).
     pub fn slot_noise(&self, b: usize, rng: &mut impl Rng) -> Result<Option<Tensor>> {
-        let sa = &self.cfg.model.slot_attention;
-        if sa.init != SlotInit::Random {
-            return Ok(None);
-        }
-        let n = b * sa.num_slots * sa.slot_dim;
-        Ok(Some(Tensor::from_vec(
-            normal_samples(rng, n),
-            (b, sa.num_slots, sa.slot_dim),
-            &self.device,
-        )?))
+        Ok(self.model.slot_noise(b, rng)?)
     }
 
     /// MSE on the sampled target rays, and its gradient as one flat buffer.

@@ -585,6 +585,27 @@ async fn run_generation(
         }
     }
 
+    // Resumed at (or past) the step limit, e.g. a job that was stopped after its final
+    // checkpoint committed but before the coordinator recorded it: that checkpoint is the
+    // job's last one, and rank 0 reports it as final so the job ends instead of waiting.
+    if plan.max_steps.is_some_and(|m| trainer.step >= m) {
+        if rank == 0 {
+            client
+                .report_checkpoint(v1::CheckpointReport {
+                    job: plan.job.clone(),
+                    worker_id,
+                    generation: plan.generation,
+                    step: trainer.step,
+                    r#final: true,
+                })
+                .await
+                .map_err(|s| {
+                    TrainError::Cluster(format!("reporting checkpoint {}: {s}", trainer.step))
+                })?;
+        }
+        return Ok(Ended::Finished);
+    }
+
     loop {
         if let Some(a) = live.take_abort() {
             return Ok(a);
@@ -647,6 +668,7 @@ async fn run_generation(
                 "skipped": trainer.skipped_total,
                 "epoch": epoch.plan.epoch,
                 "workers": world,
+                "peak_rss_mb": crate::memory::peak_rss_mb(),
             }));
             window = (Instant::now(), 0.0, 0.0, 0);
         }

@@ -225,3 +225,47 @@ fn same_seed_same_weights_after_several_steps() {
     assert_eq!(a, run(5), "same seed must give bit-identical weights");
     assert_ne!(a, run(6));
 }
+
+/// The fused ops (LayerNorm, GELU, bias add with hand-written backward passes) change
+/// speed, not training: a short seeded run takes the same loss curve with them as with
+/// candle's composed ops, to float tolerance.
+#[test]
+fn fused_ops_leave_the_loss_curve_unchanged() {
+    use osrt_model::fused::with_fused;
+    let data = scenes(4);
+    for preset in ["tiny", "clevr-lite-cpu"] {
+        let mut job = JobConfig::preset(preset).unwrap();
+        job.train.batch_size = 2;
+        let run = |fused: bool| {
+            with_fused(fused, || {
+                let mut t = Trainer::new(job.clone(), Device::Cpu).unwrap();
+                let mut rng = ChaCha8Rng::seed_from_u64(5);
+                let mut losses = Vec::new();
+                for step in 0..6 {
+                    let b = batch(&data[(step % 2) * 2..(step % 2) * 2 + 2], step as u64);
+                    let g = t.gradients(&b, &mut rng).unwrap();
+                    losses.push(g.loss);
+                    t.apply(g.loss, g.grads).unwrap();
+                }
+                (losses, t.params.flatten().unwrap())
+            })
+        };
+        let (fused, w_fused) = run(true);
+        let (composed, w_composed) = run(false);
+        for (step, (a, b)) in fused.iter().zip(&composed).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-4 * b.abs().max(1e-3),
+                "{preset} step {step}: loss {a} fused vs {b} composed"
+            );
+        }
+        let worst = w_fused
+            .iter()
+            .zip(&w_composed)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(
+            worst < 1e-4,
+            "{preset}: weights differ by {worst} after 6 steps"
+        );
+    }
+}

@@ -65,6 +65,35 @@ pub enum CameraRig {
 }
 
 impl CameraRig {
+    /// The same rig with `n` cameras: fixed rigs spread them evenly in azimuth (so 3 gives
+    /// CLEVR-3D's 0°, 120°, 240°), hemisphere rigs draw `n`.
+    pub fn with_views(self, n: usize) -> Self {
+        match self {
+            CameraRig::Fixed {
+                base_azimuth_deg,
+                horizontal_distance,
+                height,
+                ..
+            } => CameraRig::Fixed {
+                azimuths_deg: (0..n).map(|i| 360.0 * i as f64 / n as f64).collect(),
+                base_azimuth_deg,
+                horizontal_distance,
+                height,
+            },
+            CameraRig::Hemisphere {
+                distance,
+                elevation_deg,
+                target_jitter,
+                ..
+            } => CameraRig::Hemisphere {
+                views: n,
+                distance,
+                elevation_deg,
+                target_jitter,
+            },
+        }
+    }
+
     fn num_views(&self) -> usize {
         match self {
             CameraRig::Fixed { azimuths_deg, .. } => azimuths_deg.len(),
@@ -502,4 +531,26 @@ pub async fn generate_dataset(
     bar.finish_and_clear();
     manifest.write(dataset).await?;
     Ok(manifest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn with_views_spreads_fixed_cameras_and_keeps_clevr_3d_at_three() {
+        let rig = GeneratorConfig::clevr_lite().cameras;
+        assert_eq!(rig.clone().with_views(3), rig);
+        let CameraRig::Fixed { azimuths_deg, .. } = rig.with_views(6) else {
+            panic!("still a fixed rig")
+        };
+        assert_eq!(azimuths_deg, vec![0.0, 60.0, 120.0, 180.0, 240.0, 300.0]);
+        assert_eq!(
+            GeneratorConfig::hard_lite()
+                .cameras
+                .with_views(4)
+                .num_views(),
+            4
+        );
+    }
 }

@@ -7,9 +7,9 @@
 //! per ray, whatever the slot count — the reason it is fast.
 
 use crate::decoder::DecoderOutput;
-use crate::nn::{Activation, Mlp, Transformer, TransformerConfig, linear};
+use crate::nn::{Activation, Linear, Mlp, Transformer, TransformerConfig, linear};
 use candle_core::{D, Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -1,0 +1,576 @@
+//! Fused CPU ops with hand-written backward passes: LayerNorm, erf-GELU and the bias add
+//! of a linear layer.
+//!
+//! Why: candle 0.11 composes these from elementwise and broadcast ops, and its backward
+//! pass is slow exactly there (a broadcast's gradient is a `sum_keepdim` over leading
+//! dims, done as a scalar div/mod loop; every graph node also costs a zero tensor and an
+//! add in gradient accumulation). One node per op with a row-wise kernel removes both.
+//! Each op computes the same function as the composed version (`nn::LayerNorm` before,
+//! `Tensor::gelu_erf`, `broadcast_add`); tests check values and gradients against those
+//! and against finite differences.
+//!
+//! The kernels need contiguous f32 on the CPU; anything else (or `OSRT_FUSED_OPS=0`, or
+//! [`with_fused`]`(false, ..)`) takes the composed path.
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+use std::cell::Cell;
+
+thread_local! {
+    static OVERRIDE: Cell<Option<bool>> = const { Cell::new(None) };
+}
+
+fn enabled_by_env() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("OSRT_FUSED_OPS").map_or(true, |v| v != "0"))
+}
+
+/// Whether graphs built on this thread use the fused ops.
+pub fn enabled() -> bool {
+    OVERRIDE.with(|o| o.get()).unwrap_or_else(enabled_by_env)
+}
+
+/// Runs `f` with the fused ops switched on or off on this thread (comparisons, tests).
+pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
+    let prev = OVERRIDE.with(|o| o.replace(Some(on)));
+    let out = f();
+    OVERRIDE.with(|o| o.set(prev));
+    out
+}
+
+/// Rows per parallel task: small tensors stay on one thread.
+const ROWS_PER_TASK: usize = 64;
+
+fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("{what}: fused ops take f32");
+    };
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&v[a..b]),
+        None => candle_core::bail!("{what}: fused ops take contiguous tensors"),
+    }
+}
+
+fn usable(ts: &[&Tensor]) -> bool {
+    enabled()
+        && ts
+            .iter()
+            .all(|t| t.dtype() == candle_core::DType::F32 && t.device().is_cpu() && t.rank() >= 1)
+}
+
+// ---------------------------------------------------------------- LayerNorm
+
+struct LayerNormOp {
+    eps: f32,
+}
+
+/// Mean and 1/σ of one row.
+fn row_stats(x: &[f32], eps: f32) -> (f32, f32) {
+    let d = x.len() as f32;
+    let mean = x.iter().sum::<f32>() / d;
+    let var = x.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d;
+    (mean, 1.0 / (var + eps).sqrt())
+}
+
+impl CustomOp3 for LayerNormOp {
+    fn name(&self) -> &'static str {
+        "osrt-layer-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s1, l1, "layer_norm x")?;
+        let g = f32_slice(s2, l2, "layer_norm weight")?;
+        let b = f32_slice(s3, l3, "layer_norm bias")?;
+        let d = g.len();
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(d * ROWS_PER_TASK)
+            .zip(x.par_chunks(d * ROWS_PER_TASK))
+            .for_each(|(o, x)| {
+                for (o, x) in o.chunks_mut(d).zip(x.chunks(d)) {
+                    let (mean, rstd) = row_stats(x, self.eps);
+                    for i in 0..d {
+                        o[i] = (x[i] - mean) * rstd * g[i] + b[i];
+                    }
+                }
+            });
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        g: &Tensor,
+        _b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let d = g.elem_count();
+        let rows = x.elem_count() / d;
+        let packed = x.apply_op3_no_bwd(g, &grad.contiguous()?, &LayerNormBwd { eps: self.eps })?;
+        let dx = packed.narrow(0, 0, rows)?.reshape(x.shape())?;
+        let dg = packed.get(rows)?.reshape(g.shape())?;
+        let db = packed.get(rows + 1)?.reshape(g.shape())?;
+        Ok((Some(dx), Some(dg), Some(db)))
+    }
+}
+
+/// LayerNorm's backward in one pass: `[rows + 2, d]` = dx rows, then dγ, then dβ.
+struct LayerNormBwd {
+    eps: f32,
+}
+
+impl CustomOp3 for LayerNormBwd {
+    fn name(&self) -> &'static str {
+        "osrt-layer-norm-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s1, l1, "layer_norm backward x")?;
+        let g = f32_slice(s2, l2, "layer_norm backward weight")?;
+        let dy = f32_slice(s3, l3, "layer_norm backward gradient")?;
+        let d = g.len();
+        let rows = x.len() / d;
+        let mut out = vec![0f32; (rows + 2) * d];
+        let (dx, dgb) = out.split_at_mut(rows * d);
+        // Per task: dx rows, and partial dγ / dβ sums reduced afterwards in task order
+        // (a fixed order: the result does not depend on the thread count's scheduling).
+        let partials: Vec<Vec<f32>> = dx
+            .par_chunks_mut(d * ROWS_PER_TASK)
+            .zip(x.par_chunks(d * ROWS_PER_TASK))
+            .zip(dy.par_chunks(d * ROWS_PER_TASK))
+            .map(|((dx, x), dy)| {
+                let mut acc = vec![0f32; 2 * d];
+                let mut xhat = vec![0f32; d];
+                for ((dx, x), dy) in dx.chunks_mut(d).zip(x.chunks(d)).zip(dy.chunks(d)) {
+                    let (mean, rstd) = row_stats(x, self.eps);
+                    let (mut m1, mut m2) = (0f32, 0f32);
+                    for i in 0..d {
+                        xhat[i] = (x[i] - mean) * rstd;
+                        let gy = dy[i] * g[i];
+                        m1 += gy;
+                        m2 += gy * xhat[i];
+                        acc[i] += dy[i] * xhat[i];
+                        acc[d + i] += dy[i];
+                    }
+                    let (m1, m2) = (m1 / d as f32, m2 / d as f32);
+                    for i in 0..d {
+                        dx[i] = rstd * (dy[i] * g[i] - m1 - xhat[i] * m2);
+                    }
+                }
+                acc
+            })
+            .collect();
+        for p in partials {
+            for (o, v) in dgb.iter_mut().zip(p) {
+                *o += v;
+            }
+        }
+        Ok((CpuStorage::F32(out), Shape::from((rows + 2, d))))
+    }
+}
+
+/// LayerNorm over the last dimension: `x: [.., d]`, `weight`, `bias: [d]` → `[.., d]`.
+pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    if usable(&[x, weight, bias]) {
+        return x.contiguous()?.apply_op3(
+            &weight.contiguous()?,
+            &bias.contiguous()?,
+            LayerNormOp { eps: eps as f32 },
+        );
+    }
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let centred = x.broadcast_sub(&mean)?;
+    let var = centred.sqr()?.mean_keepdim(D::Minus1)?;
+    let normed = centred.broadcast_div(&(var + eps)?.sqrt()?)?;
+    normed.broadcast_mul(weight)?.broadcast_add(bias)
+}
+
+// ---------------------------------------------------------------- GELU (erf)
+
+/// `erf` with |error| < 1.2e-7 (Numerical Recipes' erfc, Chebyshev fit), in f64.
+fn erf(x: f64) -> f64 {
+    if x == 0.0 {
+        return 0.0;
+    }
+    let z = x.abs();
+    let t = 1.0 / (1.0 + 0.5 * z);
+    let r = t
+        * (-z * z - 1.265_512_23
+            + t * (1.000_023_68
+                + t * (0.374_091_96
+                    + t * (0.096_784_18
+                        + t * (-0.186_288_06
+                            + t * (0.278_868_07
+                                + t * (-1.135_203_98
+                                    + t * (1.488_515_87
+                                        + t * (-0.822_152_23 + t * 0.170_872_77)))))))))
+            .exp();
+    if x >= 0.0 { 1.0 - r } else { r - 1.0 }
+}
+
+const FRAC_1_SQRT_2: f64 = std::f64::consts::FRAC_1_SQRT_2;
+/// 1/√(2π)
+const INV_SQRT_2PI: f64 = 0.398_942_280_401_432_7;
+
+fn gelu_f(x: f32) -> f32 {
+    let x = x as f64;
+    (0.5 * x * (1.0 + erf(x * FRAC_1_SQRT_2))) as f32
+}
+
+fn gelu_grad_f(x: f32) -> f32 {
+    let x = x as f64;
+    let cdf = 0.5 * (1.0 + erf(x * FRAC_1_SQRT_2));
+    (cdf + x * INV_SQRT_2PI * (-0.5 * x * x).exp()) as f32
+}
+
+/// Elementwise map over chunks in parallel.
+fn par_map(x: &[f32], f: impl Fn(f32) -> f32 + Sync) -> Vec<f32> {
+    let mut out = vec![0f32; x.len()];
+    out.par_chunks_mut(8192)
+        .zip(x.par_chunks(8192))
+        .for_each(|(o, x)| o.iter_mut().zip(x).for_each(|(o, &x)| *o = f(x)));
+    out
+}
+
+struct GeluOp;
+
+impl CustomOp1 for GeluOp {
+    fn name(&self) -> &'static str {
+        "osrt-gelu-erf"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s, l, "gelu")?;
+        Ok((CpuStorage::F32(par_map(x, gelu_f)), l.shape().clone()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(x.apply_op2_no_bwd(&grad.contiguous()?, &GeluBwd)?))
+    }
+}
+
+/// `dx = dy · GELU'(x)`.
+struct GeluBwd;
+
+impl CustomOp2 for GeluBwd {
+    fn name(&self) -> &'static str {
+        "osrt-gelu-erf-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s1, l1, "gelu backward x")?;
+        let dy = f32_slice(s2, l2, "gelu backward gradient")?;
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(8192)
+            .zip(x.par_chunks(8192).zip(dy.par_chunks(8192)))
+            .for_each(|(o, (x, dy))| {
+                for i in 0..o.len() {
+                    o[i] = dy[i] * gelu_grad_f(x[i]);
+                }
+            });
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+}
+
+/// erf-based GELU, elementwise.
+pub fn gelu(x: &Tensor) -> Result<Tensor> {
+    if usable(&[x]) {
+        return x.contiguous()?.apply_op1(GeluOp);
+    }
+    x.gelu_erf()
+}
+
+// ---------------------------------------------------------------- bias add
+
+struct BiasAddOp;
+
+impl CustomOp2 for BiasAddOp {
+    fn name(&self) -> &'static str {
+        "osrt-bias-add"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s1, l1, "bias add x")?;
+        let b = f32_slice(s2, l2, "bias add bias")?;
+        let d = b.len();
+        let mut out = x.to_vec();
+        out.par_chunks_mut(d * ROWS_PER_TASK).for_each(|o| {
+            for row in o.chunks_mut(d) {
+                row.iter_mut().zip(b).for_each(|(o, b)| *o += b);
+            }
+        });
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        _x: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let db = grad
+            .contiguous()?
+            .apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?
+            .reshape(b.shape())?;
+        Ok((Some(grad.clone()), Some(db)))
+    }
+}
+
+/// Sum over rows of a `[rows, d]` buffer → `[d]`, in a fixed order of row blocks.
+struct ColumnSum {
+    d: usize,
+}
+
+impl CustomOp1 for ColumnSum {
+    fn name(&self) -> &'static str {
+        "osrt-column-sum"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s, l, "column sum")?;
+        let d = self.d;
+        let partials: Vec<Vec<f32>> = x
+            .par_chunks(d * ROWS_PER_TASK * 4)
+            .map(|block| {
+                let mut acc = vec![0f32; d];
+                for row in block.chunks(d) {
+                    acc.iter_mut().zip(row).for_each(|(a, v)| *a += v);
+                }
+                acc
+            })
+            .collect();
+        let mut out = vec![0f32; d];
+        for p in partials {
+            out.iter_mut().zip(p).for_each(|(o, v)| *o += v);
+        }
+        Ok((CpuStorage::F32(out), Shape::from(d)))
+    }
+}
+
+/// `x: [.., d] + bias: [d]`.
+pub fn bias_add(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
+    if usable(&[x, bias]) && x.dim(D::Minus1)? == bias.elem_count() && bias.rank() == 1 {
+        return x.contiguous()?.apply_op2(&bias.contiguous()?, BiasAddOp);
+    }
+    x.broadcast_add(bias)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{Device, Var};
+    use rand::SeedableRng;
+
+    fn randn(shape: &[usize], scale: f32, seed: u64) -> Tensor {
+        let n: usize = shape.iter().product();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let v: Vec<f32> = crate::params::normal_samples(&mut rng, n)
+            .into_iter()
+            .map(|x| x * scale)
+            .collect();
+        Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    }
+
+    /// Value and gradients of `Σ f(args) · w` (w fixed random), fused and composed.
+    fn both(
+        args: &[Tensor],
+        f: impl Fn(&[Tensor]) -> Result<Tensor>,
+    ) -> [(Tensor, Vec<Tensor>); 2] {
+        [true, false].map(|on| {
+            with_fused(on, || {
+                let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
+                let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+                let y = f(&ts).unwrap();
+                let w = randn(y.dims(), 1.0, 99);
+                let loss = (&y * &w).unwrap().sum_all().unwrap();
+                let g = loss.backward().unwrap();
+                let grads = vars
+                    .iter()
+                    .map(|v| g.get(v.as_tensor()).unwrap().clone())
+                    .collect();
+                (y, grads)
+            })
+        })
+    }
+
+    fn assert_matches_composed(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>, tol: f32) {
+        let [(yf, gf), (yc, gc)] = both(args, f);
+        assert!(
+            max_diff(&yf, &yc) <= tol,
+            "forward differs by {}",
+            max_diff(&yf, &yc)
+        );
+        for (i, (a, b)) in gf.iter().zip(&gc).enumerate() {
+            let d = max_diff(a, b);
+            assert!(d <= tol, "gradient {i} differs by {d}");
+            assert!(
+                a.flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap()
+                    .iter()
+                    .all(|v| v.is_finite())
+            );
+        }
+    }
+
+    /// Central finite differences of `Σ f(args) · w`, computed in f64 (where `f` takes the
+    /// composed path: the same function), against the fused backward in f32.
+    fn finite_difference_check(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>) {
+        let [(y, grads), _] = both(args, &f);
+        let f64_ = candle_core::DType::F64;
+        let w64 = randn(y.dims(), 1.0, 99).to_dtype(f64_).unwrap();
+        let args64: Vec<Tensor> = args.iter().map(|a| a.to_dtype(f64_).unwrap()).collect();
+        let h = 1e-5;
+        for (a, grad) in grads.iter().enumerate() {
+            let base: Vec<f64> = args64[a].flatten_all().unwrap().to_vec1().unwrap();
+            let g: Vec<f32> = grad.flatten_all().unwrap().to_vec1().unwrap();
+            for i in (0..base.len()).step_by((base.len() / 12).max(1)) {
+                let eval = |delta: f64| -> f64 {
+                    let mut v = base.clone();
+                    v[i] += delta;
+                    let mut xs = args64.clone();
+                    xs[a] = Tensor::from_vec(v, args64[a].shape(), &Device::Cpu).unwrap();
+                    (f(&xs).unwrap() * &w64)
+                        .unwrap()
+                        .sum_all()
+                        .unwrap()
+                        .to_scalar::<f64>()
+                        .unwrap()
+                };
+                let num = (eval(h) - eval(-h)) / (2.0 * h);
+                let err = (num - g[i] as f64).abs();
+                assert!(
+                    err <= 1e-3 * (1.0 + num.abs()),
+                    "arg {a} element {i}: finite difference {num}, backward {}",
+                    g[i]
+                );
+            }
+        }
+    }
+
+    fn ln(ts: &[Tensor]) -> Result<Tensor> {
+        layer_norm(&ts[0], &ts[1], &ts[2], 1e-5)
+    }
+
+    #[test]
+    fn layer_norm_matches_the_composed_version_and_finite_differences() {
+        let args = [
+            randn(&[3, 70, 16], 1.0, 1),
+            randn(&[16], 1.0, 2),
+            randn(&[16], 1.0, 3),
+        ];
+        assert_matches_composed(&args, ln, 2e-5);
+        let small = [
+            randn(&[2, 3, 8], 1.0, 4),
+            randn(&[8], 1.0, 5),
+            randn(&[8], 1.0, 6),
+        ];
+        finite_difference_check(&small, ln);
+    }
+
+    #[test]
+    fn layer_norm_is_finite_on_extreme_and_constant_rows() {
+        // Large magnitudes, a constant row (zero variance) and tiny values.
+        let mut v = vec![1e6f32, -3e6, 2e6, 5e5];
+        v.extend([7.0f32; 4]);
+        v.extend([1e-20f32, -1e-20, 0.0, 2e-20]);
+        let x = Tensor::from_vec(v, (3, 4), &Device::Cpu).unwrap();
+        let args = [x, randn(&[4], 1.0, 7), randn(&[4], 1.0, 8)];
+        let [(y, grads), _] = both(&args, ln);
+        for t in std::iter::once(&y).chain(&grads) {
+            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            assert!(v.iter().all(|x| x.is_finite()), "{v:?}");
+        }
+        // The constant row normalises to exactly the bias.
+        let row: Vec<f32> = y.get(1).unwrap().to_vec1().unwrap();
+        let bias: Vec<f32> = args[2].to_vec1().unwrap();
+        assert_eq!(row, bias);
+        assert_matches_composed(&args, ln, 1e-3);
+    }
+
+    #[test]
+    fn gelu_matches_the_composed_version_and_finite_differences() {
+        let x = randn(&[5, 300], 3.0, 11);
+        assert_matches_composed(&[x], |t| gelu(&t[0]), 1e-5);
+        finite_difference_check(&[randn(&[40], 2.0, 12)], |t| gelu(&t[0]));
+        // Extremes: GELU(x) → x for large x, → 0 for very negative x; gradients 1 and 0.
+        let x = Tensor::new(&[-1e30f32, -60.0, 0.0, 60.0, 1e30], &Device::Cpu).unwrap();
+        let [(y, g), _] = both(&[x], |t| gelu(&t[0]));
+        let y: Vec<f32> = y.to_vec1().unwrap();
+        assert_eq!(y, vec![-0.0, -0.0, 0.0, 60.0, 1e30]);
+        let w: Vec<f32> = randn(&[5], 1.0, 99).to_vec1().unwrap();
+        let g: Vec<f32> = g[0].to_vec1().unwrap();
+        let want = [0.0, 0.0, 0.5 * w[2], w[3], w[4]];
+        for (g, w) in g.iter().zip(want) {
+            assert!((g - w).abs() <= 1e-6 * (1.0 + w.abs()), "{g} vs {w}");
+        }
+        assert!((erf(0.5) - 0.520_499_877_813_046_5).abs() < 2e-7);
+    }
+
+    #[test]
+    fn bias_add_matches_the_composed_version_and_finite_differences() {
+        let args = [randn(&[4, 9, 33], 1.0, 21), randn(&[33], 1.0, 22)];
+        assert_matches_composed(&args, |t| bias_add(&t[0], &t[1]), 1e-4);
+        finite_difference_check(&[randn(&[3, 5], 1.0, 23), randn(&[5], 1.0, 24)], |t| {
+            bias_add(&t[0], &t[1])
+        });
+        let big = [
+            Tensor::new(&[[3e38f32, -3e38], [1.0, 2.0]], &Device::Cpu).unwrap(),
+            randn(&[2], 1.0, 25),
+        ];
+        assert_matches_composed(&big, |t| bias_add(&t[0], &t[1]), 0.0);
+    }
+
+    #[test]
+    fn non_contiguous_inputs_take_the_same_values() {
+        let x = randn(&[6, 8], 1.0, 31).t().unwrap(); // [8, 6], strided
+        let g = randn(&[6], 1.0, 32);
+        let b = randn(&[6], 1.0, 33);
+        let a = with_fused(true, || layer_norm(&x, &g, &b, 1e-5)).unwrap();
+        let c = with_fused(false, || layer_norm(&x, &g, &b, 1e-5)).unwrap();
+        assert!(max_diff(&a, &c) < 1e-5);
+    }
+}

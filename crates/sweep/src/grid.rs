@@ -1,0 +1,359 @@
+//! A sweep file: a base job (preset or job config) plus axes. The points are the
+//! Cartesian product of the axes, in the fixed axis order of [`Axes`], first axis
+//! slowest; each point is named by its settings (`decoder=slot_mixer,slots=6`), which is
+//! also its run folder's name.
+
+use crate::{Result, SweepError};
+use osrt_dataset::TargetViews;
+use osrt_model::SlotInit;
+use osrt_trainer::JobConfig;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepFile {
+    /// Names the output folder (`runs/sweeps/<name>` by default).
+    pub name: String,
+    /// Named job preset for the base job, unless `config` is given.
+    #[serde(default = "default_preset")]
+    pub preset: String,
+    /// A job config (TOML) for the base job; relative to the sweep file.
+    #[serde(default)]
+    pub config: Option<PathBuf>,
+    /// Dataset directory or URL (the default `data` is generated if absent).
+    #[serde(default = "default_data")]
+    pub data: String,
+    /// Local worker processes per point.
+    #[serde(default = "default_workers")]
+    pub workers: usize,
+    /// Compute threads per worker (default: cores / workers).
+    #[serde(default)]
+    pub threads: Option<usize>,
+    /// Training budget per point: every point gets the same one.
+    #[serde(default)]
+    pub max_minutes: Option<f64>,
+    #[serde(default)]
+    pub max_steps: Option<u64>,
+    /// Split each finished point is evaluated on.
+    #[serde(default = "default_split")]
+    pub eval_split: String,
+    /// Evaluate at most this many scenes of it (default: all).
+    #[serde(default)]
+    pub eval_scenes: Option<usize>,
+    #[serde(default)]
+    pub axes: Axes,
+}
+
+fn default_preset() -> String {
+    "clevr-lite-cpu".into()
+}
+fn default_data() -> String {
+    "data".into()
+}
+fn default_workers() -> usize {
+    2
+}
+fn default_split() -> String {
+    "test".into()
+}
+
+/// What a point is trained to reconstruct (paper §4.2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Targets {
+    /// Novel-view synthesis: targets are drawn from every view of the scene.
+    Novel,
+    /// 2D reconstruction: targets are the input views only.
+    Input,
+}
+
+/// The axes a sweep can vary; an empty list leaves the base job's setting.
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Axes {
+    #[serde(default)]
+    pub decoder: Vec<String>,
+    #[serde(default)]
+    pub input_views: Vec<usize>,
+    #[serde(default)]
+    pub slots: Vec<usize>,
+    #[serde(default)]
+    pub iterations: Vec<usize>,
+    #[serde(default)]
+    pub slot_init: Vec<String>,
+    #[serde(default)]
+    pub targets: Vec<Targets>,
+    #[serde(default)]
+    pub seed: Vec<u64>,
+    #[serde(default)]
+    pub lr: Vec<f64>,
+}
+
+impl Axes {
+    /// `(axis, values as text)` in the fixed order, empty axes left out.
+    fn listed(&self) -> Vec<(&'static str, Vec<String>)> {
+        fn text<T: ToString>(v: &[T]) -> Vec<String> {
+            v.iter().map(|x| x.to_string()).collect()
+        }
+        let targets = self
+            .targets
+            .iter()
+            .map(|t| match t {
+                Targets::Novel => "novel".to_string(),
+                Targets::Input => "input".to_string(),
+            })
+            .collect();
+        [
+            ("decoder", self.decoder.clone()),
+            ("input_views", text(&self.input_views)),
+            ("slots", text(&self.slots)),
+            ("iterations", text(&self.iterations)),
+            ("slot_init", self.slot_init.clone()),
+            ("targets", targets),
+            ("seed", text(&self.seed)),
+            ("lr", text(&self.lr)),
+        ]
+        .into_iter()
+        .filter(|(_, v)| !v.is_empty())
+        .collect()
+    }
+}
+
+/// One grid point: `(axis, value)` settings applied over the base job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub settings: Vec<(String, String)>,
+}
+
+impl Point {
+    /// `axis=value,…`, or `base` for a sweep without axes. Also the run folder's name.
+    pub fn name(&self) -> String {
+        if self.settings.is_empty() {
+            return "base".into();
+        }
+        self.settings
+            .iter()
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    }
+
+    /// Value of `axis` at this point, if the sweep varies it.
+    pub fn get(&self, axis: &str) -> Option<&str> {
+        self.settings
+            .iter()
+            .find(|(k, _)| k == axis)
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// The base job with this point's settings.
+    pub fn apply(&self, base: &JobConfig) -> Result<JobConfig> {
+        let err = |reason: String| SweepError::Point {
+            point: self.name(),
+            reason,
+        };
+        let mut job = base.clone();
+        for (axis, value) in &self.settings {
+            let int = || {
+                value
+                    .parse::<usize>()
+                    .map_err(|e| err(format!("{axis} = {value}: {e}")))
+            };
+            match axis.as_str() {
+                "decoder" => {
+                    job.model = job.model.clone().with_decoder(value).ok_or_else(|| {
+                        err(format!(
+                            "unknown decoder `{value}`: expected slot_mixer, spatial_broadcast or transformer"
+                        ))
+                    })?
+                }
+                "input_views" => job.train.input_views = int()?,
+                "slots" => job.model.slot_attention.num_slots = int()?,
+                "iterations" => job.model.slot_attention.iterations = int()?,
+                "slot_init" => job.model.slot_attention.init = value.parse::<SlotInit>().map_err(err)?,
+                "targets" => {
+                    job.train.target_views = match value.as_str() {
+                        "novel" => TargetViews::All,
+                        "input" => TargetViews::Input,
+                        other => return Err(err(format!("unknown targets `{other}`"))),
+                    }
+                }
+                "seed" => {
+                    job.train.seed = value
+                        .parse()
+                        .map_err(|e| err(format!("seed = {value}: {e}")))?
+                }
+                "lr" => {
+                    job.train.lr = value
+                        .parse()
+                        .map_err(|e| err(format!("lr = {value}: {e}")))?
+                }
+                other => return Err(err(format!("unknown axis `{other}`"))),
+            }
+        }
+        job.validate().map_err(|e| err(e.to_string()))?;
+        Ok(job)
+    }
+}
+
+impl SweepFile {
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = crate::read_text(path)?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses and checks a sweep file's text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+        let err = |reason: String| SweepError::File {
+            path: origin.to_string(),
+            reason,
+        };
+        let file: Self = toml::from_str(text).map_err(|e| err(e.to_string()))?;
+        if file.name.is_empty() || file.name.contains(['/', '\\']) || file.name.starts_with('.') {
+            return Err(err(format!(
+                "name `{}` must be a plain folder name",
+                file.name
+            )));
+        }
+        if file.max_minutes.is_none() && file.max_steps.is_none() {
+            return Err(err(
+                "set max_minutes or max_steps: every point needs the same, finite budget".into(),
+            ));
+        }
+        if file.workers == 0 {
+            return Err(err("workers must be at least 1".into()));
+        }
+        Ok(file)
+    }
+
+    /// The base job: `config` (relative to `dir`, the sweep file's folder) or `preset`.
+    pub fn base_job(&self, dir: &Path) -> Result<JobConfig> {
+        let err = |reason: String| SweepError::File {
+            path: self.name.clone(),
+            reason,
+        };
+        match &self.config {
+            Some(p) => JobConfig::load(&dir.join(p)).map_err(|e| err(e.to_string())),
+            None => JobConfig::preset(&self.preset).map_err(|e| err(e.to_string())),
+        }
+    }
+
+    /// Every grid point, first axis slowest.
+    pub fn points(&self) -> Vec<Point> {
+        let mut points = vec![Point {
+            settings: Vec::new(),
+        }];
+        for (axis, values) in self.axes.listed() {
+            points = points
+                .into_iter()
+                .flat_map(|p| {
+                    values.iter().map(move |v| {
+                        let mut settings = p.settings.clone();
+                        settings.push((axis.to_string(), v.clone()));
+                        Point { settings }
+                    })
+                })
+                .collect();
+        }
+        points
+    }
+
+    /// Checks every point's job, and that `views` (the dataset's fewest views per scene)
+    /// can feed its input views, before any training starts.
+    pub fn check(&self, base: &JobConfig, views: usize) -> Result<Vec<(Point, JobConfig)>> {
+        self.points()
+            .into_iter()
+            .map(|p| {
+                let job = p.apply(base)?;
+                if job.train.input_views > views {
+                    return Err(SweepError::Point {
+                        point: p.name(),
+                        reason: format!(
+                            "{} input views, but the dataset has only {views} views per scene",
+                            job.train.input_views
+                        ),
+                    });
+                }
+                Ok((p, job))
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const FILE: &str = r#"
+name = "demo"
+preset = "tiny"
+max_steps = 3
+[axes]
+decoder = ["slot_mixer", "transformer"]
+slots = [3, 5]
+targets = ["novel", "input"]
+"#;
+
+    #[test]
+    fn points_are_the_product_in_axis_order() {
+        let f = SweepFile::parse(FILE, "demo.toml").unwrap();
+        let names: Vec<String> = f.points().iter().map(Point::name).collect();
+        assert_eq!(names.len(), 8);
+        assert_eq!(names[0], "decoder=slot_mixer,slots=3,targets=novel");
+        assert_eq!(names[1], "decoder=slot_mixer,slots=3,targets=input");
+        assert_eq!(names[7], "decoder=transformer,slots=5,targets=input");
+    }
+
+    #[test]
+    fn a_point_changes_exactly_its_settings() {
+        let f = SweepFile::parse(FILE, "demo.toml").unwrap();
+        let base = f.base_job(Path::new(".")).unwrap();
+        let p = &f.points()[7];
+        let job = p.apply(&base).unwrap();
+        assert_eq!(job.model.slot_attention.num_slots, 5);
+        assert_eq!(job.train.target_views, TargetViews::Input);
+        assert!(matches!(
+            job.model.decoder,
+            osrt_model::decoder::Config::Transformer(_)
+        ));
+        assert_eq!(job.train, {
+            let mut t = base.train.clone();
+            t.target_views = TargetViews::Input;
+            t
+        });
+    }
+
+    #[test]
+    fn bad_files_and_points_say_what_is_wrong() {
+        let no_budget = SweepFile::parse("name = \"x\"\n", "x.toml").unwrap_err();
+        assert!(no_budget.to_string().contains("max_minutes or max_steps"));
+        let typo = SweepFile::parse(
+            "name = \"x\"\nmax_steps = 1\n[axes]\ndecoders = []\n",
+            "x.toml",
+        )
+        .unwrap_err();
+        assert!(typo.to_string().contains("decoders"), "{typo}");
+        let f = SweepFile::parse(
+            "name = \"x\"\npreset = \"tiny\"\nmax_steps = 1\n[axes]\ndecoder = [\"nerf\"]\ninput_views = [5]\n",
+            "x.toml",
+        )
+        .unwrap();
+        let base = f.base_job(Path::new(".")).unwrap();
+        let e = f.check(&base, 3).unwrap_err().to_string();
+        assert!(
+            e.contains("decoder=nerf") && e.contains("unknown decoder"),
+            "{e}"
+        );
+        let f = SweepFile::parse(
+            "name = \"x\"\npreset = \"tiny\"\nmax_steps = 1\n[axes]\ninput_views = [1, 5]\n",
+            "x.toml",
+        )
+        .unwrap();
+        let e = f.check(&base, 3).unwrap_err().to_string();
+        assert!(
+            e.contains("input_views=5") && e.contains("only 3 views"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,51 @@
+//! Sweeps over the paper's ablations and the reports people look at afterwards.
+//!
+//! - [`grid`]: a sweep file (a base job plus axes) and its points in a fixed order.
+//! - [`results`]: one row per finished point, the `results.csv` / `results.md` tables,
+//!   and the error-against-run-time curves read from each run's `metrics.jsonl`.
+//! - [`plot`]: those curves as SVG and PNG charts (no system fonts needed).
+//! - [`pictures`]: render frames and slot segmentations as PNG strips and GIFs.
+//! - [`html`]: one static page that opens from disk with no server and no network.
+//!
+//! Training and evaluating a point needs the local cluster and lives in the binary.
+
+pub mod grid;
+pub mod html;
+pub mod pictures;
+pub mod plot;
+pub mod results;
+
+pub use grid::{Point, SweepFile, Targets};
+pub use results::{Curve, PointResult, RunSummary};
+
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum SweepError {
+    #[error("sweep file {path}: {reason}")]
+    File { path: String, reason: String },
+    #[error("sweep point `{point}`: {reason}")]
+    Point { point: String, reason: String },
+    #[error("{path}: {reason}")]
+    Io { path: String, reason: String },
+    #[error("drawing {what}: {reason}")]
+    Plot { what: String, reason: String },
+}
+
+pub type Result<T> = std::result::Result<T, SweepError>;
+
+/// Reads a local file, naming it in the error.
+pub(crate) fn read_text(path: &std::path::Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| SweepError::Io {
+        path: path.display().to_string(),
+        reason: e.to_string(),
+    })
+}
+
+/// Writes a local file, naming it in the error.
+pub(crate) fn write_bytes(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
+    std::fs::write(path, bytes).map_err(|e| SweepError::Io {
+        path: path.display().to_string(),
+        reason: e.to_string(),
+    })
+}

@@ -1,0 +1,304 @@
+//! `osrt sweep FILE.toml` and `osrt report RUN_OR_SWEEP`: a grid of runs trained on the
+//! local cluster and evaluated, then tables, charts and a static HTML page.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use osrt_dataset::{Location, Manifest};
+use osrt_sweep::html::{self, Report};
+use osrt_sweep::results::RESULT_FILE;
+use osrt_sweep::{Curve, PointResult, RunSummary, SweepFile};
+use std::path::{Path, PathBuf};
+
+/// A copy of the sweep file in its output folder: marks the folder as a sweep.
+const SWEEP_COPY: &str = "sweep.toml";
+
+#[derive(Args)]
+pub struct SweepArgs {
+    /// Sweep file: a base job and axes (see configs/sweeps/).
+    pub file: PathBuf,
+    /// Output folder (default: runs/sweeps/<name>); one run folder per point inside.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// List the points and what is already finished, train nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+#[derive(Args)]
+pub struct ReportArgs {
+    /// A run folder of `osrt train`, or a sweep's output folder.
+    pub path: PathBuf,
+    /// Where the page and its charts go (default: PATH/report for a run, PATH for a sweep).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+fn budget(f: &SweepFile) -> String {
+    match (f.max_steps, f.max_minutes) {
+        (Some(s), Some(m)) => format!("{s} steps or {m} minutes, whichever comes first"),
+        (Some(s), None) => format!("{s} steps"),
+        (None, Some(m)) => format!("{m} minutes"),
+        (None, None) => unreachable!("checked when the sweep file is parsed"),
+    }
+}
+
+fn note(f: &SweepFile) -> String {
+    format!(
+        "Sweep `{}` on {} ({} worker{} per point), the same training budget per point: {}. \
+         Final figures: the newest committed checkpoint evaluated on the `{}` split{}; \
+         curves: the validation subset evaluated during training.",
+        f.name,
+        f.data,
+        f.workers,
+        if f.workers == 1 { "" } else { "s" },
+        budget(f),
+        f.eval_split,
+        f.eval_scenes
+            .map_or(String::new(), |n| format!(" (first {n} scenes)")),
+    )
+}
+
+pub async fn sweep(a: SweepArgs) -> Result<()> {
+    let file = SweepFile::load(&a.file)?;
+    let dir = a.file.parent().unwrap_or(Path::new("."));
+    let base = file.base_job(dir)?;
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("runs/sweeps").join(&file.name));
+    crate::train::ensure_default_data(&file.data).await?;
+    let manifest = Manifest::read(&Location::parse(&file.data)?)
+        .await
+        .with_context(|| format!("reading the dataset {}", file.data))?;
+    let points = file.check(&base, manifest.views_per_scene[0] as usize)?;
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let copy = out.join(SWEEP_COPY);
+    let text = std::fs::read_to_string(&a.file)?;
+    match std::fs::read_to_string(&copy) {
+        Ok(old) if old != text => bail!(
+            "{} holds a different sweep ({}); choose another --out or remove it",
+            out.display(),
+            copy.display()
+        ),
+        _ => std::fs::write(&copy, &text)?,
+    }
+    let n = points.len();
+    eprintln!(
+        "sweep `{}`: {n} point{} into {} (budget per point: {})",
+        file.name,
+        if n == 1 { "" } else { "s" },
+        out.display(),
+        budget(&file)
+    );
+    for (i, (point, job)) in points.into_iter().enumerate() {
+        let name = point.name();
+        let run_dir = out.join(&name);
+        let result_path = run_dir.join(RESULT_FILE);
+        if result_path.exists() {
+            eprintln!("[{}/{n}] {name}: finished, skipped", i + 1);
+            continue;
+        }
+        let started = run_dir.join(osrt_coordinator::service::JOB_FILE).exists();
+        if a.dry_run {
+            let state = if started {
+                "interrupted: resumes"
+            } else {
+                "to train"
+            };
+            eprintln!("[{}/{n}] {name}: {state}", i + 1);
+            continue;
+        }
+        let run = run_dir.to_string_lossy().into_owned();
+        // An interrupted point resumes from its checkpoint with what is left of its time.
+        let mut max_minutes = file.max_minutes;
+        if started && let Some(m) = max_minutes {
+            let spent = RunSummary::load(&run_dir).map(|s| s.wall_s).unwrap_or(0.0);
+            max_minutes = Some((m - spent / 60.0).max(0.1));
+        }
+        eprintln!(
+            "[{}/{n}] {name}: {}",
+            i + 1,
+            if started { "resuming" } else { "training" }
+        );
+        let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
+        let threads = file.threads.unwrap_or((cores / file.workers).max(1));
+        let spec = crate::cluster::spec(job, &file.data, &run, file.max_steps, max_minutes)?;
+        crate::cluster::run_local(crate::cluster::LocalJob {
+            spec,
+            workers: file.workers,
+            threads_per_worker: threads,
+            resume: started,
+        })
+        .await
+        .with_context(|| format!("training sweep point {name}"))?;
+        let summary = RunSummary::load(&run_dir)?;
+        let req = crate::train::EvalRequest {
+            split: file.eval_split.clone(),
+            data: Some(file.data.clone()),
+            scenes: file.eval_scenes,
+            ..Default::default()
+        };
+        let (_, _, r) = crate::train::evaluate_run(&run, &req)
+            .await
+            .with_context(|| format!("evaluating sweep point {name}"))?;
+        let row = PointResult {
+            point: name.clone(),
+            settings: point.settings.clone(),
+            train_wall_s: summary.wall_s,
+            steps: summary.steps,
+            scenes_per_s: summary.scenes_per_s,
+            eval_split: file.eval_split.clone(),
+            eval_scenes: r.scenes,
+            psnr: r.psnr,
+            baseline_psnr: r.baseline_psnr,
+            fg_ari: r.fg_ari,
+            ari: r.ari,
+            fg_ari_2d: r.fg_ari_2d,
+            ratio: r.ratio,
+            render_fps: r.render_fps,
+            peak_rss_mb: summary.peak_rss_mb,
+        };
+        row.save(&result_path)?;
+        eprintln!(
+            "[{}/{n}] {name}: PSNR {:.2} dB (baseline {:.2}), FG-ARI {}",
+            i + 1,
+            r.psnr,
+            r.baseline_psnr,
+            r.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+        );
+    }
+    if a.dry_run {
+        return Ok(());
+    }
+    let page = sweep_report(&out, &out).await?;
+    println!(
+        "results: {} and {}; report: {}",
+        out.join("results.md").display(),
+        out.join("results.csv").display(),
+        page.display()
+    );
+    Ok(())
+}
+
+/// Tables, charts and page of the sweep in `dir`, written into `out`.
+async fn sweep_report(dir: &Path, out: &Path) -> Result<PathBuf> {
+    let file = SweepFile::load(&dir.join(SWEEP_COPY))?;
+    let mut rows = Vec::new();
+    let mut curves: Vec<Curve> = Vec::new();
+    let mut strips = Vec::new();
+    for point in file.points() {
+        let name = point.name();
+        let run_dir = dir.join(&name);
+        if let Ok(s) = RunSummary::load(&run_dir) {
+            curves.push(s.curve(&name));
+        }
+        let result = run_dir.join(RESULT_FILE);
+        if result.exists() {
+            rows.push(PointResult::load(&result)?);
+            let png = format!("render-{name}.png");
+            strips.push(
+                render_strip(
+                    &run_dir,
+                    Some(&file.data),
+                    &file.eval_split,
+                    out,
+                    &png,
+                    &name,
+                )
+                .await,
+            );
+        }
+    }
+    let strips = strips.into_iter().flatten().collect();
+    let page = html::write(
+        out,
+        &Report {
+            title: format!("sweep {}", file.name),
+            note: note(&file),
+            rows: &rows,
+            curves: &curves,
+            strips,
+        },
+    )?;
+    Ok(page)
+}
+
+/// The report's render strip of a run (first scene of `split`: truth | render | slots per
+/// view), as `(caption, file)`; a run that cannot render is reported and left out.
+async fn render_strip(
+    run: &Path,
+    data: Option<&str>,
+    split: &str,
+    out: &Path,
+    png: &str,
+    label: &str,
+) -> Option<(String, String)> {
+    let run_s = run.to_string_lossy();
+    match crate::render::report_strip(&run_s, data, split, &out.join(png)).await {
+        Ok(_) => Some((
+            format!("{label}: first {split} scene, per view: ground truth | render | slots"),
+            png.to_string(),
+        )),
+        Err(e) => {
+            eprintln!("no render strip for {label}: {e:#}");
+            None
+        }
+    }
+}
+
+pub async fn report(a: ReportArgs) -> Result<()> {
+    let page = if a.path.join(SWEEP_COPY).exists() {
+        sweep_report(&a.path, a.out.as_deref().unwrap_or(&a.path)).await?
+    } else {
+        let summary = RunSummary::load(&a.path).with_context(|| {
+            format!(
+                "{} is neither a sweep folder nor a run folder",
+                a.path.display()
+            )
+        })?;
+        let out = a.out.clone().unwrap_or_else(|| a.path.join("report"));
+        let label = a
+            .path
+            .file_name()
+            .map_or("run".into(), |n| n.to_string_lossy().into_owned());
+        let rows: Vec<PointResult> = [a.path.join(RESULT_FILE)]
+            .iter()
+            .filter(|p| p.exists())
+            .map(|p| PointResult::load(p))
+            .collect::<std::result::Result<_, _>>()?;
+        let last = summary.evaluations.last();
+        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let strips = render_strip(&a.path, None, "test", &out, "render.png", &label)
+            .await
+            .into_iter()
+            .collect();
+        html::write(
+            &out,
+            &Report {
+                title: format!("run {label}"),
+                note: format!(
+                    "{} steps in {:.0} s of training at {:.2} scenes/s{}; last validation: {}.",
+                    summary.steps,
+                    summary.wall_s,
+                    summary.scenes_per_s,
+                    summary
+                        .peak_rss_mb
+                        .map_or(String::new(), |m| format!(", peak RSS {m:.0} MiB")),
+                    last.map_or("none yet".into(), |e| format!(
+                        "PSNR {:.2} dB{}, FG-ARI {}",
+                        e.psnr,
+                        e.baseline_psnr.map_or(String::new(), |b| format!(
+                            " (mean-colour baseline {b:.2} dB)"
+                        )),
+                        e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+                    ))
+                ),
+                rows: &rows,
+                curves: &[summary.curve(&label)],
+                strips,
+            },
+        )?
+    };
+    println!("report: {}", page.display());
+    Ok(())
+}
