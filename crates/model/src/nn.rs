@@ -3,8 +3,9 @@
 //! pre-norm transformer blocks (self- and cross-attention).
 //!
 //! candle's fused `layer_norm` and `softmax_last_dim` have no backward pass and fail
-//! silently (their parameters never train), so everything here is composed from ops that
-//! do: `candle_nn::ops::softmax` and the LayerNorm below.
+//! silently (their parameters never train), so everything here uses ops that have one:
+//! our own fused LayerNorm, softmax, GELU and bias add (`crate::fused`, hand-written
+//! backward passes), falling back to candle's composed ops where those do not apply.
 
 use candle_core::{D, Module, Result, Tensor};
 use candle_nn::{Init, VarBuilder};
@@ -192,7 +193,7 @@ impl Attention {
         let v = split(self.v.forward(ctx)?, m)?;
         let scale = 1.0 / (self.head_dim as f64).sqrt();
         let logits = (q.matmul(&k.t()?)? * scale)?; // [b·h, n, m]
-        let attn = candle_nn::ops::softmax(&logits, D::Minus1)?;
+        let attn = crate::fused::softmax(&logits, D::Minus1)?;
         let o = attn.matmul(&v)?; // [b·h, n, dh]
         let o = o
             .reshape((b, self.heads, n, self.head_dim))?

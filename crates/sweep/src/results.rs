@@ -121,7 +121,7 @@ impl RunSummary {
             s.scenes_per_s = rate_sum / rate_n as f64;
         }
         // A resumed run logs the steps after its checkpoint again: keep the last word.
-        s.evaluations.sort_by(|a, b| a.step.cmp(&b.step));
+        s.evaluations.sort_by_key(|a| a.step);
         s.evaluations.dedup_by(|later, earlier| {
             let same = later.step == earlier.step;
             if same {

@@ -76,7 +76,7 @@ impl SlotMixer {
         let q = self.mix_q.forward(&allocated)?; // [b, r, ds]
         let k = self.mix_k.forward(slots)?; // [b, k, ds]
         let logits = (q.matmul(&k.t()?)? / (self.slot_dim as f64).sqrt())?; // [b, r, k]
-        let weights = candle_nn::ops::softmax(&logits, D::Minus1)?;
+        let weights = crate::fused::softmax(&logits, D::Minus1)?;
         let mixed = weights.matmul(slots)?; // [b, r, ds]
         let h = Tensor::cat(&[&mixed, &query], D::Minus1)?;
         let rgb = candle_nn::ops::sigmoid(&self.render.forward(&h)?)?;
