@@ -6,9 +6,10 @@
 //! 183 → 96 → 192 → 384 → 768 channels, total stride 8, a 1×1 conv to the token width,
 //! and 5 transformer layers of width 768 (12 heads × 64, MLP 1536).
 
+use crate::fused::conv2d_nhwc;
 use crate::nn::{Transformer, TransformerConfig};
 use crate::ray_encoding::RayEncoding;
-use candle_core::{D, Module, Result, Tensor};
+use candle_core::{D, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use serde::{Deserialize, Serialize};
 
@@ -93,21 +94,17 @@ impl Encoder {
     ) -> Result<Tensor> {
         let (b, v, h, w, _) = images.dims5()?;
         let enc = rays.forward(origins, directions)?; // [b, v, h, w, r]
-        let x = Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
-            .reshape((b * v, h, w, 3 + rays.dim()))?
-            .permute((0, 3, 1, 2))?
-            .contiguous()?; // [b·v, c, h, w]
-        let mut x = x;
+        // Channels-last throughout: the convolutions are im2col + matmul on NHWC
+        // (`fused::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
+        let mut x = Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
+            .reshape((b * v, h, w, 3 + rays.dim()))?; // [b·v, h, w, c]
         for (a, s2) in &self.convs {
-            x = a.forward(&x)?.relu()?;
-            x = s2.forward(&x)?.relu()?;
+            x = conv2d_nhwc(&x, a.weight(), 1, 1)?.relu()?;
+            x = conv2d_nhwc(&x, s2.weight(), 2, 1)?.relu()?;
         }
-        let x = self.project.forward(&x)?; // [b·v, d, h', w']
-        let (_, d, h2, w2) = x.dims4()?;
-        let tokens = x
-            .reshape((b, v, d, h2 * w2))?
-            .permute((0, 1, 3, 2))? // [b, v, h'w', d]
-            .reshape((b, v * h2 * w2, d))?;
+        let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        let (_, h2, w2, d) = x.dims4()?;
+        let tokens = x.reshape((b, v * h2 * w2, d))?;
         self.transformer.forward(&tokens, None)
     }
 
