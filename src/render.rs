@@ -70,21 +70,22 @@ fn parse_add_slot(s: &str) -> std::result::Result<(u64, usize), String> {
     ))
 }
 
+/// The first `limit` scenes (all if `None`) of `split`, with masks.
+async fn load_scenes(data: &str, split: &str, limit: Option<usize>) -> Result<Vec<Scene>> {
+    let loc = Location::parse(data)?;
+    let columns = Columns {
+        masks: true,
+        objects: false,
+    };
+    osrt_trainer::data::load_split(&loc, split, columns, limit)
+        .await
+        .with_context(|| format!("reading {data}/{split}"))
+}
+
 /// Scenes `ids` of `split`, in the order asked; a missing id is an error naming the split's
 /// id range.
 async fn find_scenes(data: &str, split: &str, ids: &[u64]) -> Result<Vec<Scene>> {
-    let loc = Location::parse(data)?;
-    let scenes = osrt_trainer::data::load_split(
-        &loc,
-        split,
-        Columns {
-            masks: true,
-            objects: false,
-        },
-        None,
-    )
-    .await
-    .with_context(|| format!("reading {data}/{split}"))?;
+    let scenes = load_scenes(data, split, None).await?;
     ids.iter()
         .map(|&id| {
             scenes
@@ -314,17 +315,7 @@ pub async fn report_strip(
 ) -> Result<PathBuf> {
     let loaded = load_run(run).await?;
     let data = data.unwrap_or(&loaded.info.data);
-    let loc = Location::parse(data)?;
-    let scenes = osrt_trainer::data::load_split(
-        &loc,
-        split,
-        Columns {
-            masks: true,
-            objects: false,
-        },
-        Some(1),
-    )
-    .await?;
+    let scenes = load_scenes(data, split, Some(1)).await?;
     let scene = scenes
         .first()
         .with_context(|| format!("{data}/{split} has no scenes"))?;

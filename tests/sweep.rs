@@ -25,6 +25,13 @@ fn stderr(out: &std::process::Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// Runs `osrt args…`, asserts that it fails, and returns its stderr.
+fn fails(args: &[&str]) -> String {
+    let out = Command::new(common::bin()).args(args).output().unwrap();
+    assert!(!out.status.success(), "osrt {args:?} succeeded");
+    stderr(&out)
+}
+
 #[test]
 fn a_two_point_sweep_writes_its_rows_and_charts_and_skips_finished_points() {
     let dir = tempfile::tempdir().unwrap();
@@ -95,16 +102,8 @@ fn a_two_point_sweep_writes_its_rows_and_charts_and_skips_finished_points() {
 
     // Another sweep file may not reuse the folder.
     let other = write_sweep(dir.path(), &data, "slots = [2]");
-    let refused = Command::new(common::bin())
-        .args(["sweep", other.to_str().unwrap(), "--out", out])
-        .output()
-        .unwrap();
-    assert!(!refused.status.success());
-    assert!(
-        stderr(&refused).contains("holds a different sweep"),
-        "{}",
-        stderr(&refused)
-    );
+    let e = fails(&["sweep", other.to_str().unwrap(), "--out", out]);
+    assert!(e.contains("holds a different sweep"), "{e}");
 
     // Finished points have render strips on the page.
     let page = std::fs::read_to_string(out_dir.join("index.html")).unwrap();
@@ -327,37 +326,30 @@ fn render_writes_frames_and_an_edit_changes_the_picture() {
     assert_eq!(meta["frames"].as_array().unwrap().len(), 3);
 
     // Bad input names what was wrong.
-    let missing = Command::new(common::bin())
-        .args(["render", "--run", run, "--scene", "999", "--out"])
-        .arg(dir.path().join("x"))
-        .output()
-        .unwrap();
-    assert!(!missing.status.success());
-    assert!(
-        stderr(&missing).contains("no scene 999"),
-        "{}",
-        stderr(&missing)
-    );
-    let bad_slot = Command::new(common::bin())
-        .args([
-            "render",
-            "--run",
-            run,
-            "--scene",
-            "1",
-            "--drop-slot",
-            "7",
-            "--out",
-        ])
-        .arg(dir.path().join("y"))
-        .output()
-        .unwrap();
-    assert!(!bad_slot.status.success());
-    assert!(
-        stderr(&bad_slot).contains("has 3 slots"),
-        "{}",
-        stderr(&bad_slot)
-    );
+    let missing_out = dir.path().join("x");
+    let e = fails(&[
+        "render",
+        "--run",
+        run,
+        "--scene",
+        "999",
+        "--out",
+        missing_out.to_str().unwrap(),
+    ]);
+    assert!(e.contains("no scene 999"), "{e}");
+    let bad_slot_out = dir.path().join("y");
+    let e = fails(&[
+        "render",
+        "--run",
+        run,
+        "--scene",
+        "1",
+        "--drop-slot",
+        "7",
+        "--out",
+        bad_slot_out.to_str().unwrap(),
+    ]);
+    assert!(e.contains("has 3 slots"), "{e}");
 
     // Evaluation extras: fewer input views, grey inputs, a per-object-count breakdown;
     // more slots is refused for learned slot init.
@@ -378,26 +370,10 @@ fn render_writes_frames_and_an_edit_changes_the_picture() {
     let colour = osrt(&["eval", "--run", run, "--views", "2", "--json"]);
     let c: serde_json::Value = serde_json::from_slice(&colour.stdout).unwrap();
     assert_ne!(c["psnr"], r["psnr"], "grey inputs change the result");
-    let more = Command::new(common::bin())
-        .args(["eval", "--run", run, "--slots", "5"])
-        .output()
-        .unwrap();
-    assert!(!more.status.success());
-    assert!(
-        stderr(&more).contains("only random slot init"),
-        "{}",
-        stderr(&more)
-    );
-    let too_many = Command::new(common::bin())
-        .args(["eval", "--run", run, "--views", "4"])
-        .output()
-        .unwrap();
-    assert!(!too_many.status.success());
-    assert!(
-        stderr(&too_many).contains("only 3 views"),
-        "{}",
-        stderr(&too_many)
-    );
+    let e = fails(&["eval", "--run", run, "--slots", "5"]);
+    assert!(e.contains("only random slot init"), "{e}");
+    let e = fails(&["eval", "--run", run, "--views", "4"]);
+    assert!(e.contains("only 3 views"), "{e}");
 }
 
 #[test]
@@ -442,17 +418,13 @@ fn points_are_checked_against_the_dataset_before_training() {
     );
 
     let bad = write_sweep(dir.path(), &data, "input_views = [6]");
-    let refused = Command::new(common::bin())
-        .args([
-            "sweep",
-            bad.to_str().unwrap(),
-            "--out",
-            dir.path().join("out2").to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(!refused.status.success());
-    let e = stderr(&refused);
+    let out2 = dir.path().join("out2");
+    let e = fails(&[
+        "sweep",
+        bad.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+    ]);
     assert!(
         e.contains("input_views=6") && e.contains("only 5 views"),
         "{e}"
