@@ -69,6 +69,9 @@ pub fn save_json(path: &std::path::Path, value: &serde_json::Value) -> Result<St
 }
 
 pub fn run(a: BenchModelArgs) -> Result<()> {
+    // Measure with the allocator settings the local launcher gives its workers (fewer
+    // fresh pages per step: ~1.4x on this step); children inherit them.
+    crate::cluster::reexec_with_worker_allocator()?;
     if a.child {
         println!("{}", serde_json::to_string(&measure(&a)?)?);
         return Ok(());
