@@ -50,7 +50,13 @@ pub struct EvalOptions {
     pub seed: u64,
 }
 
+/// Scores `scenes`. Runs with candle's composed ops: the fused ops pay off through their
+/// backward passes, and forward-only they are slower here (docs/performance.md).
 pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
+    osrt_model::fused::with_fused(false, || evaluate_composed(model, scenes, opts))
+}
+
+fn evaluate_composed(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
     let mut psnr = Psnr::default();
     let mut baseline = Psnr::default();
     let mut seg = Segmentation::default();

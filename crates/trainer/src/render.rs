@@ -36,6 +36,17 @@ pub fn decode_rays(
     origins: &Tensor,
     directions: &Tensor,
 ) -> Result<Decoded> {
+    // Forward only: candle's composed ops are faster here than the fused ones, which pay
+    // off through their backward passes (docs/performance.md).
+    osrt_model::fused::with_fused(false, || decode_composed(model, slots, origins, directions))
+}
+
+fn decode_composed(
+    model: &Osrt,
+    slots: &Tensor,
+    origins: &Tensor,
+    directions: &Tensor,
+) -> Result<Decoded> {
     let r = origins.dim(1)?;
     let mut rgb = Vec::with_capacity(r * 3);
     let mut labels: Option<Vec<u32>> = Some(Vec::with_capacity(r));
@@ -99,9 +110,10 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
     let origins = Tensor::from_slice(&batch.input_origins, img, dev)?;
     let directions = Tensor::from_slice(&batch.input_directions, img, dev)?;
     let noise = model.slot_noise(1, &mut rng)?;
-    Ok(model
-        .encode(&images, &origins, &directions, noise.as_ref())?
-        .slots)
+    let out = osrt_model::fused::with_fused(false, || {
+        model.encode(&images, &origins, &directions, noise.as_ref())
+    })?;
+    Ok(out.slots)
 }
 
 /// One rendered image.
