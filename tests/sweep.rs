@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{osrt, tiny_dataset};
+use common::{osrt, tiny_dataset, train_tiny};
 use std::path::Path;
 use std::process::Command;
 
@@ -212,21 +212,7 @@ fn render_writes_frames_and_an_edit_changes_the_picture() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_dataset(dir.path(), 8);
     let run = dir.path().join("run");
-    osrt(&[
-        "train",
-        "--preset",
-        "tiny",
-        "--data",
-        data.to_str().unwrap(),
-        "--run",
-        run.to_str().unwrap(),
-        "--workers",
-        "1",
-        "--threads",
-        "1",
-        "--max-steps",
-        "2",
-    ]);
+    train_tiny(&data, &run, 2, &[]);
     let run = run.to_str().unwrap();
     let plain = dir.path().join("plain");
     let done = osrt(&[
@@ -457,23 +443,7 @@ fn ood_scenes_are_evaluated_with_more_slots() {
         "1",
     ]);
     let run = dir.path().join("run");
-    osrt(&[
-        "train",
-        "--preset",
-        "tiny",
-        "--slot-init",
-        "random",
-        "--data",
-        data.to_str().unwrap(),
-        "--run",
-        run.to_str().unwrap(),
-        "--workers",
-        "1",
-        "--threads",
-        "1",
-        "--max-steps",
-        "2",
-    ]);
+    train_tiny(&data, &run, 2, &["--slot-init", "random"]);
     let eval = |slots: &str| -> serde_json::Value {
         let out = osrt(&[
             "eval",

@@ -60,6 +60,33 @@ pub fn tiny_dataset_at(out: &str, train: usize, env: &[(String, String)]) {
     );
 }
 
+/// Trains the `tiny` preset for `steps` steps on one single-threaded worker into `run`,
+/// with `extra` train flags.
+pub fn train_tiny(data: &Path, run: &Path, steps: u64, extra: &[&str]) -> Output {
+    let (data, run, steps) = (
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        steps.to_string(),
+    );
+    let mut args = vec![
+        "train",
+        "--preset",
+        "tiny",
+        "--data",
+        data,
+        "--run",
+        run,
+        "--workers",
+        "1",
+        "--threads",
+        "1",
+        "--max-steps",
+        &steps,
+    ];
+    args.extend_from_slice(extra);
+    osrt(&args)
+}
+
 /// A free loopback port (bound and released; the race is harmless in tests).
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
