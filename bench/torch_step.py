@@ -27,6 +27,7 @@ import time
 CFG = dict(
     origin_octaves=8, origin_start=-3, direction_octaves=8, direction_start=0,
     conv_channels=[32, 64], dim=128, enc_layers=2, enc_heads=4, enc_head_dim=32, enc_mlp=256,
+    ray_input="add",
     num_slots=7, slot_dim=128, slot_mlp=256, iterations=3, eps=1e-8,
     query_hidden=192, alloc_layers=1, alloc_heads=4, alloc_head_dim=32, alloc_mlp=192,
     render_hidden=[128, 128],
@@ -36,8 +37,9 @@ CFG = dict(
 
 # The Rust model's parameter count (`osrt bench model --json` → "parameters"). By module:
 #   ray encoding: 6·(8+8) = 96 dims, no parameters
-#   encoder  438,112 = convs 99→32→64→64→128 (3×3, no bias) 28,512+18,432+36,864+73,728
+#   encoder  607,072 = convs 3→32→64→64→128 (3×3, no bias) 864+18,432+36,864+73,728
 #                      + 1×1 projection 16,384
+#                      + ray-patch embedding 96→128 (4×4, stride 4, no bias) 196,608
 #                      + 2 blocks × 132,096 (2 LN 512, q/k/v 3×16,384, out 16,512,
 #                        MLP 128→256→128 65,920)
 #   slots    215,808 = 3 LN 768, q/k/v 49,152, GRU 2×49,536, MLP 65,920, init 7×128 = 896
@@ -46,7 +48,7 @@ CFG = dict(
 #                        MLP 96→192→96 37,152)
 #                      + mix_q 12,288 + mix_k 16,384
 #                      + render MLP 224→128→128→3 28,800+16,512+387
-RUST_PARAMETERS = 860_419
+RUST_PARAMETERS = 1_029_379
 
 # What `osrt bench model` re-executes itself with (src/cluster.rs, WORKER_MALLOC_ENV).
 WORKER_MALLOC_ENV = {
@@ -131,19 +133,25 @@ def build(torch):
 
     class Encoder(nn.Module):
         """[conv3×3 s1 → ReLU → conv3×3 s2 → ReLU] per block, no biases, 1×1 projection,
-        tokens in (view, row, column) order, self-attention transformer."""
+        tokens in (view, row, column) order, self-attention transformer. `ray_input`:
+        "concat" (paper: the CNN reads RGB ⊕ rays) or "add" (the CNN reads RGB; a
+        stride×stride patch embedding of the rays is added to the tokens)."""
 
         def __init__(self, c, ray_dim):
             super().__init__()
-            convs, c_in = [], 3 + ray_dim
+            self.add_rays = c["ray_input"] == "add"
+            convs, c_in = [], 3 if self.add_rays else 3 + ray_dim
             for ch in c["conv_channels"]:
                 convs += [nn.Conv2d(c_in, ch, 3, padding=1, bias=False), nn.ReLU(),
                           nn.Conv2d(ch, 2 * ch, 3, stride=2, padding=1, bias=False), nn.ReLU()]
                 c_in = 2 * ch
             self.convs = nn.Sequential(*convs)
             self.project = nn.Conv2d(c_in, c["dim"], 1, bias=False)
+            stride = 2 ** len(c["conv_channels"])
+            self.ray_embed = (nn.Conv2d(ray_dim, c["dim"], stride, stride=stride, bias=False)
+                              if self.add_rays else None)
             # candle_nn::conv2d_no_bias initialises with Kaiming normal (fan in, ReLU gain).
-            for m in [*self.convs, self.project]:
+            for m in [*self.convs, self.project, self.ray_embed]:
                 if isinstance(m, nn.Conv2d):
                     nn.init.kaiming_normal_(m.weight, mode="fan_in", nonlinearity="relu")
             self.transformer = Transformer(c["dim"], c["dim"], c["enc_layers"], c["enc_heads"],
@@ -151,8 +159,14 @@ def build(torch):
 
         def forward(self, rays, images, origins, directions):
             b, v, h, w, _ = images.shape
-            x = torch.cat([images, rays(origins, directions)], -1).reshape(b * v, h, w, -1)
+            enc = rays(origins, directions).reshape(b * v, h, w, -1)
+            if self.add_rays:
+                x = images.reshape(b * v, h, w, 3)
+            else:
+                x = torch.cat([images.reshape(b * v, h, w, 3), enc], -1)
             x = self.project(self.convs(x.permute(0, 3, 1, 2)))  # [b·v, d, h', w']
+            if self.add_rays:
+                x = x + self.ray_embed(enc.permute(0, 3, 1, 2))
             d = x.shape[1]
             tokens = x.reshape(b, v, d, -1).permute(0, 1, 3, 2).reshape(b, -1, d)
             return self.transformer(tokens)

@@ -26,9 +26,12 @@ pub struct SweepArgs {
 
 #[derive(Args)]
 pub struct ReportArgs {
-    /// A run folder of `osrt train`, or a sweep's output folder.
-    pub path: PathBuf,
-    /// Where the page and its charts go (default: PATH/report for a run, PATH for a sweep).
+    /// A sweep's output folder, or one or more run folders of `osrt train` (several runs
+    /// share one chart: seeds, or settings compared by hand).
+    #[arg(required = true, num_args = 1..)]
+    pub paths: Vec<PathBuf>,
+    /// Where the page and its charts go (default: PATH/report for one run, PATH for a
+    /// sweep; required for several runs).
     #[arg(long)]
     pub out: Option<PathBuf>,
 }
@@ -247,58 +250,104 @@ async fn render_strip(
 }
 
 pub async fn report(a: ReportArgs) -> Result<()> {
-    let page = if a.path.join(SWEEP_COPY).exists() {
-        sweep_report(&a.path, a.out.as_deref().unwrap_or(&a.path)).await?
-    } else {
-        let summary = RunSummary::load(&a.path).with_context(|| {
-            format!(
-                "{} is neither a sweep folder nor a run folder",
-                a.path.display()
-            )
-        })?;
-        let out = a.out.clone().unwrap_or_else(|| a.path.join("report"));
-        let label = a
-            .path
-            .file_name()
-            .map_or("run".into(), |n| n.to_string_lossy().into_owned());
-        let rows: Vec<PointResult> = [a.path.join(RESULT_FILE)]
-            .iter()
-            .filter(|p| p.exists())
-            .map(|p| PointResult::load(p))
-            .collect::<std::result::Result<_, _>>()?;
-        let last = summary.evaluations.last();
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-        let strips = render_strip(&a.path, None, "test", &out, "render.png", &label)
-            .await
-            .into_iter()
-            .collect();
-        html::write(
-            &out,
-            &Report {
-                title: format!("run {label}"),
-                note: format!(
-                    "{} steps in {:.0} s of training at {:.2} scenes/s{}; last validation: {}.",
-                    summary.steps,
-                    summary.wall_s,
-                    summary.scenes_per_s,
-                    summary
-                        .peak_rss_mb
-                        .map_or(String::new(), |m| format!(", peak RSS {m:.0} MiB")),
-                    last.map_or("none yet".into(), |e| format!(
-                        "PSNR {:.2} dB{}, FG-ARI {}",
-                        e.psnr,
-                        e.baseline_psnr.map_or(String::new(), |b| format!(
-                            " (mean-colour baseline {b:.2} dB)"
-                        )),
-                        e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
-                    ))
-                ),
-                rows: &rows,
-                curves: &[summary.curve(&label)],
-                strips,
-            },
-        )?
+    let page = match a.paths.as_slice() {
+        [one] if one.join(SWEEP_COPY).exists() => {
+            sweep_report(one, a.out.as_deref().unwrap_or(one)).await?
+        }
+        [one] => {
+            let out = a.out.clone().unwrap_or_else(|| one.join("report"));
+            runs_report(&a.paths, &out).await?
+        }
+        several => {
+            if let Some(sweep) = several.iter().find(|p| p.join(SWEEP_COPY).exists()) {
+                bail!(
+                    "{} is a sweep folder: report a sweep on its own",
+                    sweep.display()
+                );
+            }
+            let Some(out) = &a.out else {
+                bail!(
+                    "{} runs: say where their page goes with --out",
+                    several.len()
+                );
+            };
+            runs_report(several, out).await?
+        }
     };
     println!("report: {}", page.display());
     Ok(())
+}
+
+/// Page of one or more run folders: their curves in one chart, each run's final
+/// evaluation as a row where it has one, and a render strip per run.
+async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut labels: Vec<String> = runs
+        .iter()
+        .map(|p| {
+            p.file_name()
+                .map_or("run".into(), |n| n.to_string_lossy().into_owned())
+        })
+        .collect();
+    if labels
+        .iter()
+        .enumerate()
+        .any(|(i, l)| labels[..i].contains(l))
+    {
+        // Two runs of the same name in different folders: label by path instead.
+        labels = runs.iter().map(|p| p.display().to_string()).collect();
+    }
+    let (mut rows, mut curves, mut strips, mut notes) = (vec![], vec![], vec![], vec![]);
+    for (i, (run, label)) in runs.iter().zip(&labels).enumerate() {
+        let summary = RunSummary::load(run).with_context(|| {
+            format!(
+                "{} is neither a sweep folder nor a run folder",
+                run.display()
+            )
+        })?;
+        let result = run.join(RESULT_FILE);
+        if result.exists() {
+            rows.push(PointResult::load(&result)?);
+        }
+        let last = summary.evaluations.last();
+        notes.push(format!(
+            "{label}: {} steps in {:.0} s of training at {:.2} scenes/s{}; last validation: {}.",
+            summary.steps,
+            summary.wall_s,
+            summary.scenes_per_s,
+            summary
+                .peak_rss_mb
+                .map_or(String::new(), |m| format!(", peak RSS {m:.0} MiB")),
+            last.map_or("none yet".into(), |e| format!(
+                "PSNR {:.2} dB{}, FG-ARI {}",
+                e.psnr,
+                e.baseline_psnr.map_or(String::new(), |b| format!(
+                    " (mean-colour baseline {b:.2} dB)"
+                )),
+                e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+            ))
+        ));
+        curves.push(summary.curve(label));
+        let png = if runs.len() == 1 {
+            "render.png".to_string()
+        } else {
+            format!("render-{i}.png")
+        };
+        strips.extend(render_strip(run, None, "test", out, &png, label).await);
+    }
+    let title = match labels.as_slice() {
+        [one] => format!("run {one}"),
+        several => format!("runs {}", several.join(", ")),
+    };
+    html::write(
+        out,
+        &Report {
+            title,
+            note: notes.join(" "),
+            rows: &rows,
+            curves: &curves,
+            strips,
+        },
+    )
+    .map_err(Into::into)
 }

@@ -70,6 +70,10 @@ pub struct TrainArgs {
     /// Override the slot init: learned, random, or tokens (an option beyond the paper).
     #[arg(long)]
     pub slot_init: Option<String>,
+    /// Override how the ray encoding enters the encoder: concat (paper) or add (an
+    /// option beyond the paper: RGB-only CNN plus a ray-patch embedding).
+    #[arg(long)]
+    pub ray_input: Option<String>,
     /// Override seconds between validation runs.
     #[arg(long)]
     pub eval_every_s: Option<f64>,
@@ -138,6 +142,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
         job.model = job.model.clone().with_decoder(d).with_context(|| {
             format!("unknown decoder `{d}`: expected slot_mixer, spatial_broadcast or transformer")
         })?;
+    }
+    if let Some(v) = &a.ray_input {
+        job.model.encoder.ray_input = v.parse().map_err(anyhow::Error::msg)?;
     }
     let sa = &mut job.model.slot_attention;
     if let Some(v) = a.slots {

@@ -123,6 +123,26 @@ fn a_two_point_sweep_writes_its_rows_and_charts_and_skips_finished_points() {
     assert!(page.contains("render.png"));
     assert!(run.join("report/psnr.png").exists());
     assert!(run.join("report/render.png").exists());
+
+    // Several runs share one chart; their page needs --out, and a sweep stays alone.
+    let other = out_dir.join("decoder=transformer");
+    let (a, b) = (run.to_str().unwrap(), other.to_str().unwrap());
+    let e = fails(&["report", a, b]);
+    assert!(
+        e.contains("2 runs: say where their page goes with --out"),
+        "{e}"
+    );
+    let e = fails(&["report", a, out, "--out", "x"]);
+    assert!(e.contains("is a sweep folder"), "{e}");
+    let both = dir.path().join("both");
+    osrt(&["report", a, b, "--out", both.to_str().unwrap()]);
+    let page = std::fs::read_to_string(both.join("index.html")).unwrap();
+    assert!(
+        page.contains("runs decoder=slot_mixer, decoder=transformer"),
+        "{page}"
+    );
+    assert!(page.contains("render-0.png") && page.contains("render-1.png"));
+    assert!(both.join("psnr.png").exists() && both.join("render-1.png").exists());
 }
 
 /// Where `needle` appears pixel for pixel (±8 per channel) in `hay`, judged on up to 400 of

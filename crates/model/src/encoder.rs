@@ -13,6 +13,37 @@ use candle_core::{D, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use serde::{Deserialize, Serialize};
 
+/// How the ray encoding enters the encoder.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RayInput {
+    /// Paper: the CNN reads RGB ⊕ ray encoding per pixel.
+    #[default]
+    Concat,
+    /// Not in the paper (an explicit option, reported as an ablation): the CNN reads RGB
+    /// only, and a linear embedding of each token's patch of ray encodings (a conv with
+    /// kernel = stride = the CNN's stride) is added to its tokens, as Slot Attention adds
+    /// its position embedding. Why: concatenated, the 3 colour channels are ~2 % of the
+    /// first conv's input energy beside the ray encoding, so at initialisation the
+    /// tokens of two scenes seen from one camera differ by ~2.5 % (docs/time-to-quality.md).
+    Add,
+}
+
+impl std::str::FromStr for RayInput {
+    type Err = String;
+
+    /// The names the configs use: `concat`, `add`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "concat" => Ok(Self::Concat),
+            "add" => Ok(Self::Add),
+            other => Err(format!(
+                "unknown ray input `{other}`: expected concat or add"
+            )),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Config {
     /// Width of the first conv of each block; the block's stride-2 conv doubles it.
@@ -20,6 +51,9 @@ pub struct Config {
     /// Token width (the 1×1 conv's output and the transformer's width).
     pub dim: usize,
     pub transformer: TransformerConfig,
+    /// How the ray encoding enters (absent in older configs: the paper's `concat`).
+    #[serde(default)]
+    pub ray_input: RayInput,
 }
 
 impl Config {
@@ -33,6 +67,7 @@ impl Config {
                 head_dim: 64,
                 mlp_hidden: 1536,
             },
+            ray_input: RayInput::Concat,
         }
     }
 
@@ -46,6 +81,8 @@ impl Config {
 pub struct Encoder {
     convs: Vec<(Conv2d, Conv2d)>,
     project: Conv2d,
+    /// `RayInput::Add` only: ray-encoding patch embedding, kernel = stride = CNN stride.
+    ray_embed: Option<Conv2d>,
     transformer: Transformer,
     cfg: Config,
 }
@@ -61,7 +98,10 @@ impl Encoder {
             stride: 2,
             ..Default::default()
         };
-        let mut c_in = 3 + ray_dim;
+        let mut c_in = match cfg.ray_input {
+            RayInput::Concat => 3 + ray_dim,
+            RayInput::Add => 3,
+        };
         let mut convs = Vec::new();
         for (i, &c) in cfg.conv_channels.iter().enumerate() {
             let vbi = vb.pp(format!("conv{i}"));
@@ -72,11 +112,22 @@ impl Encoder {
         }
         let project =
             candle_nn::conv2d_no_bias(c_in, cfg.dim, 1, Default::default(), vb.pp("project"))?;
+        let ray_embed = match cfg.ray_input {
+            RayInput::Concat => None,
+            RayInput::Add => Some(candle_nn::conv2d_no_bias(
+                ray_dim,
+                cfg.dim,
+                cfg.stride(),
+                Default::default(),
+                vb.pp("ray_embed"),
+            )?),
+        };
         let transformer =
             Transformer::new(cfg.dim, cfg.dim, &cfg.transformer, vb.pp("transformer"))?;
         Ok(Self {
             convs,
             project,
+            ray_embed,
             transformer,
             cfg: cfg.clone(),
         })
@@ -94,15 +145,29 @@ impl Encoder {
     ) -> Result<Tensor> {
         let (b, v, h, w, _) = images.dims5()?;
         let enc = rays.forward(origins, directions)?; // [b, v, h, w, r]
+        let r = rays.dim();
         // Channels-last throughout: the convolutions are im2col + matmul on NHWC
         // (`fused::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
-        let mut x = Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
-            .reshape((b * v, h, w, 3 + rays.dim()))?; // [b·v, h, w, c]
+        let mut x = match &self.ray_embed {
+            None => Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
+                .reshape((b * v, h, w, 3 + r))?, // [b·v, h, w, c]
+            Some(_) => images.reshape((b * v, h, w, 3))?,
+        };
         for (a, s2) in &self.convs {
             x = conv2d_nhwc(&x, a.weight(), 1, 1)?.relu()?;
             x = conv2d_nhwc(&x, s2.weight(), 2, 1)?.relu()?;
         }
-        let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        if let Some(embed) = &self.ray_embed {
+            let s = self.cfg.stride();
+            if h % s != 0 || w % s != 0 {
+                candle_core::bail!(
+                    "encoder: ray_input = \"add\" needs image sides divisible by the CNN stride {s}, got {h}×{w}"
+                );
+            }
+            let enc = enc.reshape((b * v, h, w, r))?;
+            x = (x + conv2d_nhwc(&enc, embed.weight(), s, 0)?)?; // [b·v, h/s, w/s, d]
+        }
         let (_, h2, w2, d) = x.dims4()?;
         let tokens = x.reshape((b, v * h2 * w2, d))?;
         self.transformer.forward(&tokens, None)

@@ -29,9 +29,11 @@ impl Config {
         }
     }
 
-    /// A ≈ 1 M-parameter model for 2-core CPUs: 8-octave ray encoding, stride-4 CNN, two
-    /// 128-wide encoder layers, 7 slots of 128 with 3 iterations, a one-layer allocation
-    /// transformer and a 2 × 128 render MLP.
+    /// A ≈ 1 M-parameter model for 2-core CPUs: 8-octave ray encoding, stride-4 CNN over
+    /// RGB with the rays added as a patch embedding (`RayInput::Add`, beyond the paper:
+    /// with the paper's concatenation this model never leaves the background plateau on
+    /// clevr-lite, docs/time-to-quality.md), two 128-wide encoder layers, 7 slots of 128
+    /// with 3 iterations, a one-layer allocation transformer and a 2 × 128 render MLP.
     pub fn cpu() -> Self {
         let small = TransformerConfig {
             layers: 2,
@@ -50,6 +52,7 @@ impl Config {
                 conv_channels: vec![32, 64],
                 dim: 128,
                 transformer: small,
+                ray_input: encoder::RayInput::Add,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 7,
@@ -91,6 +94,7 @@ impl Config {
                 conv_channels: vec![4],
                 dim: 8,
                 transformer: t.clone(),
+                ray_input: encoder::RayInput::Concat,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 3,

@@ -2,6 +2,7 @@
 //! (in f64) and extreme inputs.
 
 use crate::decoder::DecoderOutput;
+use crate::encoder::RayInput;
 use crate::nn::{Block, TransformerConfig};
 use crate::params::{Params, normal_samples};
 use crate::ray_encoding::RayEncoding;
@@ -98,10 +99,16 @@ fn run(model: &Osrt, x: &Inputs) -> Result<(DecoderOutput, Tensor)> {
 fn decoder_variants(base: Config) -> Vec<(String, Config)> {
     let mut out = Vec::new();
     for kind in ["slot_mixer", "spatial_broadcast", "transformer"] {
-        for init in [SlotInit::Learned, SlotInit::Random, SlotInit::Tokens] {
+        for (init, ray_input) in [
+            (SlotInit::Learned, RayInput::Concat),
+            (SlotInit::Random, RayInput::Concat),
+            (SlotInit::Tokens, RayInput::Concat),
+            (SlotInit::Learned, RayInput::Add),
+        ] {
             let mut c = base.clone().with_decoder(kind).unwrap();
             c.slot_attention.init = init;
-            out.push((format!("{kind}/{init:?}"), c));
+            c.encoder.ray_input = ray_input;
+            out.push((format!("{kind}/{init:?}/{ray_input:?}"), c));
         }
     }
     out
@@ -239,7 +246,8 @@ fn gradcheck_slot_attention() {
 #[test]
 fn gradcheck_decoders_and_loss() {
     // The full model (encoder, slot attention, each decoder) under the MSE loss.
-    for (name, cfg) in decoder_variants(Config::tiny()).into_iter().step_by(2) {
+    // Every third of the 12 variants: each decoder, slot init and ray input once.
+    for (name, cfg) in decoder_variants(Config::tiny()).into_iter().step_by(3) {
         let p = Params::new(4);
         let model = Osrt::new(&cfg, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
         let x = inputs(1, 1, 4, 3, 2.0, DType::F64);
@@ -431,4 +439,46 @@ fn cpu_preset_size() {
         (500_000..3_000_000).contains(&n),
         "cpu preset has {n} parameters"
     );
+}
+
+#[test]
+fn ray_input_add_refuses_sides_not_divisible_by_the_stride() {
+    let mut cfg = Config::tiny();
+    cfg.encoder.ray_input = RayInput::Add;
+    let p = Params::new(1);
+    let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+    let err = run(&model, &inputs(1, 1, 5, 3, 3.0, DType::F32))
+        .err()
+        .expect("a 5×5 image with stride 2 is refused")
+        .to_string();
+    assert!(err.contains("divisible by the CNN stride 2"), "{err}");
+}
+
+/// Why `RayInput::Add` exists: at initialisation, the SLSR tokens of two different images
+/// seen along the same rays differ far more when the CNN reads RGB alone.
+#[test]
+fn ray_input_add_lets_the_image_through_at_initialisation() {
+    let token_change = |ray_input: RayInput| -> f32 {
+        let mut cfg = Config::cpu();
+        cfg.encoder.ray_input = ray_input;
+        let p = Params::new(0);
+        let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
+        let a = inputs(1, 1, 32, 1, 3.0, DType::F32);
+        let b = inputs(1, 1, 32, 1, 3.0, DType::F32);
+        // Same rays, another image: the first one turned upside down and mirrored.
+        let img_b = a.images.flip(&[2, 3]).unwrap();
+        let tokens = |img: &Tensor| {
+            model
+                .encoder
+                .forward(&model.rays, img, &b.origins, &b.dirs)
+                .unwrap()
+        };
+        let (ta, tb) = (tokens(&a.images), tokens(&img_b));
+        let rel = (&ta - &tb).unwrap().sqr().unwrap().sum_all().unwrap();
+        let norm = ta.sqr().unwrap().sum_all().unwrap();
+        (rel.to_scalar::<f32>().unwrap() / norm.to_scalar::<f32>().unwrap()).sqrt()
+    };
+    let (concat, add) = (token_change(RayInput::Concat), token_change(RayInput::Add));
+    eprintln!("relative token change: concat {concat:.4}, add {add:.4}");
+    assert!(add > 3.0 * concat, "concat {concat}, add {add}");
 }

@@ -82,6 +82,9 @@ pub struct Axes {
     pub iterations: Vec<usize>,
     #[serde(default)]
     pub slot_init: Vec<String>,
+    /// How the encoder reads the rays: `concat` (paper) or `add`.
+    #[serde(default)]
+    pub ray_input: Vec<String>,
     #[serde(default)]
     pub targets: Vec<Targets>,
     #[serde(default)]
@@ -110,6 +113,7 @@ impl Axes {
             ("slots", text(&self.slots)),
             ("iterations", text(&self.iterations)),
             ("slot_init", self.slot_init.clone()),
+            ("ray_input", self.ray_input.clone()),
             ("targets", targets),
             ("seed", text(&self.seed)),
             ("lr", text(&self.lr)),
@@ -172,6 +176,7 @@ impl Point {
                 "slots" => job.model.slot_attention.num_slots = int()?,
                 "iterations" => job.model.slot_attention.iterations = int()?,
                 "slot_init" => job.model.slot_attention.init = value.parse::<SlotInit>().map_err(err)?,
+                "ray_input" => job.model.encoder.ray_input = value.parse().map_err(err)?,
                 "targets" => {
                     job.train.target_views = match value.as_str() {
                         "novel" => TargetViews::All,
@@ -322,6 +327,28 @@ targets = ["novel", "input"]
             t.target_views = TargetViews::Input;
             t
         });
+    }
+
+    #[test]
+    fn the_ray_input_axis_sets_the_encoder() {
+        let f = SweepFile::parse(
+            "name = \"x\"\npreset = \"tiny\"\nmax_steps = 1\n[axes]\nray_input = [\"concat\", \"add\", \"mul\"]\n",
+            "x.toml",
+        )
+        .unwrap();
+        let base = f.base_job(Path::new(".")).unwrap();
+        let points = f.points();
+        let got: Vec<_> = points[..2]
+            .iter()
+            .map(|p| p.apply(&base).unwrap().model.encoder.ray_input)
+            .collect();
+        use osrt_model::encoder::RayInput;
+        assert_eq!(got, [RayInput::Concat, RayInput::Add]);
+        let e = points[2].apply(&base).unwrap_err().to_string();
+        assert!(
+            e.contains("ray_input=mul") && e.contains("expected concat or add"),
+            "{e}"
+        );
     }
 
     #[test]
