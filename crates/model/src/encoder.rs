@@ -146,6 +146,13 @@ impl Encoder {
         let (b, v, h, w, _) = images.dims5()?;
         let enc = rays.forward(origins, directions)?; // [b, v, h, w, r]
         let r = rays.dim();
+        let s = self.cfg.stride();
+        if self.ray_embed.is_some() && (h % s != 0 || w % s != 0) {
+            // Checked before the CNN runs: the patch embedding's grid must match the CNN's.
+            candle_core::bail!(
+                "encoder: ray_input = \"add\" needs image sides divisible by the CNN stride {s}, got {h}×{w}"
+            );
+        }
         // Channels-last throughout: the convolutions are im2col + matmul on NHWC
         // (`fused::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
         let mut x = match &self.ray_embed {
@@ -159,12 +166,6 @@ impl Encoder {
         }
         let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {
-            let s = self.cfg.stride();
-            if h % s != 0 || w % s != 0 {
-                candle_core::bail!(
-                    "encoder: ray_input = \"add\" needs image sides divisible by the CNN stride {s}, got {h}×{w}"
-                );
-            }
             let enc = enc.reshape((b * v, h, w, r))?;
             x = (x + conv2d_nhwc(&enc, embed.weight(), s, 0)?)?; // [b·v, h/s, w/s, d]
         }

@@ -464,13 +464,12 @@ fn ray_input_add_lets_the_image_through_at_initialisation() {
         let p = Params::new(0);
         let model = Osrt::new(&cfg, p.var_builder(&CPU)).unwrap();
         let a = inputs(1, 1, 32, 1, 3.0, DType::F32);
-        let b = inputs(1, 1, 32, 1, 3.0, DType::F32);
         // Same rays, another image: the first one turned upside down and mirrored.
         let img_b = a.images.flip(&[2, 3]).unwrap();
         let tokens = |img: &Tensor| {
             model
                 .encoder
-                .forward(&model.rays, img, &b.origins, &b.dirs)
+                .forward(&model.rays, img, &a.origins, &a.dirs)
                 .unwrap()
         };
         let (ta, tb) = (tokens(&a.images), tokens(&img_b));
