@@ -26,6 +26,10 @@ pub struct BenchModelArgs {
     /// Thread counts, one child process each.
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     pub threads: Vec<usize>,
+    /// Time only the train step with the fused ops (no composed step, no renders): the
+    /// quick figure, and the loop to profile.
+    #[arg(long)]
+    pub step_only: bool,
     /// Run in this process only (used by the parent; set RAYON_NUM_THREADS yourself).
     #[arg(long, hide = true)]
     pub child: bool,
@@ -42,7 +46,8 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     for p in &a.presets {
         let job = JobConfig::preset(p)?;
         // The same step with candle's composed ops, for the fused ops' speed-up.
-        for fused in [true, false] {
+        let variants: &[bool] = if a.step_only { &[true] } else { &[true, false] };
+        for &fused in variants {
             steps.push(with_fused(fused, || {
                 bench_step(p, &job, a.image_size, a.steps)
             })?);
@@ -50,7 +55,8 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     }
     let model = JobConfig::preset(&a.presets[0])?.model;
     let mut renders = Vec::new();
-    for &k in &a.slots {
+    let slots: &[usize] = if a.step_only { &[] } else { &a.slots };
+    for &k in slots {
         for d in ["slot_mixer", "spatial_broadcast", "transformer"] {
             renders.push(bench_render(&model, d, k, a.image_size, 5)?);
         }
@@ -90,6 +96,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
             "--steps",
             &a.steps.to_string(),
         ])
+        .args(a.step_only.then_some("--step-only"))
         .arg("--presets")
         .arg(a.presets.join(","))
         .arg("--slots")

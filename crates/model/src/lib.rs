@@ -11,6 +11,7 @@
 
 pub mod decoder;
 pub mod encoder;
+pub mod fastmath;
 pub mod fused;
 pub mod metrics;
 pub mod nn;

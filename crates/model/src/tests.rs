@@ -212,6 +212,48 @@ fn gradcheck_ray_encoding() {
     );
 }
 
+/// The one-pass kernel (rays without gradients) against the composed ops it replaces:
+/// ordinary rays, huge origins (angles up to ~1e9 rad) and non-finite values.
+#[test]
+fn ray_encoding_kernel_matches_the_composed_version() {
+    for cfg in [Config::cpu().ray_encoding, Config::paper().ray_encoding] {
+        let enc = RayEncoding::new(cfg, DType::F32, &CPU).unwrap();
+        let d = unit_dirs(&[2, 5, 7, 3], 11, DType::F32);
+        for (scale, tol) in [(3.0, 2e-6), (1e5, 2e-6)] {
+            let o = (randn(&[2, 5, 7, 3], 12, DType::F32) * scale).unwrap();
+            let fast = enc.forward(&o, &d).unwrap();
+            let slow = enc.forward_composed(&o, &d).unwrap();
+            assert_eq!(fast.dims(), slow.dims());
+            let diff = (fast - slow)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .max(0)
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap();
+            assert!(
+                diff <= tol,
+                "scale {scale}: max |kernel − composed| = {diff:e}"
+            );
+        }
+        let bad = Tensor::new(&[[f32::INFINITY, f32::NAN, 0.0]], &CPU).unwrap();
+        let d1 = Tensor::new(&[[0f32, 0.0, 1.0]], &CPU).unwrap();
+        let out: Vec<f32> = enc
+            .forward(&bad, &d1)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        // The sines and cosines of the infinite and the NaN axis are NaN, no others.
+        let nan = out.iter().filter(|v| v.is_nan()).count();
+        assert_eq!(nan, 4 * enc.config().origin_octaves, "NaN count");
+    }
+}
+
 #[test]
 fn gradcheck_encoder_block() {
     let p = Params::new(2);
