@@ -439,7 +439,9 @@ pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -
     };
     let cols = x.contiguous()?.apply_op1(Im2Col(geom))?; // [n·ho·wo, c·k·k]
     let kmat = kernel.reshape((co, c * k * k))?;
-    cols.matmul(&kmat.t()?)?.reshape((n, ho, wo, co))
+    // Through `linear`: for an input that is data (the image, the ray encoding) backward
+    // skips the columns' gradient and so the col2im scatter.
+    linear(&cols, &kmat, None)?.reshape((n, ho, wo, co))
 }
 
 // ---------------------------------------------------------------- GELU (erf)
@@ -615,6 +617,132 @@ pub fn bias_add(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
     x.broadcast_add(bias)
 }
 
+// ---------------------------------------------------------------- linear
+
+/// `x: [n, in] · W: [out, in]ᵀ` through candle's CPU matmul, as an f32 buffer `[n, out]`.
+fn matmul_xwt(s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout) -> Result<Vec<f32>> {
+    let (n, k) = l1.shape().dims2()?;
+    let (o, k2) = l2.shape().dims2()?;
+    if k != k2 {
+        candle_core::bail!("linear: input width {k}, weight [{o}, {k2}]");
+    }
+    use candle_core::backend::BackendStorage;
+    match s1.matmul(s2, (1, n, o, k), l1, &l2.transpose(0, 1)?)? {
+        CpuStorage::F32(y) => Ok(y),
+        _ => candle_core::bail!("linear: fused ops take f32"),
+    }
+}
+
+/// Gradients of `x·Wᵀ` for upstream `grad: [n, out]`: `dx = grad·W` only when `x` carries
+/// a gradient (candle's matmul backward computes it for data inputs too), `dW = gradᵀ·x`.
+fn linear_grads(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Tensor)> {
+    let dx = if x.track_op() {
+        Some(grad.matmul(w)?)
+    } else {
+        None
+    };
+    Ok((dx, grad.t()?.matmul(x)?))
+}
+
+/// `y = x·Wᵀ + b` as one graph node (`x: [n, in]`, `W: [out, in]`, `b: [out]`): the bias
+/// is added into the matmul's output in place, and backward skips `dx` for data inputs
+/// and one `[n, out]` gradient accumulation (zeros + add) that matmul + bias add cost.
+struct LinearOp;
+
+impl CustomOp3 for LinearOp {
+    fn name(&self) -> &'static str {
+        "osrt-linear"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let b = f32_slice(s3, l3, "linear bias")?;
+        let mut y = matmul_xwt(s1, l1, s2, l2)?;
+        let (n, d) = (l1.dims()[0], b.len());
+        if y.len() != n * d {
+            candle_core::bail!("linear: bias of {d} for an output of {} values", y.len());
+        }
+        y.par_chunks_mut(d * ROWS_PER_TASK).for_each(|o| {
+            for row in o.chunks_mut(d) {
+                row.iter_mut().zip(b).for_each(|(o, b)| *o += b);
+            }
+        });
+        Ok((CpuStorage::F32(y), Shape::from((n, d))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let (dx, dw) = linear_grads(x, w, &grad)?;
+        let db = grad.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
+        Ok((dx, Some(dw), Some(db)))
+    }
+}
+
+/// `y = x·Wᵀ` as one graph node (see [`LinearOp`]).
+struct LinearNoBiasOp;
+
+impl CustomOp2 for LinearNoBiasOp {
+    fn name(&self) -> &'static str {
+        "osrt-linear-no-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let y = matmul_xwt(s1, l1, s2, l2)?;
+        let shape = Shape::from((l1.dims()[0], l2.dims()[0]));
+        Ok((CpuStorage::F32(y), shape))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (dx, dw) = linear_grads(x, w, &grad.contiguous()?)?;
+        Ok((dx, Some(dw)))
+    }
+}
+
+/// `x: [n, in]`, `weight: [out, in]`, `bias: [out]` → `x·weightᵀ + bias: [n, out]`.
+pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    let fits = x.rank() == 2 && weight.rank() == 2 && bias.is_none_or(|b| b.rank() == 1);
+    let mut all = vec![x, weight];
+    all.extend(bias);
+    if fits && usable(&all) {
+        let (x, w) = (x.contiguous()?, weight.contiguous()?);
+        return match bias {
+            Some(b) => x.apply_op3(&w, &b.contiguous()?, LinearOp),
+            None => x.apply_op2(&w, LinearNoBiasOp),
+        };
+    }
+    let y = x.matmul(&weight.t()?)?;
+    match bias {
+        Some(b) => bias_add(&y, b),
+        None => Ok(y),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -629,6 +757,17 @@ mod tests {
             .map(|x| x * scale)
             .collect();
         Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    fn max_abs(a: &Tensor) -> f32 {
+        a.abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar()
+            .unwrap()
     }
 
     fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
@@ -779,6 +918,56 @@ mod tests {
             assert!((g - w).abs() <= 1e-6 * (1.0 + w.abs()), "{g} vs {w}");
         }
         assert!((crate::fastmath::erf(0.5) - 0.520_499_88).abs() < 3e-7);
+    }
+
+    #[test]
+    fn linear_matches_the_composed_version_and_finite_differences() {
+        let (x, w, b) = (
+            randn(&[37, 11], 1.0, 31),
+            randn(&[6, 11], 1.0, 32),
+            randn(&[6], 1.0, 33),
+        );
+        let with_bias = [x.clone(), w.clone(), b];
+        assert_matches_composed(&with_bias, |t| linear(&t[0], &t[1], Some(&t[2])), 1e-5);
+        assert_matches_composed(&with_bias[..2], |t| linear(&t[0], &t[1], None), 1e-5);
+        let small = [randn(&[4, 5], 1.0, 34), randn(&[3, 5], 1.0, 35), randn(&[3], 1.0, 36)];
+        finite_difference_check(&small, |t| linear(&t[0], &t[1], Some(&t[2])));
+        finite_difference_check(&small[..2], |t| linear(&t[0], &t[1], None));
+        // Extremes: huge and constant rows give the composed op's values and finite
+        // gradients where the composed op's are finite.
+        let big = [
+            Tensor::new(&[[1e18f32, -1e18, 3.0], [2.0, 2.0, 2.0]], &Device::Cpu).unwrap(),
+            randn(&[4, 3], 1.0, 37),
+            randn(&[4], 1.0, 38),
+        ];
+        let [(yf, gf), (yc, gc)] = both(&big, |t| linear(&t[0], &t[1], Some(&t[2])));
+        let rel = |a: &Tensor, b: &Tensor| max_diff(a, b) / (1.0 + max_abs(b));
+        assert!(rel(&yf, &yc) <= 1e-6, "forward differs");
+        for (a, b) in gf.iter().zip(&gc) {
+            assert!(rel(a, b) <= 1e-6, "gradient differs");
+        }
+    }
+
+    /// Backward computes no gradient for a data input (and so skips that matmul), and the
+    /// weight and bias gradients are those of the composed ops.
+    #[test]
+    fn linear_skips_the_gradient_of_data_inputs() {
+        let x = randn(&[9, 4], 1.0, 41);
+        let w = Var::from_tensor(&randn(&[3, 4], 1.0, 42)).unwrap();
+        let b = Var::from_tensor(&randn(&[3], 1.0, 43)).unwrap();
+        let grads = |on: bool| {
+            with_fused(on, || {
+                let y = linear(&x, w.as_tensor(), Some(b.as_tensor())).unwrap();
+                y.sqr().unwrap().sum_all().unwrap().backward().unwrap()
+            })
+        };
+        let (fused, composed) = (grads(true), grads(false));
+        assert!(fused.get(&x).is_none(), "a data input got a gradient");
+        assert!(composed.get(&x).is_some(), "candle's matmul computes it");
+        for v in [w.as_tensor(), b.as_tensor()] {
+            let d = max_diff(fused.get(v).unwrap(), composed.get(v).unwrap());
+            assert!(d <= 1e-5, "parameter gradient differs by {d}");
+        }
     }
 
     #[test]

@@ -44,24 +44,17 @@ impl Linear {
 impl Module for Linear {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        // A plain 2-D matmul where the input allows it: candle's broadcast matmul is slower.
-        let w = self.weight.t()?;
-        let y = match *x.dims() {
-            [b1, b2, m, k] if x.is_contiguous() => x
-                .reshape((b1 * b2 * m, k))?
-                .matmul(&w)?
-                .reshape((b1, b2, m, ()))?,
-            [b, m, k] if x.is_contiguous() => {
-                x.reshape((b * m, k))?.matmul(&w)?.reshape((b, m, ()))?
-            }
-            [b1, b2, _, _] => x.matmul(&self.weight.broadcast_left((b1, b2))?.t()?)?,
-            [b, _, _] => x.matmul(&self.weight.broadcast_left(b)?.t()?)?,
-            _ => x.matmul(&w)?,
+        // One 2-D product over all leading dims (candle's broadcast matmul is slower),
+        // bias included: `fused::linear`.
+        let dims = x.dims();
+        let Some((&k, lead)) = dims.split_last() else {
+            candle_core::bail!("linear: a scalar input")
         };
-        match &self.bias {
-            Some(b) => crate::fused::bias_add(&y, b),
-            None => Ok(y),
-        }
+        let rows = lead.iter().product::<usize>();
+        let y = crate::fused::linear(&x.reshape((rows, k))?, &self.weight, self.bias.as_ref())?;
+        let mut out = lead.to_vec();
+        out.push(self.weight.dim(0)?);
+        y.reshape(out)
     }
 }
 
