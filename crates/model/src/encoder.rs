@@ -6,7 +6,7 @@
 //! 183 → 96 → 192 → 384 → 768 channels, total stride 8, a 1×1 conv to the token width,
 //! and 5 transformer layers of width 768 (12 heads × 64, MLP 1536).
 
-use crate::fused::conv2d_nhwc;
+use crate::fused::{self, conv2d_nhwc};
 use crate::nn::{Transformer, TransformerConfig};
 use crate::ray_encoding::RayEncoding;
 use candle_core::{D, Result, Tensor};
@@ -161,8 +161,8 @@ impl Encoder {
             Some(_) => images.reshape((b * v, h, w, 3))?,
         };
         for (a, s2) in &self.convs {
-            x = conv2d_nhwc(&x, a.weight(), 1, 1)?.relu()?;
-            x = conv2d_nhwc(&x, s2.weight(), 2, 1)?.relu()?;
+            x = fused::relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
+            x = fused::relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
         }
         let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {

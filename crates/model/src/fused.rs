@@ -535,6 +535,97 @@ pub fn gelu(x: &Tensor) -> Result<Tensor> {
     x.gelu_erf()
 }
 
+// ---------------------------------------------------------------- ReLU / leaky ReLU
+
+fastmath::kernel! {
+    /// `out[i] = x[i]` where `x[i] ≥ 0` (and NaN), `slope · x[i]` below 0 (0 for
+    /// slope 0, also at −∞).
+    pub fn leaky_relu_slice(out: &mut [f32], x: &[f32], slope: f32) {
+        for (o, &x) in out.iter_mut().zip(x) {
+            let neg = if slope == 0.0 { 0.0 } else { slope * x };
+            *o = if x < 0.0 { neg } else { x };
+        }
+    }
+}
+
+fastmath::kernel! {
+    /// `out[i] = dy[i] · (slope if x[i] < 0 else 1)`.
+    pub fn leaky_relu_grad_slice(out: &mut [f32], x: &[f32], dy: &[f32], slope: f32) {
+        for ((o, &x), &dy) in out.iter_mut().zip(x).zip(dy) {
+            *o = if x < 0.0 { dy * slope } else { dy };
+        }
+    }
+}
+
+/// ReLU (slope 0) or leaky ReLU as one node each way; candle's leaky ReLU is
+/// `maximum(x, s·x)`, whose backward takes two masks, a division and an add.
+struct LeakyReluOp {
+    slope: f32,
+}
+
+impl CustomOp1 for LeakyReluOp {
+    fn name(&self) -> &'static str {
+        "osrt-leaky-relu"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s, l, "leaky relu")?;
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(8192)
+            .zip(x.par_chunks(8192))
+            .for_each(|(o, x)| leaky_relu_slice(o, x, self.slope));
+        Ok((CpuStorage::F32(out), l.shape().clone()))
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let bwd = LeakyReluBwd { slope: self.slope };
+        Ok(Some(x.apply_op2_no_bwd(&grad.contiguous()?, &bwd)?))
+    }
+}
+
+struct LeakyReluBwd {
+    slope: f32,
+}
+
+impl CustomOp2 for LeakyReluBwd {
+    fn name(&self) -> &'static str {
+        "osrt-leaky-relu-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s1, l1, "leaky relu backward x")?;
+        let dy = f32_slice(s2, l2, "leaky relu backward gradient")?;
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(8192)
+            .zip(x.par_chunks(8192).zip(dy.par_chunks(8192)))
+            .for_each(|(o, (x, dy))| leaky_relu_grad_slice(o, x, dy, self.slope));
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+}
+
+/// `max(x, 0)`, elementwise (gradient 1 at 0, as candle's `relu`).
+pub fn relu(x: &Tensor) -> Result<Tensor> {
+    if usable(&[x]) {
+        return x.contiguous()?.apply_op1(LeakyReluOp { slope: 0.0 });
+    }
+    x.relu()
+}
+
+/// `x` where `x ≥ 0`, `slope · x` below (gradient 1 at 0); composed:
+/// `maximum(x, slope · x)` for slopes in (0, 1).
+pub fn leaky_relu(x: &Tensor, slope: f32) -> Result<Tensor> {
+    if usable(&[x]) {
+        return x.contiguous()?.apply_op1(LeakyReluOp { slope });
+    }
+    x.maximum(&(x * slope as f64)?)
+}
+
 // ---------------------------------------------------------------- bias add
 
 struct BiasAddOp;
@@ -968,6 +1059,32 @@ mod tests {
             let d = max_diff(fused.get(v).unwrap(), composed.get(v).unwrap());
             assert!(d <= 1e-5, "parameter gradient differs by {d}");
         }
+    }
+
+    #[test]
+    fn relu_and_leaky_relu_match_the_composed_versions_and_finite_differences() {
+        // Values kept ≥ 0.05 away from the kink, where finite differences straddle it.
+        let away = |t: Tensor| {
+            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            let v: Vec<f32> = v.iter().map(|x| x + 0.05f32.copysign(*x)).collect();
+            Tensor::from_vec(v, t.shape(), &Device::Cpu).unwrap()
+        };
+        let x = [away(randn(&[7, 33], 2.0, 51))];
+        assert_matches_composed(&x, |t| relu(&t[0]), 0.0);
+        assert_matches_composed(&x, |t| leaky_relu(&t[0], 0.01), 1e-7);
+        let small = [away(randn(&[3, 8], 1.0, 52))];
+        finite_difference_check(&small, |t| relu(&t[0]));
+        finite_difference_check(&small, |t| leaky_relu(&t[0], 0.01));
+        // Extremes: huge magnitudes and infinities; NaN passes through (it must reach the
+        // non-finite checks rather than become 0).
+        let x = Tensor::new(&[-1e30f32, 1e30, f32::NEG_INFINITY, f32::INFINITY, f32::NAN], &Device::Cpu)
+            .unwrap();
+        let r: Vec<f32> = relu(&x).unwrap().to_vec1().unwrap();
+        assert_eq!(&r[..4], &[0.0, 1e30, 0.0, f32::INFINITY]);
+        assert!(r[4].is_nan());
+        let l: Vec<f32> = leaky_relu(&x, 0.01).unwrap().to_vec1().unwrap();
+        assert_eq!(&l[..4], &[-1e28, 1e30, f32::NEG_INFINITY, f32::INFINITY]);
+        assert!(l[4].is_nan());
     }
 
     #[test]

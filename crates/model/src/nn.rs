@@ -95,13 +95,10 @@ pub enum Activation {
 impl Activation {
     pub fn apply(self, x: &Tensor) -> Result<Tensor> {
         match self {
-            Activation::Relu => x.relu(),
+            Activation::Relu => crate::fused::relu(x),
             // erf-based GELU, as in the reference transformer.
             Activation::Gelu => crate::fused::gelu(x),
-            Activation::LeakyRelu => {
-                // max(x, 0.01·x): differentiable through candle's maximum.
-                x.maximum(&(x * 0.01)?)
-            }
+            Activation::LeakyRelu => crate::fused::leaky_relu(x, 0.01),
         }
     }
 }
