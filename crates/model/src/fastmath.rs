@@ -105,8 +105,10 @@ fn sin_cos_reduced(x: f32) -> (f32, f32) {
 }
 
 /// Defines `pub fn $name(args)` from a loop body, compiled for the baseline target and
-/// for AVX2 + FMA; the call takes the AVX2 build where the CPU supports it.
-macro_rules! kernel {
+/// for AVX2 + FMA; the call takes the AVX2 build where the CPU supports it. Both builds
+/// compute bit-identical results (Rust never contracts `a·b + c` into an FMA by itself).
+#[macro_export]
+macro_rules! simd_kernel {
     ($(#[$m:meta])* pub fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
         $(#[$m])*
         // The one place the workspace allows `unsafe`: calling a `target_feature` function
@@ -114,10 +116,12 @@ macro_rules! kernel {
         #[allow(unsafe_code)]
         pub fn $name($($arg: $ty),*) {
             #[inline(always)]
+            #[allow(clippy::too_many_arguments)]
             fn generic($($arg: $ty),*) $body
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx2,fma")]
+                #[allow(clippy::too_many_arguments)]
                 unsafe fn avx2($($arg: $ty),*) {
                     generic($($arg),*)
                 }
@@ -131,7 +135,7 @@ macro_rules! kernel {
     };
 }
 
-pub(crate) use kernel;
+pub(crate) use simd_kernel as kernel;
 
 kernel! {
     /// `out[i] = e^(x[i] − shift)`.

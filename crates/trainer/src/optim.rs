@@ -40,22 +40,18 @@ impl AdamW {
         assert_eq!(params.len(), grads.len());
         assert_eq!(params.len(), self.m.len());
         let t = (self.t + 1) as i32;
-        let (b1, b2) = (self.beta1, self.beta2);
-        let c1 = 1.0 - b1.powi(t);
-        let c2 = 1.0 - b2.powi(t);
-        let mut m = Vec::with_capacity(params.len());
-        let mut v = Vec::with_capacity(params.len());
-        let mut p = Vec::with_capacity(params.len());
-        for i in 0..params.len() {
-            let g = grads[i] as f64;
-            let mi = b1 * self.m[i] as f64 + (1.0 - b1) * g;
-            let vi = b2 * self.v[i] as f64 + (1.0 - b2) * g * g;
-            let update =
-                (mi / c1) / ((vi / c2).sqrt() + self.eps) + self.weight_decay * params[i] as f64;
-            m.push(mi as f32);
-            v.push(vi as f32);
-            p.push((params[i] as f64 - lr * update) as f32);
-        }
+        let h = Hyper {
+            b1: self.beta1,
+            b2: self.beta2,
+            c1: 1.0 - self.beta1.powi(t),
+            c2: 1.0 - self.beta2.powi(t),
+            eps: self.eps,
+            weight_decay: self.weight_decay,
+            lr,
+        };
+        let n = params.len();
+        let (mut p, mut m, mut v) = (vec![0f32; n], vec![0f32; n], vec![0f32; n]);
+        adamw_update(&mut p, &mut m, &mut v, params, grads, &self.m, &self.v, &h);
         (p, m, v)
     }
 
@@ -67,6 +63,47 @@ impl AdamW {
 }
 
 /// Global L2 norm of a buffer (f64 accumulation).
+/// One step's constants: β's, bias corrections `1 − βᵗ`, ε, decay and learning rate.
+pub struct Hyper {
+    b1: f64,
+    b2: f64,
+    c1: f64,
+    c2: f64,
+    eps: f64,
+    weight_decay: f64,
+    lr: f64,
+}
+
+osrt_model::simd_kernel! {
+    /// The AdamW update of every element, in f64 (moments and weights are stored in f32);
+    /// written as one loop over equal-length slices so that it vectorises.
+    #[allow(clippy::too_many_arguments)]
+    pub fn adamw_update(
+        p: &mut [f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        params: &[f32],
+        grads: &[f32],
+        m0: &[f32],
+        v0: &[f32],
+        h: &Hyper,
+    ) {
+        let n = p.len();
+        let (m, v, params, grads, m0, v0) =
+            (&mut m[..n], &mut v[..n], &params[..n], &grads[..n], &m0[..n], &v0[..n]);
+        for i in 0..n {
+            let g = grads[i] as f64;
+            let mi = h.b1 * m0[i] as f64 + (1.0 - h.b1) * g;
+            let vi = h.b2 * v0[i] as f64 + (1.0 - h.b2) * g * g;
+            let update =
+                (mi / h.c1) / ((vi / h.c2).sqrt() + h.eps) + h.weight_decay * params[i] as f64;
+            m[i] = mi as f32;
+            v[i] = vi as f32;
+            p[i] = (params[i] as f64 - h.lr * update) as f32;
+        }
+    }
+}
+
 pub fn global_norm(g: &[f32]) -> f64 {
     g.iter()
         .map(|&x| (x as f64) * (x as f64))
