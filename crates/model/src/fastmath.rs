@@ -11,7 +11,7 @@
 /// log2(e)
 const LOG2E: f32 = std::f32::consts::LOG2_E;
 /// ln 2 split so that `n · LN2_HI` is exact for |n| < 2^9 (Cody–Waite reduction).
-const LN2_HI: f32 = 0.693_145_751_953_125;
+const LN2_HI: f32 = 0.693_145_75; // = 0.693145751953125 exactly (0x3F317200)
 const LN2_LO: f32 = 1.428_606_8e-6;
 /// Adding and subtracting 1.5·2^23 rounds an f32 of magnitude < 2^22 to the nearest integer.
 const ROUND_MAGIC: f32 = 12_582_912.0;
