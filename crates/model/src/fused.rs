@@ -463,6 +463,34 @@ fn gelu_grad_f(x: f32) -> f32 {
     cdf + x * INV_SQRT_2PI * fastmath::exp(-0.5 * x * x)
 }
 
+/// Elements per parallel task of the elementwise ops.
+const ELEMENTS_PER_TASK: usize = 8192;
+
+/// `out = kernel(x)`, chunk by chunk in parallel (`kernel` is one of the slice kernels).
+fn par_elementwise(x: &[f32], kernel: impl Fn(&mut [f32], &[f32]) + Sync) -> Vec<f32> {
+    let mut out = vec![0f32; x.len()];
+    out.par_chunks_mut(ELEMENTS_PER_TASK)
+        .zip(x.par_chunks(ELEMENTS_PER_TASK))
+        .for_each(|(o, x)| kernel(o, x));
+    out
+}
+
+/// `dx = kernel(x, dy)`, chunk by chunk in parallel: an elementwise op's backward.
+fn par_elementwise_grad(
+    x: &[f32],
+    dy: &[f32],
+    kernel: impl Fn(&mut [f32], &[f32], &[f32]) + Sync,
+) -> Vec<f32> {
+    let mut out = vec![0f32; x.len()];
+    out.par_chunks_mut(ELEMENTS_PER_TASK)
+        .zip(
+            x.par_chunks(ELEMENTS_PER_TASK)
+                .zip(dy.par_chunks(ELEMENTS_PER_TASK)),
+        )
+        .for_each(|(o, (x, dy))| kernel(o, x, dy));
+    out
+}
+
 fastmath::kernel! {
     /// `out[i] = GELU(x[i])`.
     pub fn gelu_slice(out: &mut [f32], x: &[f32]) {
@@ -490,10 +518,7 @@ impl CustomOp1 for GeluOp {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let x = f32_slice(s, l, "gelu")?;
-        let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(8192)
-            .zip(x.par_chunks(8192))
-            .for_each(|(o, x)| gelu_slice(o, x));
+        let out = par_elementwise(x, gelu_slice);
         Ok((CpuStorage::F32(out), l.shape().clone()))
     }
 
@@ -519,10 +544,7 @@ impl CustomOp2 for GeluBwd {
     ) -> Result<(CpuStorage, Shape)> {
         let x = f32_slice(s1, l1, "gelu backward x")?;
         let dy = f32_slice(s2, l2, "gelu backward gradient")?;
-        let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(8192)
-            .zip(x.par_chunks(8192).zip(dy.par_chunks(8192)))
-            .for_each(|(o, (x, dy))| gelu_grad_slice(o, x, dy));
+        let out = par_elementwise_grad(x, dy, gelu_grad_slice);
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 }
@@ -570,10 +592,7 @@ impl CustomOp1 for LeakyReluOp {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let x = f32_slice(s, l, "leaky relu")?;
-        let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(8192)
-            .zip(x.par_chunks(8192))
-            .for_each(|(o, x)| leaky_relu_slice(o, x, self.slope));
+        let out = par_elementwise(x, |o, x| leaky_relu_slice(o, x, self.slope));
         Ok((CpuStorage::F32(out), l.shape().clone()))
     }
 
@@ -601,10 +620,9 @@ impl CustomOp2 for LeakyReluBwd {
     ) -> Result<(CpuStorage, Shape)> {
         let x = f32_slice(s1, l1, "leaky relu backward x")?;
         let dy = f32_slice(s2, l2, "leaky relu backward gradient")?;
-        let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(8192)
-            .zip(x.par_chunks(8192).zip(dy.par_chunks(8192)))
-            .for_each(|(o, (x, dy))| leaky_relu_grad_slice(o, x, dy, self.slope));
+        let out = par_elementwise_grad(x, dy, |o, x, dy| {
+            leaky_relu_grad_slice(o, x, dy, self.slope)
+        });
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 }
@@ -835,7 +853,7 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tens
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use candle_core::{Device, Var};
     use rand::SeedableRng;
@@ -861,7 +879,7 @@ mod tests {
             .unwrap()
     }
 
-    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+    pub(crate) fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
         (a - b)
             .unwrap()
             .abs()

@@ -224,16 +224,7 @@ fn ray_encoding_kernel_matches_the_composed_version() {
             let fast = enc.forward(&o, &d).unwrap();
             let slow = enc.forward_composed(&o, &d).unwrap();
             assert_eq!(fast.dims(), slow.dims());
-            let diff = (fast - slow)
-                .unwrap()
-                .abs()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .max(0)
-                .unwrap()
-                .to_scalar::<f32>()
-                .unwrap();
+            let diff = crate::fused::tests::max_diff(&fast, &slow);
             assert!(
                 diff <= tol,
                 "scale {scale}: max |kernel − composed| = {diff:e}"
