@@ -646,6 +646,16 @@ pub fn leaky_relu(x: &Tensor, slope: f32) -> Result<Tensor> {
 
 // ---------------------------------------------------------------- bias add
 
+/// `rows[i, :] += b` for every row of a `[rows, b.len()]` buffer, in place.
+fn add_bias_rows(rows: &mut [f32], b: &[f32]) {
+    let d = b.len().max(1);
+    rows.par_chunks_mut(d * ROWS_PER_TASK).for_each(|o| {
+        for row in o.chunks_mut(d) {
+            row.iter_mut().zip(b).for_each(|(o, b)| *o += b);
+        }
+    });
+}
+
 struct BiasAddOp;
 
 impl CustomOp2 for BiasAddOp {
@@ -662,13 +672,8 @@ impl CustomOp2 for BiasAddOp {
     ) -> Result<(CpuStorage, Shape)> {
         let x = f32_slice(s1, l1, "bias add x")?;
         let b = f32_slice(s2, l2, "bias add bias")?;
-        let d = b.len();
         let mut out = x.to_vec();
-        out.par_chunks_mut(d * ROWS_PER_TASK).for_each(|o| {
-            for row in o.chunks_mut(d) {
-                row.iter_mut().zip(b).for_each(|(o, b)| *o += b);
-            }
-        });
+        add_bias_rows(&mut out, b);
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 
@@ -778,11 +783,7 @@ impl CustomOp3 for LinearOp {
         if y.len() != n * d {
             candle_core::bail!("linear: bias of {d} for an output of {} values", y.len());
         }
-        y.par_chunks_mut(d * ROWS_PER_TASK).for_each(|o| {
-            for row in o.chunks_mut(d) {
-                row.iter_mut().zip(b).for_each(|(o, b)| *o += b);
-            }
-        });
+        add_bias_rows(&mut y, b);
         Ok((CpuStorage::F32(y), Shape::from((n, d))))
     }
 
