@@ -90,6 +90,18 @@ fn job_id() -> String {
     format!("job-{}", &Token::generate().as_str()[..12])
 }
 
+/// A relative local path made absolute against the current directory (URLs and absolute
+/// paths unchanged): the run records where its data is, and `osrt eval`, `render` and
+/// `report` read that record later, from wherever they are started.
+fn absolute_local(data: &str) -> Result<String> {
+    let path = std::path::Path::new(data);
+    if data.contains("://") || path.is_absolute() {
+        return Ok(data.to_string());
+    }
+    let cwd = std::env::current_dir().context("resolving the dataset path")?;
+    Ok(cwd.join(path).to_string_lossy().into_owned())
+}
+
 /// The job with the command line's overrides applied.
 pub fn spec(
     job: JobConfig,
@@ -103,7 +115,7 @@ pub fn spec(
         job_id: job_id(),
         job_toml: job.to_toml(),
         job,
-        data: data.to_string(),
+        data: absolute_local(data)?,
         run: run.to_string(),
         max_steps,
         deadline_unix_s: max_minutes.map(|m| unix_now() + m * 60.0),

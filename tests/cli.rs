@@ -216,4 +216,32 @@ fn train_then_eval_a_tiny_run() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("is done; pass --resume"), "{err}");
+
+    // A relative --data is recorded as an absolute path, so evaluation started from
+    // another directory (this test's) still finds the run's dataset.
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .current_dir(dir.path())
+        .args([
+            "train", "--preset", "tiny", "--data", "data", "--run", "run-rel",
+        ])
+        .args(["--max-steps", "1", "--workers", "1"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let run = dir.path().join("run-rel");
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    let recorded = Path::new(info["data"].as_str().unwrap());
+    assert!(recorded.is_absolute(), "{info}");
+    assert_eq!(
+        recorded.canonicalize().unwrap(),
+        data.canonicalize().unwrap()
+    );
+    let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--json"]);
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["scenes"], 3);
 }

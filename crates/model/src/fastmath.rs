@@ -104,9 +104,10 @@ fn sin_cos_reduced(x: f32) -> (f32, f32) {
     }
 }
 
-/// Defines `pub fn $name(args)` from a loop body, compiled for the baseline target and
-/// for AVX2 + FMA; the call takes the AVX2 build where the CPU supports it. Both builds
-/// compute bit-identical results (Rust never contracts `a·b + c` into an FMA by itself).
+/// Defines `pub fn $name(args)` from a loop body, compiled for the baseline target, for
+/// AVX2 + FMA and for AVX-512F; the call takes the widest build the CPU supports. All
+/// builds compute bit-identical results (Rust never contracts `a·b + c` into an FMA by
+/// itself, and the lanes only change how many elements one instruction handles).
 #[macro_export]
 macro_rules! simd_kernel {
     ($(#[$m:meta])* pub fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
@@ -120,6 +121,18 @@ macro_rules! simd_kernel {
             fn generic($($arg: $ty),*) $body
             #[cfg(target_arch = "x86_64")]
             {
+                #[target_feature(enable = "avx512f,avx2,fma")]
+                #[allow(clippy::too_many_arguments)]
+                unsafe fn avx512($($arg: $ty),*) {
+                    generic($($arg),*)
+                }
+                if std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx2")
+                    && std::is_x86_feature_detected!("fma")
+                {
+                    // SAFETY: the CPU has the features `avx512` is compiled for.
+                    return unsafe { avx512($($arg),*) };
+                }
                 #[target_feature(enable = "avx2,fma")]
                 #[allow(clippy::too_many_arguments)]
                 unsafe fn avx2($($arg: $ty),*) {

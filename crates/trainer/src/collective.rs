@@ -670,11 +670,18 @@ mod tests {
     /// out, give back the same floats bit for bit (signs, NaN payloads, subnormals, ±∞).
     #[test]
     fn le_bytes_round_trip_at_any_alignment() {
-        let v: Vec<f32> = [0.0f32, -0.0, 1.5, -3.25e-39, f32::INFINITY, f32::NEG_INFINITY]
-            .into_iter()
-            .chain([f32::from_bits(0x7fc0_1234), f32::MAX, f32::MIN_POSITIVE])
-            .chain((0..37).map(|i| (i as f32 * 0.37).sin() * 1e3))
-            .collect();
+        let v: Vec<f32> = [
+            0.0f32,
+            -0.0,
+            1.5,
+            -3.25e-39,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+        ]
+        .into_iter()
+        .chain([f32::from_bits(0x7fc0_1234), f32::MAX, f32::MIN_POSITIVE])
+        .chain((0..37).map(|i| (i as f32 * 0.37).sin() * 1e3))
+        .collect();
         let wire = to_bytes(&v);
         assert_eq!(wire.len(), v.len() * 4);
         for (i, x) in v.iter().enumerate() {
