@@ -53,7 +53,9 @@ pub struct EvalOptions {
 /// Scores `scenes`. Runs with candle's composed ops: the fused ops pay off through their
 /// backward passes, and forward-only they are slower here (docs/performance.md).
 pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
-    osrt_model::fused::with_fused(false, || evaluate_composed(model, scenes, opts))
+    osrt_model::fused::with_fused(false, || {
+        osrt_model::fused::on_device_pool(model.device(), || evaluate_composed(model, scenes, opts))
+    })
 }
 
 fn evaluate_composed(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {

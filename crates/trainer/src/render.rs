@@ -38,7 +38,11 @@ pub fn decode_rays(
 ) -> Result<Decoded> {
     // Forward only: candle's composed ops are faster here than the fused ones, which pay
     // off through their backward passes (docs/performance.md).
-    osrt_model::fused::with_fused(false, || decode_composed(model, slots, origins, directions))
+    osrt_model::fused::with_fused(false, || {
+        osrt_model::fused::on_device_pool(model.device(), || {
+            decode_composed(model, slots, origins, directions)
+        })
+    })
 }
 
 fn decode_composed(

@@ -106,7 +106,11 @@ impl Trainer {
     }
 
     /// MSE on the sampled target rays, and its gradient as one flat buffer.
-    pub fn gradients(&self, batch: &Batch, rng: &mut impl Rng) -> Result<StepGradients> {
+    pub fn gradients(&self, batch: &Batch, rng: &mut (impl Rng + Send)) -> Result<StepGradients> {
+        osrt_model::fused::on_device_pool(&self.device, || self.gradients_here(batch, rng))
+    }
+
+    fn gradients_here(&self, batch: &Batch, rng: &mut impl Rng) -> Result<StepGradients> {
         let t = BatchTensors::new(batch, &self.device)?;
         let noise = self.slot_noise(batch.batch_size, rng)?;
         let slots = self
