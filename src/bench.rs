@@ -30,7 +30,7 @@ pub struct BenchModelArgs {
     /// quick figure, and the loop to profile.
     #[arg(long)]
     pub step_only: bool,
-    /// Run in this process only (used by the parent; set RAYON_NUM_THREADS yourself).
+    /// Run in this process only (used by the parent, which sets the thread environment).
     #[arg(long, hide = true)]
     pub child: bool,
     /// Print JSON.
@@ -107,7 +107,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
                 .collect::<Vec<_>>()
                 .join(","),
         )
-        .env("RAYON_NUM_THREADS", n.to_string());
+        .envs(crate::cluster::compute_thread_env(n));
         let out = cmd.output().context("running the benchmark child")?;
         if !out.status.success() {
             bail!(

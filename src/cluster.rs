@@ -183,6 +183,20 @@ fn report_end(status: &v1::JobStatus) -> Result<()> {
     }
 }
 
+/// The thread settings of a process that computes with `n` threads: rayon's pools (gemm,
+/// our fused ops, the pool candle runs the step in) get `n`; candle's separate barrier
+/// pool for elementwise ops gets no workers beside the calling thread, unless the user
+/// set `CANDLE_NUM_THREADS`. Those workers spin after every op (25,000 rounds by default)
+/// and took a core from gemm's rayon threads: at 2 threads the step took 1.16–1.19× as
+/// long with them (docs/performance.md).
+pub fn compute_thread_env(n: usize) -> [(&'static str, String); 2] {
+    let candle = std::env::var("CANDLE_NUM_THREADS").unwrap_or_else(|_| "1".into());
+    [
+        ("RAYON_NUM_THREADS", n.to_string()),
+        ("CANDLE_NUM_THREADS", candle),
+    ]
+}
+
 /// Replaces this process by itself with the workers' allocator settings unless they are
 /// set, so a benchmark measures what workers run with.
 pub fn reexec_with_worker_allocator() -> Result<()> {
@@ -200,17 +214,21 @@ pub fn reexec_with_worker_allocator() -> Result<()> {
     Err(err).context("re-executing with the workers' allocator settings")
 }
 
-/// Replaces this process by itself with `RAYON_NUM_THREADS=n` unless already set so:
-/// candle sizes its thread pool from it once, at its first parallel op. `exec` keeps the
+/// Replaces this process by itself with [`compute_thread_env`]`(n)` unless already set so:
+/// candle sizes its thread pools from it once, at its first parallel op. `exec` keeps the
 /// process id, so signals (a pod's SIGTERM, a test's SIGKILL) still reach the worker.
 fn reexec_with_threads(n: usize) -> Result<()> {
     use std::os::unix::process::CommandExt;
-    if std::env::var("RAYON_NUM_THREADS").ok().as_deref() == Some(&n.to_string()) {
+    let env = compute_thread_env(n);
+    if env
+        .iter()
+        .all(|(k, v)| std::env::var(k).ok().as_deref() == Some(v.as_str()))
+    {
         return Ok(());
     }
     let err = std::process::Command::new(std::env::current_exe()?)
         .args(std::env::args_os().skip(1))
-        .env("RAYON_NUM_THREADS", n.to_string())
+        .envs(env)
         .exec();
     Err(err).context("re-executing the worker with its thread count")
 }
@@ -263,7 +281,7 @@ fn spawn_worker(coordinator: &str, threads: usize, token: &Token) -> Result<toki
         &threads.to_string(),
     ])
     .env(TOKEN_ENV, token.as_str())
-    .env("RAYON_NUM_THREADS", threads.to_string())
+    .envs(compute_thread_env(threads))
     .kill_on_drop(true);
     for (k, v) in WORKER_MALLOC_ENV {
         if std::env::var_os(k).is_none() {

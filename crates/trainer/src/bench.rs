@@ -133,10 +133,8 @@ pub fn bench_render(
     let mut times = Vec::new();
     for i in 0..=repeats {
         let t0 = Instant::now();
-        // As the render path runs it (composed ops, see render::decode_rays).
-        let out = osrt_model::fused::with_fused(false, || {
-            osrt_model::fused::on_device_pool(&Device::Cpu, || model.decode(&s, &o, &d))
-        })?;
+        // As the render path runs it (render::decode_rays).
+        let out = osrt_model::fused::on_device_pool(&Device::Cpu, || model.decode(&s, &o, &d))?;
         let _ = out.rgb.flatten_all()?.to_vec1::<f32>()?;
         if i > 0 {
             times.push(t0.elapsed().as_secs_f64());

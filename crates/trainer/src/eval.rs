@@ -50,15 +50,12 @@ pub struct EvalOptions {
     pub seed: u64,
 }
 
-/// Scores `scenes`. Runs with candle's composed ops: the fused ops pay off through their
-/// backward passes, and forward-only they are slower here (docs/performance.md).
+/// Scores `scenes`, on candle's thread pool (see `fused::on_device_pool`).
 pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
-    osrt_model::fused::with_fused(false, || {
-        osrt_model::fused::on_device_pool(model.device(), || evaluate_composed(model, scenes, opts))
-    })
+    osrt_model::fused::on_device_pool(model.device(), || evaluate_here(model, scenes, opts))
 }
 
-fn evaluate_composed(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
+fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
     let mut psnr = Psnr::default();
     let mut baseline = Psnr::default();
     let mut seg = Segmentation::default();

@@ -36,16 +36,15 @@ pub fn decode_rays(
     origins: &Tensor,
     directions: &Tensor,
 ) -> Result<Decoded> {
-    // Forward only: candle's composed ops are faster here than the fused ones, which pay
-    // off through their backward passes (docs/performance.md).
-    osrt_model::fused::with_fused(false, || {
-        osrt_model::fused::on_device_pool(model.device(), || {
-            decode_composed(model, slots, origins, directions)
-        })
+    // On candle's pool, with the fused ops: since the step moved there and candle's
+    // elementwise pool lost its spinning workers, they render faster than candle's
+    // composed ops too (docs/performance.md).
+    osrt_model::fused::on_device_pool(model.device(), || {
+        decode_here(model, slots, origins, directions)
     })
 }
 
-fn decode_composed(
+fn decode_here(
     model: &Osrt,
     slots: &Tensor,
     origins: &Tensor,
@@ -114,7 +113,7 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
     let origins = Tensor::from_slice(&batch.input_origins, img, dev)?;
     let directions = Tensor::from_slice(&batch.input_directions, img, dev)?;
     let noise = model.slot_noise(1, &mut rng)?;
-    let out = osrt_model::fused::with_fused(false, || {
+    let out = osrt_model::fused::on_device_pool(dev, || {
         model.encode(&images, &origins, &directions, noise.as_ref())
     })?;
     Ok(out.slots)
