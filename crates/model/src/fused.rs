@@ -43,8 +43,8 @@ pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
 /// fused-ops setting carried along (it is thread-local). Every parallel section inside —
 /// gemm, candle's elementwise maps, the fused ops — then runs on the pool's own threads;
 /// called from outside a pool, each of the thousands of sections in a step is handed
-/// across threads and waited for (the step took 1.12× as long at 1 thread, 1.17× at 2:
-/// docs/performance.md).
+/// across threads and waited for (the step took 1.04–1.12× as long at 1 thread in
+/// interleaved runs: docs/performance.md).
 pub fn on_device_pool<T: Send>(device: &candle_core::Device, f: impl FnOnce() -> T + Send) -> T {
     let on = enabled();
     device.with_context(|| with_fused(on, f))
