@@ -92,7 +92,8 @@ fn job_id() -> String {
 
 /// A relative local path made absolute against the current directory (URLs and absolute
 /// paths unchanged): the run records where its data is, and `osrt eval`, `render` and
-/// `report` read that record later, from wherever they are started.
+/// `report` read that record later, from wherever they are started. "URL" by the same
+/// rule as `Location::parse`: anything with `://`.
 fn absolute_local(data: &str) -> Result<String> {
     let path = std::path::Path::new(data);
     if data.contains("://") || path.is_absolute() {
@@ -187,8 +188,8 @@ fn report_end(status: &v1::JobStatus) -> Result<()> {
 /// our fused ops, the pool candle runs the step in) get `n`; candle's separate barrier
 /// pool for elementwise ops gets no workers beside the calling thread, unless the user
 /// set `CANDLE_NUM_THREADS`. Those workers spin after every op (25,000 rounds by default)
-/// and took a core from gemm's rayon threads: at 2 threads the step took 1.16–1.19× as
-/// long with them (docs/performance.md).
+/// and took a core from gemm's rayon threads: at 2 threads the step took 1.15–1.27× as
+/// long with them in interleaved runs (docs/performance.md).
 pub fn compute_thread_env(n: usize) -> [(&'static str, String); 2] {
     let candle = std::env::var("CANDLE_NUM_THREADS").unwrap_or_else(|_| "1".into());
     [
