@@ -74,7 +74,8 @@ impl Token {
         &self.0
     }
 
-    fn header(&self) -> MetadataValue<tonic::metadata::Ascii> {
+    /// The `authorization` value every call carries: `Bearer <token>`.
+    pub fn header(&self) -> MetadataValue<tonic::metadata::Ascii> {
         format!("Bearer {}", self.0)
             .parse()
             .expect("a validated token is a valid header value")

@@ -18,21 +18,23 @@
 //! sender that is not its ring predecessor, an unknown bucket and a wrong length. Every RPC
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
+use crate::chunk_wire::{self, PushChunkServer};
 use bytes::Bytes;
-use osrt_proto::auth::{AttachToken, CheckToken, Token};
+use futures::StreamExt;
+use futures::stream::FuturesUnordered;
+use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::tls::Tls;
-use osrt_proto::v1::collective_client::CollectiveClient;
-use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
-use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
-use std::collections::HashMap;
+use osrt_proto::v1::{Chunk, ChunkTag, Phase};
+use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use thiserror::Error;
 use tokio::sync::Notify;
+use tonic::Status;
+use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
-use tonic::{Request, Response, Status};
 
 /// Largest chunk payload: 1 MiB of f32.
 pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
@@ -360,35 +362,14 @@ impl Mailbox {
     }
 }
 
-/// The gRPC face of a [`Mailbox`].
-pub struct CollectiveService {
-    mailbox: Arc<Mailbox>,
-}
-
-impl CollectiveService {
-    pub fn server(mailbox: Arc<Mailbox>) -> CollectiveServer<Self> {
-        CollectiveServer::new(Self { mailbox })
-            .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
-    }
-}
-
-#[tonic::async_trait]
-impl Collective for CollectiveService {
-    async fn push_chunk(&self, request: Request<Chunk>) -> Result<Response<ChunkAck>, Status> {
-        let chunk = request.into_inner();
-        if let Err(status) = self.mailbox.accept(chunk) {
-            tracing::warn!(code = ?status.code(), message = status.message(), "chunk rejected");
-            return Err(status);
-        }
-        Ok(Response::new(ChunkAck {}))
-    }
-}
-
 /// One rank's side of the ring.
 pub struct Ring {
     cfg: RingConfig,
     mailbox: Arc<Mailbox>,
-    next: CollectiveClient<InterceptedService<Channel, AttachToken>>,
+    /// The connection to the next rank.
+    next: Channel,
+    /// `authorization` of every chunk sent.
+    auth: MetadataValue<Ascii>,
     /// See [`FAULT_ENV`].
     fault: Option<(usize, u64)>,
 }
@@ -477,17 +458,12 @@ impl Ring {
             .initial_connection_window_size(WINDOW_BYTES)
             .max_frame_size(FRAME_BYTES)
             .tcp_nodelay(true);
-        let next = CollectiveClient::with_interceptor(
-            endpoint.connect_lazy(),
-            AttachToken(cfg.token.clone()),
-        )
-        .max_decoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096)
-        .max_encoding_message_size(MAX_CHUNK_FLOATS * 4 + 4096);
         mailbox.set_generation(cfg.generation, cfg.rank);
         Ok(Self {
+            auth: cfg.token.header(),
             cfg,
             mailbox,
-            next,
+            next: endpoint.connect_lazy(),
             fault: fault_injection(),
         })
     }
@@ -503,9 +479,14 @@ impl Ring {
 
     /// Sums `buf` over all ranks in place; every rank ends with identical bytes.
     ///
-    /// Within a ring round every chunk is sent at once (HTTP/2 multiplexes them on one
-    /// connection) while the chunks from the predecessor are received and applied as they
-    /// arrive; rounds depend on each other and run in order.
+    /// Chunk by chunk, not round by round: what a rank sends in ring round `r + 1` is
+    /// exactly the segment it received (and reduced) in round `r` — across the phase
+    /// boundary too — so each received chunk is forwarded as soon as it is applied, while
+    /// it is still in cache, and no rank waits for a whole round to drain before the next
+    /// one starts. Sends go out in the order the successor consumes them (bucket, phase,
+    /// round, chunk), at most [`Ring::in_flight`] at a time; receives are applied in that
+    /// same fixed order, so the arithmetic, and with it every bit, is the same as a
+    /// round-by-round ring.
     pub async fn all_reduce(&mut self, step: u64, buf: &mut [f32]) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         if w == 1 {
@@ -514,114 +495,198 @@ impl Ring {
         let layout = self.layout(buf.len());
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
+        let next = (rank + 1) % w;
         let inject = self.fault == Some((rank, step)) && self.cfg.generation == 1;
+        let schedule = receive_schedule(&layout, rank);
+        // Sends that may go out now, by the order the successor consumes them.
+        let mut ready: BTreeMap<ChunkId, Range<usize>> = BTreeMap::new();
         for b in 0..layout.buckets.len() {
-            for phase in [Phase::ReduceScatter, Phase::AllGather] {
-                for round in 0..w - 1 {
-                    let send = layout.segment(b, layout.send_segment(rank, phase, round));
-                    let requests: Vec<Request<Chunk>> = layout
-                        .chunks(send)
-                        .into_iter()
-                        .enumerate()
-                        .map(|(c, range)| {
-                            let mut data = to_bytes(&buf[range]);
-                            if inject && c == 0 {
-                                data.truncate(data.len().saturating_sub(4));
-                            }
-                            let tag = ChunkTag {
-                                job: self.cfg.job.clone(),
-                                generation: self.cfg.generation,
-                                step,
-                                bucket: b as u32,
-                                phase: phase as i32,
-                                round: round as u32,
-                                chunk: c as u32,
-                                from_rank: rank as u32,
-                            };
-                            let mut req = Request::new(Chunk {
-                                tag: Some(tag),
-                                data,
-                            });
-                            req.set_timeout(self.cfg.timeout);
-                            req
+            let seg = layout.segment(b, layout.send_segment(rank, Phase::ReduceScatter, 0));
+            for (c, range) in layout.chunks(seg).into_iter().enumerate() {
+                ready.insert(ChunkId::new(b, Phase::ReduceScatter, 0, c), range);
+            }
+        }
+        let limit = self.in_flight();
+        let mut sending = FuturesUnordered::new();
+        let mut first = true;
+        let mut received = 0;
+        loop {
+            while sending.len() < limit {
+                let Some((id, range)) = ready.pop_first() else {
+                    break;
+                };
+                let mut data = to_bytes(&buf[range]);
+                if inject && std::mem::take(&mut first) {
+                    data.truncate(data.len().saturating_sub(4));
+                }
+                let tag = id.tag(&self.cfg, step);
+                let (channel, auth, timeout) =
+                    (self.next.clone(), self.auth.clone(), self.cfg.timeout);
+                sending.push(async move {
+                    chunk_wire::push(channel, &auth, timeout, &tag, data)
+                        .await
+                        .map_err(|status| CollectiveError::Send {
+                            rank,
+                            to: next,
+                            status,
                         })
-                        .collect();
-                    let next = (rank + 1) % w;
-                    let sends = futures::future::try_join_all(requests.into_iter().map(|req| {
-                        let mut client = self.next.clone();
-                        async move {
-                            client
-                                .push_chunk(req)
-                                .await
-                                .map_err(|status| CollectiveError::Send {
-                                    rank,
-                                    to: next,
-                                    status,
-                                })
+                });
+            }
+            if received == schedule.len() && sending.is_empty() {
+                return Ok(());
+            }
+            let Some(hop) = schedule.get(received) else {
+                // Everything is in; only acknowledgements are outstanding.
+                if let Some(result) = sending.next().await {
+                    result?;
+                }
+                continue;
+            };
+            // The first failure ends the all-reduce: a dead successor fails a send at once,
+            // a dead predecessor the receive at its deadline.
+            tokio::select! {
+                biased;
+                Some(result) = sending.next(), if !sending.is_empty() => {
+                    result?;
+                }
+                data = self.mailbox.take(hop.id.key(self.cfg.generation, step), self.cfg.timeout) => {
+                    let data = match data {
+                        Ok(Ok(d)) => d,
+                        Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
+                        Err(()) => {
+                            return Err(CollectiveError::Timeout {
+                                rank,
+                                from: (rank + w - 1) % w,
+                                bucket: hop.id.bucket as usize,
+                                phase: hop.id.phase(),
+                                round: hop.id.round as usize,
+                                timeout: self.cfg.timeout,
+                            });
                         }
-                    }));
-                    let recv = layout.segment(b, layout.recv_segment(rank, phase, round));
-                    let receive = self.receive(step, b, phase, round, &layout, recv, buf);
-                    // The first failure ends the round: a dead successor fails the sends
-                    // at once, a dead predecessor the receive at its deadline.
-                    tokio::try_join!(sends, receive)?;
+                    };
+                    if data.len() != hop.range.len() * 4 {
+                        return Err(CollectiveError::Peer(
+                            format!(
+                                "chunk {} of bucket {} has {} bytes, expected {}",
+                                hop.id.chunk,
+                                hop.id.bucket,
+                                data.len(),
+                                hop.range.len() * 4
+                            ),
+                            rank,
+                        ));
+                    }
+                    let add = hop.id.phase() == Phase::ReduceScatter;
+                    apply_le(&mut buf[hop.range.clone()], &data, add);
+                    if let Some(id) = hop.forward {
+                        ready.insert(id, hop.range.clone());
+                    }
+                    received += 1;
                 }
             }
         }
-        Ok(())
     }
 
-    /// Receives the chunks of segment `seg` for one round and adds (reduce-scatter) or
-    /// copies (all-gather) them into `buf`.
-    #[allow(clippy::too_many_arguments)]
-    async fn receive(
-        &self,
-        step: u64,
-        b: usize,
-        phase: Phase,
-        round: usize,
-        layout: &Layout,
-        seg: Range<usize>,
-        buf: &mut [f32],
-    ) -> Result<(), CollectiveError> {
-        let (rank, w) = (self.cfg.rank, self.cfg.world());
-        for (c, range) in layout.chunks(seg).into_iter().enumerate() {
-            let key = (
-                self.cfg.generation,
-                step,
-                b as u32,
-                phase as i32,
-                round as u32,
-                c as u32,
-            );
-            let data = match self.mailbox.take(key, self.cfg.timeout).await {
-                Ok(Ok(d)) => d,
-                Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
-                Err(()) => {
-                    return Err(CollectiveError::Timeout {
-                        rank,
-                        from: (rank + w - 1) % w,
-                        bucket: b,
-                        phase,
-                        round,
-                        timeout: self.cfg.timeout,
+    /// Chunks one rank keeps in flight to its successor: 8 MiB worth (half the HTTP/2
+    /// window), at least 2.
+    fn in_flight(&self) -> usize {
+        (IN_FLIGHT_BYTES / (self.cfg.chunk_floats.clamp(1, MAX_CHUNK_FLOATS) * 4)).clamp(2, 64)
+    }
+}
+
+/// Bytes of chunks one rank has in flight at once.
+const IN_FLIGHT_BYTES: usize = 8 << 20;
+
+/// A chunk's place in an all-reduce; the derived order (bucket, phase, round, chunk) is
+/// the order in which a rank consumes its predecessor's chunks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct ChunkId {
+    bucket: u32,
+    /// 0 = reduce-scatter, 1 = all-gather.
+    phase: u8,
+    round: u32,
+    chunk: u32,
+}
+
+impl ChunkId {
+    fn new(bucket: usize, phase: Phase, round: usize, chunk: usize) -> Self {
+        Self {
+            bucket: bucket as u32,
+            phase: u8::from(phase == Phase::AllGather),
+            round: round as u32,
+            chunk: chunk as u32,
+        }
+    }
+
+    fn phase(&self) -> Phase {
+        if self.phase == 0 {
+            Phase::ReduceScatter
+        } else {
+            Phase::AllGather
+        }
+    }
+
+    fn key(&self, generation: u64, step: u64) -> Key {
+        (
+            generation,
+            step,
+            self.bucket,
+            self.phase() as i32,
+            self.round,
+            self.chunk,
+        )
+    }
+
+    fn tag(&self, cfg: &RingConfig, step: u64) -> ChunkTag {
+        ChunkTag {
+            job: cfg.job.clone(),
+            generation: cfg.generation,
+            step,
+            bucket: self.bucket,
+            phase: self.phase() as i32,
+            round: self.round,
+            chunk: self.chunk,
+            from_rank: cfg.rank as u32,
+        }
+    }
+}
+
+/// One chunk a rank receives: where it goes, and what it is forwarded as (`None` for the
+/// last all-gather round, whose chunks are final everywhere).
+#[derive(Debug, Clone)]
+struct Hop {
+    id: ChunkId,
+    range: Range<usize>,
+    forward: Option<ChunkId>,
+}
+
+/// Every chunk `rank` receives in one all-reduce, in the order it applies them.
+fn receive_schedule(layout: &Layout, rank: usize) -> Vec<Hop> {
+    let w = layout.world;
+    let mut hops = Vec::new();
+    for b in 0..layout.buckets.len() {
+        for phase in [Phase::ReduceScatter, Phase::AllGather] {
+            for round in 0..w - 1 {
+                // Received in round r of a phase = sent in the following round, the first
+                // all-gather round following the last reduce-scatter round.
+                let forward = match (phase, round + 2 == w) {
+                    (Phase::ReduceScatter, false) => Some((Phase::ReduceScatter, round + 1)),
+                    (Phase::ReduceScatter, true) => Some((Phase::AllGather, 0)),
+                    (_, false) => Some((Phase::AllGather, round + 1)),
+                    (_, true) => None,
+                };
+                let seg = layout.segment(b, layout.recv_segment(rank, phase, round));
+                for (c, range) in layout.chunks(seg).into_iter().enumerate() {
+                    hops.push(Hop {
+                        id: ChunkId::new(b, phase, round, c),
+                        range,
+                        forward: forward.map(|(p, r)| ChunkId::new(b, p, r, c)),
                     });
                 }
-            };
-            if data.len() != range.len() * 4 {
-                return Err(CollectiveError::Peer(
-                    format!(
-                        "chunk {c} of bucket {b} has {} bytes, expected {}",
-                        data.len(),
-                        range.len() * 4
-                    ),
-                    rank,
-                ));
             }
-            apply_le(&mut buf[range], &data, phase == Phase::ReduceScatter);
         }
-        Ok(())
     }
+    hops
 }
 
 /// Serves a collective mailbox on `listener` until `shutdown` resolves, with the standard
@@ -636,9 +701,13 @@ pub async fn serve(
 ) -> Result<(), tonic::transport::Error> {
     let (health, health_service) = tonic_health::server::health_reporter();
     health
-        .set_serving::<CollectiveServer<CollectiveService>>()
+        .set_service_status(
+            osrt_proto::v1::collective_server::SERVICE_NAME,
+            tonic_health::ServingStatus::Serving,
+        )
         .await;
-    let service = CollectiveService::server(mailbox);
+    let accept = move |chunk| mailbox.accept(chunk);
+    let service = PushChunkServer::new(accept, MAX_CHUNK_FLOATS * 4 + 4096);
     let mut builder = tonic::transport::Server::builder();
     if let Some(tls) = &tls {
         builder = builder.tls_config(tls.server())?;
@@ -665,6 +734,46 @@ pub async fn serve(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What a rank sends — its first reduce-scatter segments, then every received chunk
+    /// it forwards — is, in order, exactly what its successor expects to receive, for
+    /// rings of 2 to 5 ranks; and each forward sends the segment the ring algorithm
+    /// prescribes for the next round.
+    #[test]
+    fn forwarded_chunks_are_what_the_successor_receives() {
+        for w in 2..=5 {
+            let layout = Layout::new(1003, w, 300, 17);
+            for rank in 0..w {
+                let mut sent: Vec<(ChunkId, Range<usize>)> = Vec::new();
+                for b in 0..layout.buckets.len() {
+                    let seg = layout.segment(b, layout.send_segment(rank, Phase::ReduceScatter, 0));
+                    for (c, r) in layout.chunks(seg).into_iter().enumerate() {
+                        sent.push((ChunkId::new(b, Phase::ReduceScatter, 0, c), r));
+                    }
+                }
+                for hop in receive_schedule(&layout, rank) {
+                    if let Some(f) = hop.forward {
+                        let seg = layout.segment(
+                            f.bucket as usize,
+                            layout.send_segment(rank, f.phase(), f.round as usize),
+                        );
+                        assert_eq!(
+                            layout.chunks(seg)[f.chunk as usize],
+                            hop.range,
+                            "w={w} rank={rank} {f:?}"
+                        );
+                        sent.push((f, hop.range.clone()));
+                    }
+                }
+                sent.sort_by_key(|(id, _)| *id);
+                let successor: Vec<_> = receive_schedule(&layout, (rank + 1) % w)
+                    .into_iter()
+                    .map(|h| (h.id, h.range))
+                    .collect();
+                assert_eq!(sent, successor, "w={w} rank={rank}");
+            }
+        }
+    }
 
     /// The wire bytes of a chunk, and applying them at every byte alignment tonic may hand
     /// out, give back the same floats bit for bit (signs, NaN payloads, subnormals, ±∞).

@@ -5,6 +5,7 @@
 pub mod bench;
 pub mod bench_allreduce;
 pub mod checkpoint;
+pub mod chunk_wire;
 pub mod collective;
 pub mod config;
 pub mod data;

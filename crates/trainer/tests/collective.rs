@@ -1,10 +1,13 @@
 //! Ring all-reduce over real gRPC on loopback: sums, bit-identical replicas, stale and
-//! malformed traffic, dead peers.
+//! malformed traffic, dead peers, and the hand-framed PushChunk against tonic's own
+//! generated client and server.
 
 use bytes::Bytes;
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::v1::collective_client::CollectiveClient;
-use osrt_proto::v1::{Chunk, ChunkTag, Phase};
+use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
+use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
+use osrt_trainer::chunk_wire;
 use osrt_trainer::collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, serve};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -278,4 +281,82 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
         "{err}"
     );
     assert!(t.elapsed() < Duration::from_secs(3));
+}
+
+/// tonic's generated `Collective` server, recording what it is sent.
+#[derive(Default, Clone)]
+struct Recorder(Arc<std::sync::Mutex<Vec<Chunk>>>);
+
+#[tonic::async_trait]
+impl Collective for Recorder {
+    async fn push_chunk(
+        &self,
+        request: tonic::Request<Chunk>,
+    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
+        let chunk = request.into_inner();
+        if chunk.tag.as_ref().is_some_and(|t| t.job == "refuse-me") {
+            return Err(tonic::Status::failed_precondition("refused as asked"));
+        }
+        self.0.lock().unwrap().push(chunk);
+        Ok(tonic::Response::new(ChunkAck {}))
+    }
+}
+
+/// The ring's hand-framed `PushChunk` (chunk_wire) is ordinary gRPC: tonic's generated
+/// server decodes it into the same `Chunk`, and its errors come back as the status sent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_hand_framed_client_talks_to_tonics_generated_server() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = format!("http://{}", listener.local_addr().unwrap());
+    let recorder = Recorder::default();
+    let service = tonic::service::interceptor::InterceptedService::new(
+        CollectiveServer::new(recorder.clone()).max_decoding_message_size(2 << 20),
+        osrt_proto::auth::CheckToken::new(token(), "test"),
+    );
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(service)
+            .serve_with_incoming(tonic::transport::server::TcpIncoming::from(listener)),
+    );
+    let channel = tonic::transport::Endpoint::from_shared(addr)
+        .unwrap()
+        .connect_lazy();
+    let t = Duration::from_secs(5);
+    let sent: Vec<Chunk> = [1usize, 1000, 1 << 18]
+        .into_iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let floats = random(n, i as u64);
+            chunk("test-job", 4, 7, i as u32, floats)
+        })
+        .collect();
+    for c in &sent {
+        let tag = c.tag.clone().unwrap();
+        chunk_wire::push(channel.clone(), &token().header(), t, &tag, c.data.clone())
+            .await
+            .unwrap();
+    }
+    assert_eq!(*recorder.0.lock().unwrap(), sent);
+    let refused = chunk("refuse-me", 4, 7, 0, vec![1.0; 4]);
+    let e = chunk_wire::push(
+        channel.clone(),
+        &token().header(),
+        t,
+        refused.tag.as_ref().unwrap(),
+        refused.data,
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::FailedPrecondition, "{e}");
+    assert_eq!(e.message(), "refused as asked");
+    let e = chunk_wire::push(
+        channel,
+        &Token::generate().header(),
+        t,
+        sent[0].tag.as_ref().unwrap(),
+        sent[0].data.clone(),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
 }
