@@ -193,7 +193,8 @@ pub struct BenchAllReduceArgs {
         default_value = "1000000,10000000,50000000"
     )]
     pub floats: Vec<usize>,
-    /// Timed repeats per size (after one warm-up); the median is reported.
+    /// Timed repeats per size (after one warm-up; sizes under 10 M floats get proportionally
+    /// more, at most 20×); medians are reported.
     #[arg(long, default_value_t = 5)]
     pub repeats: usize,
     /// Floats per chunk (at most 262144 = 1 MiB).
@@ -226,12 +227,14 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     );
     for r in &rows {
         println!(
-            "  {:>10} floats: all-reduce {:>8.1} ms ({:.2} GB/s) | TCP ring {:>8.1} ms, ratio {:.2} | one-way copy {:>8.1} ms, ratio {:.2}",
+            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | one-way copy {:>8.2} ms, ratio {:.2}",
             r.floats,
             r.median_allreduce_s * 1e3,
             r.allreduce_gb_per_s,
             r.median_tcp_ring_s * 1e3,
             r.ratio,
+            r.ratio_paired,
+            r.repeats,
             r.median_tcp_copy_s * 1e3,
             r.ratio_one_way
         );

@@ -8,7 +8,8 @@ pub mod convert;
 pub mod tls;
 
 /// Protocol version: peers of another version are refused at registration.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// 2: the ring sends its chunks with the client-streaming `PushChunks`.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 #[allow(clippy::all, missing_docs)]
 pub mod v1 {

@@ -7,7 +7,8 @@
 //! the baseline does exactly that with `write_all`/`read` on already-connected sockets.
 //! The ratio to it is the share of the transport's speed that gRPC framing, the chunk
 //! protocol and the reduction keep. The *one-way* baseline (one socket copying `N·4`
-//! bytes, connect included) is reported beside it for comparison with older figures.
+//! bytes) is reported beside it for comparison with older figures. Both baselines, like
+//! the all-reduce, reuse connections made before the first repeat.
 
 use crate::collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::bench::median;
@@ -25,8 +26,15 @@ pub struct AllReduceFigures {
     pub allreduce_gb_per_s: f64,
     /// The ring's traffic over bare sockets (see the module docs).
     pub median_tcp_ring_s: f64,
-    /// all-reduce throughput / ring-traffic TCP throughput (the target's ratio).
+    /// all-reduce throughput / ring-traffic TCP throughput (the target's ratio), as the
+    /// ratio of the two medians.
     pub ratio: f64,
+    /// The same ratio as the median of each repeat's own ratio (its all-reduce against
+    /// the TCP ring measured right after it): a noisy spell of a shared machine hits
+    /// both members of a pair alike.
+    pub ratio_paired: f64,
+    /// Timed repeats behind the medians.
+    pub repeats: usize,
     /// One socket copying the buffer's bytes once, one way.
     pub median_tcp_copy_s: f64,
     pub tcp_gb_per_s: f64,
@@ -34,92 +42,104 @@ pub struct AllReduceFigures {
     pub ratio_one_way: f64,
 }
 
-/// Connected ring of `world` loopback sockets: `(to successor, from predecessor)` per rank.
-async fn tcp_ring_sockets(world: usize) -> Vec<(tokio::net::TcpStream, tokio::net::TcpStream)> {
-    let mut listeners = Vec::new();
-    for _ in 0..world {
-        listeners.push(
-            tokio::net::TcpListener::bind("127.0.0.1:0")
-                .await
-                .expect("bind"),
-        );
-    }
-    let mut outgoing = Vec::new();
-    for r in 0..world {
-        let addr = listeners[(r + 1) % world].local_addr().expect("addr");
-        let s = tokio::net::TcpStream::connect(addr).await.expect("connect");
-        s.set_nodelay(true).expect("nodelay");
-        outgoing.push(s);
-    }
-    let mut incoming = Vec::new();
-    for l in &listeners {
-        incoming.push(l.accept().await.expect("accept").0);
-    }
-    // Rank r's predecessor connected to listener r.
-    outgoing.into_iter().zip(incoming).collect()
+/// One rank's sockets of a bare-TCP ring, with the bytes it sends and a receive buffer.
+struct Link {
+    to_successor: tokio::net::TcpStream,
+    from_predecessor: tokio::net::TcpStream,
+    data: Vec<u8>,
+    buf: Vec<u8>,
 }
 
-/// Every rank of a `world` ring sends `bytes` to its successor while receiving `bytes`
-/// from its predecessor, as a ring all-reduce does; seconds until all are done.
-async fn tcp_ring(world: usize, bytes: usize) -> f64 {
-    let sockets = tcp_ring_sockets(world).await;
-    // Buffers are touched before the clock starts: page faults are not the transport's.
-    let buffers: Vec<_> = (0..world)
-        .map(|_| (vec![7u8; bytes], vec![0u8; 1 << 20]))
-        .collect();
-    let t = Instant::now();
-    let tasks: Vec<_> = sockets
-        .into_iter()
-        .zip(buffers)
-        .map(|((mut out, mut inc), (data, mut buf))| {
-            tokio::spawn(async move {
-                let send = async {
-                    out.write_all(&data).await.expect("write");
-                };
-                let recv = async {
+/// A ring of `world` ranks over loopback sockets, connected once and reused for every
+/// repeat, as the all-reduce reuses its connections (no connection set-up or TCP slow
+/// start in either figure). A ring of one rank sends to itself: the one-way copy.
+struct TcpRing {
+    links: Vec<Link>,
+}
+
+impl TcpRing {
+    async fn connect(world: usize, bytes: usize) -> Self {
+        let mut listeners = Vec::new();
+        for _ in 0..world {
+            let l = tokio::net::TcpListener::bind("127.0.0.1:0").await;
+            listeners.push(l.expect("bind"));
+        }
+        let mut links = Vec::new();
+        for r in 0..world {
+            let addr = listeners[(r + 1) % world].local_addr().expect("addr");
+            let s = tokio::net::TcpStream::connect(addr).await.expect("connect");
+            s.set_nodelay(true).expect("nodelay");
+            // Rank r's predecessor connects to listener r: accept r's incoming below.
+            links.push(s);
+        }
+        let mut incoming = Vec::new();
+        for l in &listeners {
+            incoming.push(l.accept().await.expect("accept").0);
+        }
+        // Buffers are touched before any clock starts: page faults are not the transport's.
+        let links = links
+            .into_iter()
+            .zip(incoming)
+            .map(|(to_successor, from_predecessor)| Link {
+                to_successor,
+                from_predecessor,
+                data: vec![7u8; bytes],
+                buf: vec![0u8; 1 << 20],
+            })
+            .collect();
+        Self { links }
+    }
+
+    /// Every rank sends its bytes to its successor while receiving as many from its
+    /// predecessor, sending and receiving on tasks of their own (as the gRPC side's client
+    /// and server connections are); seconds until all are done.
+    async fn run(&mut self) -> f64 {
+        let t = Instant::now();
+        let tasks: Vec<_> = self
+            .links
+            .drain(..)
+            .map(|link| {
+                let Link {
+                    mut to_successor,
+                    mut from_predecessor,
+                    data,
+                    mut buf,
+                } = link;
+                let bytes = data.len();
+                let send = tokio::spawn(async move {
+                    to_successor.write_all(&data).await.expect("write");
+                    (to_successor, data)
+                });
+                let recv = tokio::spawn(async move {
                     let mut got = 0;
                     while got < bytes {
-                        let n = inc.read(&mut buf).await.expect("read");
+                        let n = from_predecessor.read(&mut buf).await.expect("read");
                         assert!(n > 0, "peer closed early");
                         got += n;
                     }
-                };
-                tokio::join!(send, recv);
+                    (from_predecessor, buf)
+                });
+                (send, recv)
             })
-        })
-        .collect();
-    for task in tasks {
-        task.await.expect("ring rank");
-    }
-    t.elapsed().as_secs_f64()
-}
-
-async fn tcp_copy(bytes: usize) -> f64 {
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = listener.local_addr().expect("addr");
-    let reader = tokio::spawn(async move {
-        let (mut s, _) = listener.accept().await.expect("accept");
-        let mut buf = vec![0u8; 1 << 20];
-        let mut got = 0;
-        while got < bytes {
-            let n = s.read(&mut buf).await.expect("read");
-            assert!(n > 0, "peer closed early");
-            got += n;
+            .collect();
+        for (send, recv) in tasks {
+            let (to_successor, data) = send.await.expect("send task");
+            let (from_predecessor, buf) = recv.await.expect("receive task");
+            self.links.push(Link {
+                to_successor,
+                from_predecessor,
+                data,
+                buf,
+            });
         }
-    });
-    let data = vec![7u8; bytes];
-    let t = Instant::now();
-    let mut s = tokio::net::TcpStream::connect(addr).await.expect("connect");
-    s.set_nodelay(true).expect("nodelay");
-    s.write_all(&data).await.expect("write");
-    reader.await.expect("reader");
-    t.elapsed().as_secs_f64()
+        t.elapsed().as_secs_f64()
+    }
 }
 
-/// Median over `repeats` of a 2-rank all-reduce of `floats` values and of a TCP copy of
-/// the same number of bytes.
+/// Median over at least `repeats` of a 2-rank all-reduce of `floats` values and of a
+/// TCP copy of the same number of bytes. Buffers under 10 M floats get proportionally
+/// more repeats (at most 20×): a 1 M-float all-reduce takes a few milliseconds, and a
+/// median of 5 such figures on a shared 2-core machine says little.
 pub async fn bench_allreduce(
     floats: usize,
     repeats: usize,
@@ -160,7 +180,11 @@ pub async fn bench_allreduce(
         })
         .collect();
     let bytes = floats * 4;
+    let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
     let (mut times, mut tcp, mut ring) = (Vec::new(), Vec::new(), Vec::new());
+    // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
+    let mut tcp_ring = TcpRing::connect(2, bytes).await;
+    let mut tcp_copy = TcpRing::connect(1, bytes).await;
     // The three measurements take turns, so a noisy spell of a shared machine hits them
     // alike and the ratios stay meaningful.
     for step in 0..=repeats as u64 {
@@ -185,14 +209,16 @@ pub async fn bench_allreduce(
             assert_eq!(buf[floats / 2], 3.0);
             rings[rank] = Some(ring);
         }
+        let elapsed = t.elapsed().as_secs_f64();
+        let (copy_s, ring_s) = (tcp_copy.run().await, tcp_ring.run().await);
         // Step 0 warms up connections and allocator.
         if step > 0 {
-            times.push(t.elapsed().as_secs_f64());
-            tcp.push(tcp_copy(bytes).await);
-            // W = 2: each rank sends 2·(W−1)/W·N = N floats.
-            ring.push(tcp_ring(2, bytes).await);
+            times.push(elapsed);
+            tcp.push(copy_s);
+            ring.push(ring_s);
         }
     }
+    let paired = times.iter().zip(&ring).map(|(a, r)| r / a).collect();
     let (ar, tc, tr) = (median(times), median(tcp), median(ring));
     AllReduceFigures {
         floats,
@@ -202,6 +228,8 @@ pub async fn bench_allreduce(
         allreduce_gb_per_s: bytes as f64 / ar / 1e9,
         median_tcp_ring_s: tr,
         ratio: tr / ar,
+        ratio_paired: median(paired),
+        repeats,
         median_tcp_copy_s: tc,
         tcp_gb_per_s: bytes as f64 / tc / 1e9,
         ratio_one_way: tc / ar,

@@ -20,8 +20,6 @@
 
 use crate::chunk_wire::{self, PushChunkServer};
 use bytes::Bytes;
-use futures::StreamExt;
-use futures::stream::FuturesUnordered;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1::{Chunk, ChunkTag, Phase};
@@ -31,6 +29,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use thiserror::Error;
 use tokio::sync::Notify;
+use tokio::time::timeout;
 use tonic::Status;
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
@@ -452,7 +451,8 @@ impl Ring {
         }
         let endpoint = endpoint
             .connect_timeout(cfg.timeout)
-            .timeout(cfg.timeout)
+            // No channel-wide request timeout: a `PushChunks` call lasts as long as its
+            // all-reduce, and carries its own deadline (`chunk_wire::open_stream`).
             // HTTP/2's default 64 KiB windows throttle 1 MiB chunks to a crawl.
             .initial_stream_window_size(WINDOW_BYTES)
             .initial_connection_window_size(WINDOW_BYTES)
@@ -483,10 +483,11 @@ impl Ring {
     /// exactly the segment it received (and reduced) in round `r` — across the phase
     /// boundary too — so each received chunk is forwarded as soon as it is applied, while
     /// it is still in cache, and no rank waits for a whole round to drain before the next
-    /// one starts. Sends go out in the order the successor consumes them (bucket, phase,
-    /// round, chunk), at most [`Ring::in_flight`] at a time; receives are applied in that
-    /// same fixed order, so the arithmetic, and with it every bit, is the same as a
-    /// round-by-round ring.
+    /// one starts. All of one all-reduce's chunks to the successor travel as the messages
+    /// of one `PushChunks` call, in the order the successor consumes them (bucket, phase,
+    /// round, chunk), at most [`Ring::in_flight`] queued at a time; receives are applied
+    /// in that same fixed order, so the arithmetic, and with it every bit, is the same as
+    /// a round-by-round ring.
     pub async fn all_reduce(&mut self, step: u64, buf: &mut [f32]) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         if w == 1 {
@@ -496,6 +497,11 @@ impl Ring {
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
         let next = (rank + 1) % w;
+        let send_error = |status| CollectiveError::Send {
+            rank,
+            to: next,
+            status,
+        };
         let inject = self.fault == Some((rank, step)) && self.cfg.generation == 1;
         let schedule = receive_schedule(&layout, rank);
         // Sends that may go out now, by the order the successor consumes them.
@@ -506,50 +512,58 @@ impl Ring {
                 ready.insert(ChunkId::new(b, Phase::ReduceScatter, 0, c), range);
             }
         }
-        let limit = self.in_flight();
-        let mut sending = FuturesUnordered::new();
+        // Every chunk a rank sends, its successor receives: as many as this rank does.
+        // The call's deadline allows each of them the per-chunk timeout; a dead peer is
+        // noticed much sooner, by the waits below.
+        let deadline = self.cfg.timeout * (schedule.len() as u32 + 1);
+        let (sender, mut call) =
+            chunk_wire::open_stream(self.next.clone(), &self.auth, deadline, self.in_flight())
+                .map_err(send_error)?;
         let mut first = true;
+        let cfg = &self.cfg;
+        let mut send = |permit: chunk_wire::ChunkPermit, id: ChunkId, floats: &[f32]| {
+            let mut data = to_bytes(floats);
+            if inject && std::mem::take(&mut first) {
+                data.truncate(data.len().saturating_sub(4));
+            }
+            permit.send(&id.tag(cfg, step), data);
+        };
         let mut received = 0;
         loop {
-            while sending.len() < limit {
-                let Some((id, range)) = ready.pop_first() else {
+            // Queue what is ready while there is room, without waiting.
+            while let Some(entry) = ready.first_entry() {
+                let Some(permit) = sender.try_reserve() else {
                     break;
                 };
-                let mut data = to_bytes(&buf[range]);
-                if inject && std::mem::take(&mut first) {
-                    data.truncate(data.len().saturating_sub(4));
-                }
-                let tag = id.tag(&self.cfg, step);
-                let (channel, auth, timeout) =
-                    (self.next.clone(), self.auth.clone(), self.cfg.timeout);
-                sending.push(async move {
-                    chunk_wire::push(channel, &auth, timeout, &tag, data)
-                        .await
-                        .map_err(|status| CollectiveError::Send {
-                            rank,
-                            to: next,
-                            status,
-                        })
-                });
-            }
-            if received == schedule.len() && sending.is_empty() {
-                return Ok(());
+                let (id, range) = entry.remove_entry();
+                send(permit, id, &buf[range]);
             }
             let Some(hop) = schedule.get(received) else {
-                // Everything is in; only acknowledgements are outstanding.
-                if let Some(result) = sending.next().await {
-                    result?;
+                if ready.is_empty() {
+                    break;
                 }
+                // Everything is in; only sends are left.
+                let permit = tokio::select! {
+                    biased;
+                    status = call.ended() => return Err(send_error(status)),
+                    permit = timeout(self.cfg.timeout, sender.reserve()) => permit,
+                };
+                let permit = match permit {
+                    Ok(Ok(p)) => p,
+                    Ok(Err(_)) => return Err(send_error(call.ended().await)),
+                    Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
+                };
+                let (id, range) = ready.pop_first().expect("ready is not empty");
+                send(permit, id, &buf[range]);
                 continue;
             };
-            // The first failure ends the all-reduce: a dead successor fails a send at once,
-            // a dead predecessor the receive at its deadline.
+            // The first failure ends the all-reduce: a refused chunk or a dead successor
+            // ends the call, a dead predecessor fails the receive at its deadline.
+            let key = hop.id.key(self.cfg.generation, step);
             tokio::select! {
                 biased;
-                Some(result) = sending.next(), if !sending.is_empty() => {
-                    result?;
-                }
-                data = self.mailbox.take(hop.id.key(self.cfg.generation, step), self.cfg.timeout) => {
+                status = call.ended() => return Err(send_error(status)),
+                data = self.mailbox.take(key, self.cfg.timeout) => {
                     let data = match data {
                         Ok(Ok(d)) => d,
                         Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),
@@ -585,16 +599,24 @@ impl Ring {
                 }
             }
         }
+        // Every chunk is queued and every expected one received; the successor
+        // acknowledges the call once it has taken the last one.
+        call.finish(sender).await.map_err(send_error)
     }
 
-    /// Chunks one rank keeps in flight to its successor: 8 MiB worth (half the HTTP/2
-    /// window), at least 2.
+    /// Chunks one rank queues for its successor beyond what HTTP/2 flow control lets
+    /// through: 8 MiB worth (half the HTTP/2 window), at least 2.
     fn in_flight(&self) -> usize {
         (IN_FLIGHT_BYTES / (self.cfg.chunk_floats.clamp(1, MAX_CHUNK_FLOATS) * 4)).clamp(2, 64)
     }
 }
 
-/// Bytes of chunks one rank has in flight at once.
+/// Why a send waited in vain: the successor took nothing for `timeout`.
+fn stalled(timeout: Duration) -> Status {
+    Status::deadline_exceeded(format!("the successor took no chunk within {timeout:?}"))
+}
+
+/// Bytes of chunks one rank queues at once.
 const IN_FLIGHT_BYTES: usize = 8 << 20;
 
 /// A chunk's place in an all-reduce; the derived order (bucket, phase, round, chunk) is

@@ -1,5 +1,5 @@
 //! Ring all-reduce over real gRPC on loopback: sums, bit-identical replicas, stale and
-//! malformed traffic, dead peers, and the hand-framed PushChunk against tonic's own
+//! malformed traffic, dead peers, and the hand-framed chunk calls against tonic's own
 //! generated client and server.
 
 use bytes::Bytes;
@@ -287,25 +287,64 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
 #[derive(Default, Clone)]
 struct Recorder(Arc<std::sync::Mutex<Vec<Chunk>>>);
 
+impl Recorder {
+    fn record(&self, chunk: Chunk) -> Result<(), tonic::Status> {
+        if chunk.tag.as_ref().is_some_and(|t| t.job == "refuse-me") {
+            return Err(tonic::Status::failed_precondition("refused as asked"));
+        }
+        self.0.lock().unwrap().push(chunk);
+        Ok(())
+    }
+}
+
 #[tonic::async_trait]
 impl Collective for Recorder {
     async fn push_chunk(
         &self,
         request: tonic::Request<Chunk>,
     ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
-        let chunk = request.into_inner();
-        if chunk.tag.as_ref().is_some_and(|t| t.job == "refuse-me") {
-            return Err(tonic::Status::failed_precondition("refused as asked"));
+        self.record(request.into_inner())?;
+        Ok(tonic::Response::new(ChunkAck {}))
+    }
+
+    async fn push_chunks(
+        &self,
+        request: tonic::Request<tonic::Streaming<Chunk>>,
+    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
+        let mut chunks = request.into_inner();
+        while let Some(chunk) = chunks.message().await? {
+            self.record(chunk)?;
         }
-        self.0.lock().unwrap().push(chunk);
         Ok(tonic::Response::new(ChunkAck {}))
     }
 }
 
-/// The ring's hand-framed `PushChunk` (chunk_wire) is ordinary gRPC: tonic's generated
-/// server decodes it into the same `Chunk`, and its errors come back as the status sent.
+/// Sends `chunks` on one hand-framed `PushChunks` call and returns its status.
+async fn stream_chunks(
+    channel: tonic::transport::Channel,
+    token: &Token,
+    chunks: &[Chunk],
+) -> Result<(), tonic::Status> {
+    let (sender, mut call) =
+        chunk_wire::open_stream(channel, &token.header(), Duration::from_secs(5), 2)?;
+    for c in chunks {
+        let permit = tokio::select! {
+            status = call.ended() => return Err(status),
+            permit = sender.reserve() => permit,
+        };
+        match permit {
+            Ok(p) => p.send(c.tag.as_ref().unwrap(), c.data.clone()),
+            Err(_) => return Err(call.ended().await),
+        }
+    }
+    call.finish(sender).await
+}
+
+/// The ring's hand-framed `PushChunks` (chunk_wire) is ordinary gRPC: tonic's generated
+/// server decodes every message into the same `Chunk`, in order, and its refusal comes
+/// back as the status it sent.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_hand_framed_client_talks_to_tonics_generated_server() {
+async fn the_hand_framed_stream_talks_to_tonics_generated_server() {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = format!("http://{}", listener.local_addr().unwrap());
     let recorder = Recorder::default();
@@ -321,42 +360,106 @@ async fn the_hand_framed_client_talks_to_tonics_generated_server() {
     let channel = tonic::transport::Endpoint::from_shared(addr)
         .unwrap()
         .connect_lazy();
-    let t = Duration::from_secs(5);
-    let sent: Vec<Chunk> = [1usize, 1000, 1 << 18]
+    let sent: Vec<Chunk> = [1usize, 1000, 1 << 18, 0, 3]
         .into_iter()
         .enumerate()
-        .map(|(i, n)| {
-            let floats = random(n, i as u64);
-            chunk("test-job", 4, 7, i as u32, floats)
-        })
+        .map(|(i, n)| chunk("test-job", 4, 7, i as u32, random(n, i as u64)))
         .collect();
-    for c in &sent {
-        let tag = c.tag.clone().unwrap();
-        chunk_wire::push(channel.clone(), &token().header(), t, &tag, c.data.clone())
-            .await
-            .unwrap();
-    }
+    stream_chunks(channel.clone(), &token(), &sent)
+        .await
+        .unwrap();
     assert_eq!(*recorder.0.lock().unwrap(), sent);
+    // A call with no chunk at all is a valid, empty stream.
+    stream_chunks(channel.clone(), &token(), &[]).await.unwrap();
+    // Refused halfway: the call ends with the server's status; what came before was taken.
+    recorder.0.lock().unwrap().clear();
     let refused = chunk("refuse-me", 4, 7, 0, vec![1.0; 4]);
-    let e = chunk_wire::push(
+    let e = stream_chunks(
         channel.clone(),
-        &token().header(),
-        t,
-        refused.tag.as_ref().unwrap(),
-        refused.data,
+        &token(),
+        &[sent[0].clone(), refused, sent[1].clone()],
     )
     .await
     .unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition, "{e}");
     assert_eq!(e.message(), "refused as asked");
-    let e = chunk_wire::push(
-        channel,
-        &Token::generate().header(),
-        t,
-        sent[0].tag.as_ref().unwrap(),
-        sent[0].data.clone(),
-    )
-    .await
-    .unwrap_err();
+    assert_eq!(*recorder.0.lock().unwrap(), vec![sent[0].clone()]);
+    let e = stream_chunks(channel, &Token::generate(), &sent[..1])
+        .await
+        .unwrap_err();
     assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
+}
+
+/// tonic's generated streaming client against the ring's server: the chunks of a whole
+/// all-reduce arrive as messages of one call and the waiting rank completes; a malformed
+/// chunk in the middle of a call fails the call and the round at once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tonics_generated_stream_client_talks_to_the_ring_server() {
+    let nodes = start(2, "test-job").await;
+    nodes[0].mailbox.set_generation(1, 0);
+    // 8 floats, segments of 4, chunks of 2: rank 1 receives 2 reduce-scatter and 2
+    // all-gather chunks from rank 0.
+    let cfg = config(&nodes, 1, 1000, 2, Duration::from_secs(5));
+    let mut ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
+    let waiting = tokio::spawn(async move {
+        let mut buf = vec![1.0f32; 8];
+        let r = ring.all_reduce(3, &mut buf).await;
+        (r, buf, ring)
+    });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
+    let tagged = |phase: Phase, c: u32, v: f32| {
+        let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
+        let t = ch.tag.as_mut().unwrap();
+        t.phase = phase as i32;
+        t.chunk = c;
+        ch
+    };
+    // Rank 1 receives segment 0 in the reduce-scatter (and sums it) and segment 1 in the
+    // all-gather (and copies it); rank 0 would send 2.0 + 1.0 for both.
+    let messages = vec![
+        tagged(Phase::ReduceScatter, 0, 1.0),
+        tagged(Phase::ReduceScatter, 1, 1.0),
+        tagged(Phase::AllGather, 0, 5.0),
+        tagged(Phase::AllGather, 1, 5.0),
+    ];
+    client
+        .push_chunks(futures::stream::iter(messages))
+        .await
+        .unwrap();
+    let (result, buf, mut ring) = waiting.await.unwrap();
+    // Rank 1's own sends go to rank 0's server, which takes them without a local
+    // all-reduce waiting: the round completes.
+    result.unwrap();
+    assert_eq!(buf, [2.0, 2.0, 2.0, 2.0, 5.0, 5.0, 5.0, 5.0]);
+
+    // Step 4: a chunk one float short, second in the call.
+    let waiting = tokio::spawn(async move {
+        let mut buf = vec![1.0f32; 8];
+        ring.all_reduce(4, &mut buf).await
+    });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let mut short = tagged(Phase::ReduceScatter, 1, 1.0);
+    short.tag.as_mut().unwrap().step = 4;
+    short.data.truncate(4);
+    let mut first = tagged(Phase::ReduceScatter, 0, 1.0);
+    first.tag.as_mut().unwrap().step = 4;
+    let t = Instant::now();
+    let e = client
+        .push_chunks(futures::stream::iter(vec![first, short]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e}");
+    assert!(e.message().contains("malformed chunk"), "{e}");
+    let err = waiting.await.unwrap().unwrap_err();
+    assert!(
+        matches!(err, CollectiveError::Peer(ref m, 1) if m.contains("malformed chunk")),
+        "{err}"
+    );
+    assert!(t.elapsed() < Duration::from_secs(2));
 }
