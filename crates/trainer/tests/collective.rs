@@ -170,19 +170,33 @@ fn chunk(job: &str, generation: u64, step: u64, from: u32, data: Vec<f32>) -> Ch
     }
 }
 
+/// What a rank's all-reduce task hands back: its result, its buffer and its ring.
+type Waiting = tokio::task::JoinHandle<(Result<(), CollectiveError>, Vec<f32>, Ring)>;
+
+/// Runs `ring`'s all-reduce `step` of 8 ones on a task of its own.
+fn all_reduce_in_background(mut ring: Ring, step: u64) -> Waiting {
+    tokio::spawn(async move {
+        let mut buf = vec![1.0f32; 8];
+        let r = ring.all_reduce(step, &mut buf).await;
+        (r, buf, ring)
+    })
+}
+
+/// Two nodes; rank 1 waits in all-reduce 3 of 8 ones (segments of 4, chunks of
+/// `chunk_floats`); rank 0 is in generation 1 but never joins: the test speaks for it.
+async fn rank_1_waiting(chunk_floats: usize) -> (Vec<Node>, Waiting) {
+    let nodes = start(2, "test-job").await;
+    nodes[0].mailbox.set_generation(1, 0);
+    let cfg = config(&nodes, 1, 1000, chunk_floats, Duration::from_secs(5));
+    let ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
+    let waiting = all_reduce_in_background(ring, 3);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    (nodes, waiting)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stale_foreign_and_malformed_chunks_are_rejected() {
-    let nodes = start(2, "test-job").await;
-    // Rank 0 is in generation 1 but never joins the all-reduce rank 1 waits in (8 floats,
-    // segments of 4).
-    nodes[0].mailbox.set_generation(1, 0);
-    let cfg = config(&nodes, 1, 1000, 1000, Duration::from_secs(5));
-    let mut ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
-    let waiting = tokio::spawn(async move {
-        let mut buf = vec![1.0f32; 8];
-        ring.all_reduce(3, &mut buf).await
-    });
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    let (nodes, waiting) = rank_1_waiting(1000).await;
     // Without the job's token, or with another job's: refused before anything is parsed.
     let mut bare = CollectiveClient::connect(nodes[1].addr.clone())
         .await
@@ -242,7 +256,7 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument);
     assert!(e.message().contains("malformed chunk"), "{e}");
-    let err = waiting.await.unwrap().unwrap_err();
+    let err = waiting.await.unwrap().0.unwrap_err();
     assert!(
         matches!(err, CollectiveError::Peer(ref m, 1) if m.contains("malformed chunk")),
         "{err}"
@@ -395,18 +409,8 @@ async fn the_hand_framed_stream_talks_to_tonics_generated_server() {
 /// chunk in the middle of a call fails the call and the round at once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tonics_generated_stream_client_talks_to_the_ring_server() {
-    let nodes = start(2, "test-job").await;
-    nodes[0].mailbox.set_generation(1, 0);
-    // 8 floats, segments of 4, chunks of 2: rank 1 receives 2 reduce-scatter and 2
-    // all-gather chunks from rank 0.
-    let cfg = config(&nodes, 1, 1000, 2, Duration::from_secs(5));
-    let mut ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
-    let waiting = tokio::spawn(async move {
-        let mut buf = vec![1.0f32; 8];
-        let r = ring.all_reduce(3, &mut buf).await;
-        (r, buf, ring)
-    });
-    tokio::time::sleep(Duration::from_millis(200)).await;
+    // Chunks of 2: rank 1 receives 2 reduce-scatter and 2 all-gather chunks from rank 0.
+    let (nodes, waiting) = rank_1_waiting(2).await;
     let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
         .unwrap()
         .connect()
@@ -432,17 +436,14 @@ async fn tonics_generated_stream_client_talks_to_the_ring_server() {
         .push_chunks(futures::stream::iter(messages))
         .await
         .unwrap();
-    let (result, buf, mut ring) = waiting.await.unwrap();
+    let (result, buf, ring) = waiting.await.unwrap();
     // Rank 1's own sends go to rank 0's server, which takes them without a local
     // all-reduce waiting: the round completes.
     result.unwrap();
     assert_eq!(buf, [2.0, 2.0, 2.0, 2.0, 5.0, 5.0, 5.0, 5.0]);
 
     // Step 4: a chunk one float short, second in the call.
-    let waiting = tokio::spawn(async move {
-        let mut buf = vec![1.0f32; 8];
-        ring.all_reduce(4, &mut buf).await
-    });
+    let waiting = all_reduce_in_background(ring, 4);
     tokio::time::sleep(Duration::from_millis(200)).await;
     let mut short = tagged(Phase::ReduceScatter, 1, 1.0);
     short.tag.as_mut().unwrap().step = 4;
@@ -456,7 +457,7 @@ async fn tonics_generated_stream_client_talks_to_the_ring_server() {
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e}");
     assert!(e.message().contains("malformed chunk"), "{e}");
-    let err = waiting.await.unwrap().unwrap_err();
+    let err = waiting.await.unwrap().0.unwrap_err();
     assert!(
         matches!(err, CollectiveError::Peer(ref m, 1) if m.contains("malformed chunk")),
         "{err}"
