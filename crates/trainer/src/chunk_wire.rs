@@ -483,6 +483,18 @@ impl ChunkCall {
         }
     }
 
+    /// [`ChunkCall::ended`] once the call is known to be over (its queue closed), waiting
+    /// at most `timeout` for the status to arrive.
+    pub async fn status_within(&mut self, timeout: Duration) -> Status {
+        tokio::time::timeout(timeout, self.ended())
+            .await
+            .unwrap_or_else(|_| {
+                Status::unavailable(format!(
+                    "the PushChunks call closed and sent no status within {timeout:?}"
+                ))
+            })
+    }
+
     /// Ends the call after the chunks queued in `sender` and waits for its status.
     pub async fn finish(mut self, sender: ChunkSender) -> Result<(), Status> {
         drop(sender);

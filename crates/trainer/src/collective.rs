@@ -550,7 +550,9 @@ impl Ring {
                 };
                 let permit = match permit {
                     Ok(Ok(p)) => p,
-                    Ok(Err(_)) => return Err(send_error(call.ended().await)),
+                    Ok(Err(_)) => {
+                        return Err(send_error(call.status_within(self.cfg.timeout).await));
+                    }
                     Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
                 };
                 let (id, range) = ready.pop_first().expect("ready is not empty");

@@ -354,7 +354,7 @@ async fn stream_chunks(
         };
         match permit {
             Ok(p) => p.send(c.tag.as_ref().unwrap(), c.data.clone()),
-            Err(_) => return Err(call.ended().await),
+            Err(_) => return Err(call.status_within(Duration::from_secs(5)).await),
         }
     }
     call.finish(sender).await
