@@ -538,34 +538,32 @@ impl Ring {
                 let (id, range) = entry.remove_entry();
                 send(permit, id, &buf[range]);
             }
-            let Some(hop) = schedule.get(received) else {
-                if ready.is_empty() {
-                    break;
-                }
-                // Everything is in; only sends are left.
-                let permit = tokio::select! {
-                    biased;
-                    status = call.ended() => return Err(send_error(status)),
-                    permit = timeout(self.cfg.timeout, sender.reserve()) => permit,
-                };
-                let permit = match permit {
-                    Ok(Ok(p)) => p,
-                    Ok(Err(_)) => {
-                        return Err(send_error(call.status_within(self.cfg.timeout).await));
-                    }
-                    Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
-                };
-                let (id, range) = ready.pop_first().expect("ready is not empty");
-                send(permit, id, &buf[range]);
-                continue;
-            };
-            // The first failure ends the all-reduce: a refused chunk or a dead successor
-            // ends the call, a dead predecessor fails the receive at its deadline.
-            let key = hop.id.key(self.cfg.generation, step);
+            let hop = schedule.get(received);
+            if hop.is_none() && ready.is_empty() {
+                break;
+            }
+            // Wait for whichever comes first: room to queue the next ready chunk (a chunk
+            // the ring downstream may be waiting for), or the next chunk to receive. The
+            // first failure ends the all-reduce: a refused chunk or a dead successor ends
+            // the call, a dead predecessor fails the receive at its deadline, a successor
+            // that takes nothing fails the send at its deadline.
+            let key = hop.map_or_else(Key::default, |h| h.id.key(self.cfg.generation, step));
             tokio::select! {
                 biased;
                 status = call.ended() => return Err(send_error(status)),
-                data = self.mailbox.take(key, self.cfg.timeout) => {
+                permit = timeout(self.cfg.timeout, sender.reserve()), if !ready.is_empty() => {
+                    let permit = match permit {
+                        Ok(Ok(p)) => p,
+                        Ok(Err(_)) => {
+                            return Err(send_error(call.status_within(self.cfg.timeout).await));
+                        }
+                        Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
+                    };
+                    let (id, range) = ready.pop_first().expect("ready is not empty");
+                    send(permit, id, &buf[range]);
+                }
+                data = self.mailbox.take(key, self.cfg.timeout), if hop.is_some() => {
+                    let hop = hop.expect("enabled only with a chunk to receive");
                     let data = match data {
                         Ok(Ok(d)) => d,
                         Ok(Err(reason)) => return Err(CollectiveError::Peer(reason, rank)),

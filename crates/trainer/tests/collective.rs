@@ -108,15 +108,18 @@ fn layout_covers_the_buffer_exactly_once() {
     }
 }
 
+/// Rings of 2–4 ranks. With 256-float chunks more chunks are ready to send at once
+/// (~120–160) than a rank's send queue holds (64): sends must go on as the queue drains,
+/// while receives are still pending.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn ring_all_reduce_sums_and_replicas_are_bit_identical() {
-    for world in [2usize, 3] {
+    for (world, chunk) in [(2usize, 4096), (3, 4096), (3, 256), (4, 256)] {
         let nodes = start(world, "test-job").await;
         let len = 100_003;
         let inputs: Vec<Vec<f32>> = (0..world).map(|r| random(len, r as u64)).collect();
         let mut tasks = Vec::new();
         for rank in 0..world {
-            let cfg = config(&nodes, rank, 30_000, 4096, Duration::from_secs(10));
+            let cfg = config(&nodes, rank, 30_000, chunk, Duration::from_secs(10));
             let mut ring = Ring::new(cfg, nodes[rank].mailbox.clone()).unwrap();
             let mut buf = inputs[rank].clone();
             tasks.push(tokio::spawn(async move {
