@@ -515,7 +515,8 @@ impl Ring {
         // Every chunk a rank sends, its successor receives: as many as this rank does.
         // The call's deadline allows each of them the per-chunk timeout; a dead peer is
         // noticed much sooner, by the waits below.
-        let deadline = self.cfg.timeout * (schedule.len() as u32 + 1);
+        let chunks = u32::try_from(schedule.len() + 1).unwrap_or(u32::MAX);
+        let deadline = self.cfg.timeout.saturating_mul(chunks);
         let (sender, mut call) =
             chunk_wire::open_stream(self.next.clone(), &self.auth, deadline, self.in_flight())
                 .map_err(send_error)?;
