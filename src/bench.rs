@@ -227,7 +227,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     );
     for r in &rows {
         println!(
-            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | one-way copy {:>8.2} ms, ratio {:.2}",
+            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | TCP ring into place {:>8.2} ms, ratio {:.2} (paired {:.2}) | one-way copy {:>8.2} ms, ratio {:.2}",
             r.floats,
             r.median_allreduce_s * 1e3,
             r.allreduce_gb_per_s,
@@ -235,6 +235,9 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
             r.ratio,
             r.ratio_paired,
             r.repeats,
+            r.median_tcp_ring_in_place_s * 1e3,
+            r.ratio_in_place,
+            r.ratio_in_place_paired,
             r.median_tcp_copy_s * 1e3,
             r.ratio_one_way
         );

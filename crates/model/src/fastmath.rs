@@ -112,7 +112,8 @@ fn sin_cos_reduced(x: f32) -> (f32, f32) {
 macro_rules! simd_kernel {
     ($(#[$m:meta])* pub fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $body:block) => {
         $(#[$m])*
-        // The one place the workspace allows `unsafe`: calling a `target_feature` function
+        // One of two places the workspace allows `unsafe` (the other lends all-reduce
+        // buffers to the transport): calling a `target_feature` function
         // needs it, and the call is guarded by the run-time feature check.
         #[allow(unsafe_code)]
         pub fn $name($($arg: $ty),*) {

@@ -33,6 +33,12 @@ pub struct AllReduceFigures {
     /// the TCP ring measured right after it): a noisy spell of a shared machine hits
     /// both members of a pair alike.
     pub ratio_paired: f64,
+    /// The ring's traffic over bare sockets, each rank receiving into a buffer of the
+    /// whole message's size (as the all-reduce must land what it receives in the
+    /// gradient buffer) instead of a reused 1 MiB scratch buffer that stays in cache.
+    pub median_tcp_ring_in_place_s: f64,
+    pub ratio_in_place: f64,
+    pub ratio_in_place_paired: f64,
     /// Timed repeats behind the medians.
     pub repeats: usize,
     /// One socket copying the buffer's bytes once, one way.
@@ -47,6 +53,8 @@ struct Link {
     to_successor: tokio::net::TcpStream,
     from_predecessor: tokio::net::TcpStream,
     data: Vec<u8>,
+    /// Where received bytes land: a reused 1 MiB scratch buffer, or (`into_place`) a
+    /// buffer as large as `data`, filled front to back.
     buf: Vec<u8>,
 }
 
@@ -55,10 +63,11 @@ struct Link {
 /// start in either figure). A ring of one rank sends to itself: the one-way copy.
 struct TcpRing {
     links: Vec<Link>,
+    into_place: bool,
 }
 
 impl TcpRing {
-    async fn connect(world: usize, bytes: usize) -> Self {
+    async fn connect(world: usize, bytes: usize, into_place: bool) -> Self {
         let mut listeners = Vec::new();
         for _ in 0..world {
             let l = tokio::net::TcpListener::bind("127.0.0.1:0").await;
@@ -84,10 +93,10 @@ impl TcpRing {
                 to_successor,
                 from_predecessor,
                 data: vec![7u8; bytes],
-                buf: vec![0u8; 1 << 20],
+                buf: vec![0u8; if into_place { bytes } else { 1 << 20 }],
             })
             .collect();
-        Self { links }
+        Self { links, into_place }
     }
 
     /// Every rank sends its bytes to its successor while receiving as many from its
@@ -95,6 +104,7 @@ impl TcpRing {
     /// and server connections are); seconds until all are done.
     async fn run(&mut self) -> f64 {
         let t = Instant::now();
+        let into_place = self.into_place;
         let tasks: Vec<_> = self
             .links
             .drain(..)
@@ -113,7 +123,12 @@ impl TcpRing {
                 let recv = tokio::spawn(async move {
                     let mut got = 0;
                     while got < bytes {
-                        let n = from_predecessor.read(&mut buf).await.expect("read");
+                        let to = if into_place {
+                            &mut buf[got..]
+                        } else {
+                            &mut buf[..]
+                        };
+                        let n = from_predecessor.read(to).await.expect("read");
                         assert!(n > 0, "peer closed early");
                         got += n;
                     }
@@ -181,10 +196,12 @@ pub async fn bench_allreduce(
         .collect();
     let bytes = floats * 4;
     let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
-    let (mut times, mut tcp, mut ring) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut times, mut tcp, mut ring, mut in_place) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
-    let mut tcp_ring = TcpRing::connect(2, bytes).await;
-    let mut tcp_copy = TcpRing::connect(1, bytes).await;
+    let mut tcp_ring = TcpRing::connect(2, bytes, false).await;
+    let mut tcp_ring_in_place = TcpRing::connect(2, bytes, true).await;
+    let mut tcp_copy = TcpRing::connect(1, bytes, false).await;
     // The three measurements take turns, so a noisy spell of a shared machine hits them
     // alike and the ratios stay meaningful.
     for step in 0..=repeats as u64 {
@@ -210,16 +227,20 @@ pub async fn bench_allreduce(
             rings[rank] = Some(ring);
         }
         let elapsed = t.elapsed().as_secs_f64();
-        let (copy_s, ring_s) = (tcp_copy.run().await, tcp_ring.run().await);
+        let copy_s = tcp_copy.run().await;
+        let ring_s = tcp_ring.run().await;
+        let in_place_s = tcp_ring_in_place.run().await;
         // Step 0 warms up connections and allocator.
         if step > 0 {
             times.push(elapsed);
             tcp.push(copy_s);
             ring.push(ring_s);
+            in_place.push(in_place_s);
         }
     }
-    let paired = times.iter().zip(&ring).map(|(a, r)| r / a).collect();
-    let (ar, tc, tr) = (median(times), median(tcp), median(ring));
+    let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
+    let (paired_ring, paired_in_place) = (paired(&ring), paired(&in_place));
+    let (ar, tc, tr, tp) = (median(times), median(tcp), median(ring), median(in_place));
     AllReduceFigures {
         floats,
         chunk_floats,
@@ -228,7 +249,10 @@ pub async fn bench_allreduce(
         allreduce_gb_per_s: bytes as f64 / ar / 1e9,
         median_tcp_ring_s: tr,
         ratio: tr / ar,
-        ratio_paired: median(paired),
+        ratio_paired: paired_ring,
+        median_tcp_ring_in_place_s: tp,
+        ratio_in_place: tp / ar,
+        ratio_in_place_paired: paired_in_place,
         repeats,
         median_tcp_copy_s: tc,
         tcp_gb_per_s: bytes as f64 / tc / 1e9,

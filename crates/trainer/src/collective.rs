@@ -19,6 +19,7 @@
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
 use crate::chunk_wire::{self, PushChunkServer};
+use crate::loan::Shared;
 use bytes::Bytes;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::tls::Tls;
@@ -66,6 +67,14 @@ pub enum CollectiveError {
     },
     #[error("rank {rank}: round failed: {0}", rank = .1)]
     Peer(String, usize),
+    #[error(
+        "rank {rank}: floats {range:?} were still queued in the transport after {timeout:?}, so they could not be reduced"
+    )]
+    StillLent {
+        rank: usize,
+        range: Range<usize>,
+        timeout: Duration,
+    },
     #[error("cannot connect to {addr}: {reason}")]
     Connect { addr: String, reason: String },
     #[error("collective configuration: {0}")]
@@ -373,26 +382,6 @@ pub struct Ring {
     fault: Option<(usize, u64)>,
 }
 
-/// A chunk's floats, owned, seen as the little-endian bytes the wire carries.
-struct LeF32(Vec<f32>);
-
-impl AsRef<[u8]> for LeF32 {
-    fn as_ref(&self) -> &[u8] {
-        bytemuck::cast_slice(&self.0)
-    }
-}
-
-/// Little-endian bytes of `v`. On little-endian machines an f32 already *is* its wire
-/// bytes: one `memcpy` into an owned buffer that `Bytes` wraps without copying again (a
-/// zero-filled byte vector written float by float cost a `memset` and a slower loop).
-fn to_bytes(v: &[f32]) -> Bytes {
-    if cfg!(target_endian = "little") {
-        Bytes::from_owner(LeF32(v.to_vec()))
-    } else {
-        Bytes::from(v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>())
-    }
-}
-
 /// Adds (`add`) or copies the little-endian floats in `src` into `dst`
 /// (`src.len() == 4 · dst.len()`).
 fn apply_le(dst: &mut [f32], src: &[u8], add: bool) {
@@ -488,12 +477,41 @@ impl Ring {
     /// round, chunk), at most [`Ring::in_flight`] queued at a time; receives are applied
     /// in that same fixed order, so the arithmetic, and with it every bit, is the same as
     /// a round-by-round ring.
-    pub async fn all_reduce(&mut self, step: u64, buf: &mut [f32]) -> Result<(), CollectiveError> {
-        let w = self.cfg.world();
-        if w == 1 {
+    ///
+    /// No float is copied to be sent: the buffer moves into a [`Shared`] for the
+    /// all-reduce, reduce-scatter chunks go out as loans of its ranges, and all-gather
+    /// chunks are forwarded as the very bytes received. `buf` is taken by `&mut Vec` for
+    /// that move; it is back, reduced, when this returns `Ok`. After an error its contents
+    /// are unspecified, and if the future is dropped unfinished it is left empty.
+    pub async fn all_reduce(
+        &mut self,
+        step: u64,
+        buf: &mut Vec<f32>,
+    ) -> Result<(), CollectiveError> {
+        if self.cfg.world() == 1 {
             return Ok(());
         }
-        let layout = self.layout(buf.len());
+        let shared = Shared::new(std::mem::take(buf));
+        let result = self.ring_all_reduce(step, &shared).await;
+        // After success the successor has taken every chunk, so the transport lets go of
+        // the loans at once; after a failure they may sit in a dead connection's queue,
+        // and a copy now beats waiting for it.
+        let wait = if result.is_ok() {
+            self.cfg.timeout
+        } else {
+            Duration::ZERO
+        };
+        *buf = Shared::reclaim(shared, wait).await;
+        result
+    }
+
+    async fn ring_all_reduce(
+        &mut self,
+        step: u64,
+        shared: &Arc<Shared>,
+    ) -> Result<(), CollectiveError> {
+        let w = self.cfg.world();
+        let layout = self.layout(shared.len());
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
         let next = (rank + 1) % w;
@@ -505,11 +523,12 @@ impl Ring {
         let inject = self.fault == Some((rank, step)) && self.cfg.generation == 1;
         let schedule = receive_schedule(&layout, rank);
         // Sends that may go out now, by the order the successor consumes them.
-        let mut ready: BTreeMap<ChunkId, Range<usize>> = BTreeMap::new();
+        let mut ready: BTreeMap<ChunkId, Outgoing> = BTreeMap::new();
         for b in 0..layout.buckets.len() {
             let seg = layout.segment(b, layout.send_segment(rank, Phase::ReduceScatter, 0));
             for (c, range) in layout.chunks(seg).into_iter().enumerate() {
-                ready.insert(ChunkId::new(b, Phase::ReduceScatter, 0, c), range);
+                let id = ChunkId::new(b, Phase::ReduceScatter, 0, c);
+                ready.insert(id, Outgoing::Lend(range));
             }
         }
         // Every chunk a rank sends, its successor receives: as many as this rank does.
@@ -522,8 +541,11 @@ impl Ring {
                 .map_err(send_error)?;
         let mut first = true;
         let cfg = &self.cfg;
-        let mut send = |permit: chunk_wire::ChunkPermit, id: ChunkId, floats: &[f32]| {
-            let mut data = to_bytes(floats);
+        let mut send = |permit: chunk_wire::ChunkPermit, id: ChunkId, out: Outgoing| {
+            let mut data = match out {
+                Outgoing::Lend(range) => shared.lend(range),
+                Outgoing::Forward(bytes) => bytes,
+            };
             if inject && std::mem::take(&mut first) {
                 data.truncate(data.len().saturating_sub(4));
             }
@@ -536,8 +558,8 @@ impl Ring {
                 let Some(permit) = sender.try_reserve() else {
                     break;
                 };
-                let (id, range) = entry.remove_entry();
-                send(permit, id, &buf[range]);
+                let (id, out) = entry.remove_entry();
+                send(permit, id, out);
             }
             let hop = schedule.get(received);
             if hop.is_none() && ready.is_empty() {
@@ -560,8 +582,8 @@ impl Ring {
                         }
                         Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
                     };
-                    let (id, range) = ready.pop_first().expect("ready is not empty");
-                    send(permit, id, &buf[range]);
+                    let (id, out) = ready.pop_first().expect("ready is not empty");
+                    send(permit, id, out);
                 }
                 data = self.mailbox.take(key, self.cfg.timeout), if hop.is_some() => {
                     let hop = hop.expect("enabled only with a chunk to receive");
@@ -592,9 +614,29 @@ impl Ring {
                         ));
                     }
                     let add = hop.id.phase() == Phase::ReduceScatter;
-                    apply_le(&mut buf[hop.range.clone()], &data, add);
+                    // The range was lent out earlier (sent in reduce-scatter round 0, or
+                    // forwarded after its sum): the successor has long received it, for
+                    // this chunk depends on it, but the transport must have dropped the
+                    // loan before the range is written.
+                    shared
+                        .write(hop.range.clone(), self.cfg.timeout, |dst| {
+                            apply_le(dst, &data, add)
+                        })
+                        .await
+                        .map_err(|e| CollectiveError::StillLent {
+                            rank,
+                            range: e.0,
+                            timeout: self.cfg.timeout,
+                        })?;
                     if let Some(id) = hop.forward {
-                        ready.insert(id, hop.range.clone());
+                        // A sum is lent from the buffer; a final segment is passed on as
+                        // the bytes that brought it.
+                        let out = if add {
+                            Outgoing::Lend(hop.range.clone())
+                        } else {
+                            Outgoing::Forward(data)
+                        };
+                        ready.insert(id, out);
                     }
                     received += 1;
                 }
@@ -610,6 +652,14 @@ impl Ring {
     fn in_flight(&self) -> usize {
         (IN_FLIGHT_BYTES / (self.cfg.chunk_floats.clamp(1, MAX_CHUNK_FLOATS) * 4)).clamp(2, 64)
     }
+}
+
+/// What goes out as a chunk.
+enum Outgoing {
+    /// A range of the buffer being reduced, lent without a copy.
+    Lend(Range<usize>),
+    /// Bytes received from the predecessor, passed on as they are.
+    Forward(Bytes),
 }
 
 /// Why a send waited in vain: the successor took nothing for `timeout`.
@@ -814,7 +864,8 @@ mod tests {
         .chain([f32::from_bits(0x7fc0_1234), f32::MAX, f32::MIN_POSITIVE])
         .chain((0..37).map(|i| (i as f32 * 0.37).sin() * 1e3))
         .collect();
-        let wire = to_bytes(&v);
+        let shared = Shared::new(v.clone());
+        let wire = shared.lend(0..v.len());
         assert_eq!(wire.len(), v.len() * 4);
         for (i, x) in v.iter().enumerate() {
             assert_eq!(wire[4 * i..4 * i + 4], x.to_le_bytes());

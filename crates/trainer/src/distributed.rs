@@ -79,7 +79,7 @@ pub async fn broadcast_from_rank0(
     ring: Option<&mut Ring>,
     seq: u64,
     rank: usize,
-    flat: &mut [f32],
+    flat: &mut Vec<f32>,
 ) -> Result<()> {
     let Some(ring) = ring else { return Ok(()) };
     if rank != 0 {

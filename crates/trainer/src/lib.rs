@@ -12,6 +12,7 @@ pub mod data;
 pub mod distributed;
 pub mod error;
 pub mod eval;
+mod loan;
 pub mod memory;
 pub mod optim;
 pub mod render;

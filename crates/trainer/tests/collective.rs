@@ -282,7 +282,7 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
     let cfg = config(&nodes, 0, 1000, 1000, Duration::from_secs(2));
     let mut ring = Ring::new(cfg, nodes[0].mailbox.clone()).unwrap();
     let t = Instant::now();
-    let err = ring.all_reduce(0, &mut [1.0f32; 16]).await.unwrap_err();
+    let err = ring.all_reduce(0, &mut vec![1.0f32; 16]).await.unwrap_err();
     assert!(
         t.elapsed() < Duration::from_secs(5),
         "took {:?}",
@@ -298,7 +298,7 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
     )
     .unwrap();
     let t = Instant::now();
-    let err = ring.all_reduce(0, &mut [1.0f32; 16]).await.unwrap_err();
+    let err = ring.all_reduce(0, &mut vec![1.0f32; 16]).await.unwrap_err();
     assert!(
         matches!(err, CollectiveError::Timeout { from: 1, .. }),
         "{err}"
