@@ -1,14 +1,20 @@
 //! `osrt bench allreduce`: ring all-reduce throughput of 2 ranks over gRPC on loopback,
 //! beside raw TCP moving the same bytes between sockets of the same machine.
 //!
-//! Two baselines. The *ring* baseline is the all-reduce's own traffic over bare sockets:
-//! a ring all-reduce of `N` floats on `W` ranks has every rank send `2·(W−1)/W·N` floats
-//! to its successor while receiving as many from its predecessor, all ranks at once;
-//! the baseline does exactly that with `write_all`/`read` on already-connected sockets.
-//! The ratio to it is the share of the transport's speed that gRPC framing, the chunk
-//! protocol and the reduction keep. The *one-way* baseline (one socket copying `N·4`
-//! bytes) is reported beside it for comparison with older figures. Both baselines, like
-//! the all-reduce, reuse connections made before the first repeat.
+//! Three baselines, all on sockets connected before the first repeat (as the all-reduce
+//! reuses its connections):
+//! - the **TCP ring** (the target's): the all-reduce's own traffic over bare sockets. A
+//!   ring all-reduce of `N` floats on `W` ranks has every rank send `2·(W−1)/W·N` floats
+//!   to its successor while receiving as many from its predecessor, all ranks at once;
+//!   the baseline does that with `write_all`/`read`, each rank reading into a buffer of
+//!   the message's size, front to back: a copy of the same bytes from one process's
+//!   memory into another's, which is the least an all-reduce has to do with them. The
+//!   ratio to it is the share of the transport's speed that gRPC framing, the chunk
+//!   protocol and the reduction keep.
+//! - the same ring **discarding** what it receives (every read into one reused 1 MiB
+//!   buffer that stays in cache): the sockets' own speed, a bound no real receiver
+//!   reaches; reported for comparison with the figures of 2026-11-25 (session 9).
+//! - a **one-way** copy (one socket copying `N·4` bytes), for older figures.
 
 use crate::collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::bench::median;
@@ -24,21 +30,20 @@ pub struct AllReduceFigures {
     pub median_allreduce_s: f64,
     /// Buffer bytes / all-reduce time.
     pub allreduce_gb_per_s: f64,
-    /// The ring's traffic over bare sockets (see the module docs).
+    /// The ring's traffic over bare sockets, received into message-sized buffers (see the
+    /// module docs).
     pub median_tcp_ring_s: f64,
-    /// all-reduce throughput / ring-traffic TCP throughput (the target's ratio), as the
-    /// ratio of the two medians.
+    /// all-reduce throughput / TCP ring throughput (the target's ratio), as the ratio of
+    /// the two medians.
     pub ratio: f64,
     /// The same ratio as the median of each repeat's own ratio (its all-reduce against
     /// the TCP ring measured right after it): a noisy spell of a shared machine hits
     /// both members of a pair alike.
     pub ratio_paired: f64,
-    /// The ring's traffic over bare sockets, each rank receiving into a buffer of the
-    /// whole message's size (as the all-reduce must land what it receives in the
-    /// gradient buffer) instead of a reused 1 MiB scratch buffer that stays in cache.
-    pub median_tcp_ring_in_place_s: f64,
-    pub ratio_in_place: f64,
-    pub ratio_in_place_paired: f64,
+    /// The ring's traffic over bare sockets, every read into one reused 1 MiB buffer.
+    pub median_tcp_ring_discard_s: f64,
+    pub ratio_discard: f64,
+    pub ratio_discard_paired: f64,
     /// Timed repeats behind the medians.
     pub repeats: usize,
     /// One socket copying the buffer's bytes once, one way.
@@ -53,8 +58,8 @@ struct Link {
     to_successor: tokio::net::TcpStream,
     from_predecessor: tokio::net::TcpStream,
     data: Vec<u8>,
-    /// Where received bytes land: a reused 1 MiB scratch buffer, or (`into_place`) a
-    /// buffer as large as `data`, filled front to back.
+    /// Where received bytes land: a buffer as large as `data`, filled front to back, or
+    /// (`discard`) one reused 1 MiB buffer.
     buf: Vec<u8>,
 }
 
@@ -63,11 +68,11 @@ struct Link {
 /// start in either figure). A ring of one rank sends to itself: the one-way copy.
 struct TcpRing {
     links: Vec<Link>,
-    into_place: bool,
+    discard: bool,
 }
 
 impl TcpRing {
-    async fn connect(world: usize, bytes: usize, into_place: bool) -> Self {
+    async fn connect(world: usize, bytes: usize, discard: bool) -> Self {
         let mut listeners = Vec::new();
         for _ in 0..world {
             let l = tokio::net::TcpListener::bind("127.0.0.1:0").await;
@@ -93,10 +98,10 @@ impl TcpRing {
                 to_successor,
                 from_predecessor,
                 data: vec![7u8; bytes],
-                buf: vec![0u8; if into_place { bytes } else { 1 << 20 }],
+                buf: vec![0u8; if discard { 1 << 20 } else { bytes }],
             })
             .collect();
-        Self { links, into_place }
+        Self { links, discard }
     }
 
     /// Every rank sends its bytes to its successor while receiving as many from its
@@ -104,7 +109,7 @@ impl TcpRing {
     /// and server connections are); seconds until all are done.
     async fn run(&mut self) -> f64 {
         let t = Instant::now();
-        let into_place = self.into_place;
+        let discard = self.discard;
         let tasks: Vec<_> = self
             .links
             .drain(..)
@@ -123,10 +128,10 @@ impl TcpRing {
                 let recv = tokio::spawn(async move {
                     let mut got = 0;
                     while got < bytes {
-                        let to = if into_place {
-                            &mut buf[got..]
-                        } else {
+                        let to = if discard {
                             &mut buf[..]
+                        } else {
+                            &mut buf[got..]
                         };
                         let n = from_predecessor.read(to).await.expect("read");
                         assert!(n > 0, "peer closed early");
@@ -196,11 +201,11 @@ pub async fn bench_allreduce(
         .collect();
     let bytes = floats * 4;
     let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
-    let (mut times, mut tcp, mut ring, mut in_place) =
+    let (mut times, mut tcp, mut ring, mut discard) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
     let mut tcp_ring = TcpRing::connect(2, bytes, false).await;
-    let mut tcp_ring_in_place = TcpRing::connect(2, bytes, true).await;
+    let mut tcp_ring_discard = TcpRing::connect(2, bytes, true).await;
     let mut tcp_copy = TcpRing::connect(1, bytes, false).await;
     // The three measurements take turns, so a noisy spell of a shared machine hits them
     // alike and the ratios stay meaningful.
@@ -229,18 +234,18 @@ pub async fn bench_allreduce(
         let elapsed = t.elapsed().as_secs_f64();
         let copy_s = tcp_copy.run().await;
         let ring_s = tcp_ring.run().await;
-        let in_place_s = tcp_ring_in_place.run().await;
+        let discard_s = tcp_ring_discard.run().await;
         // Step 0 warms up connections and allocator.
         if step > 0 {
             times.push(elapsed);
             tcp.push(copy_s);
             ring.push(ring_s);
-            in_place.push(in_place_s);
+            discard.push(discard_s);
         }
     }
     let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
-    let (paired_ring, paired_in_place) = (paired(&ring), paired(&in_place));
-    let (ar, tc, tr, tp) = (median(times), median(tcp), median(ring), median(in_place));
+    let (paired_ring, paired_discard) = (paired(&ring), paired(&discard));
+    let (ar, tc, tr, td) = (median(times), median(tcp), median(ring), median(discard));
     AllReduceFigures {
         floats,
         chunk_floats,
@@ -250,9 +255,9 @@ pub async fn bench_allreduce(
         median_tcp_ring_s: tr,
         ratio: tr / ar,
         ratio_paired: paired_ring,
-        median_tcp_ring_in_place_s: tp,
-        ratio_in_place: tp / ar,
-        ratio_in_place_paired: paired_in_place,
+        median_tcp_ring_discard_s: td,
+        ratio_discard: td / ar,
+        ratio_discard_paired: paired_discard,
         repeats,
         median_tcp_copy_s: tc,
         tcp_gb_per_s: bytes as f64 / tc / 1e9,
