@@ -19,7 +19,7 @@
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
 use crate::chunk_wire::{self, PushChunkServer};
-use crate::loan::Shared;
+use crate::loan::LentBuffer;
 use bytes::Bytes;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::tls::Tls;
@@ -344,7 +344,7 @@ impl Mailbox {
     }
 
     async fn take(&self, key: Key, timeout: Duration) -> Result<Result<Bytes, String>, ()> {
-        let deadline = tokio::time::Instant::now() + timeout;
+        let deadline = crate::loan::deadline(timeout);
         loop {
             // Register as a waiter *before* looking, or a notification that lands between
             // the look and the wait is lost (notify_waiters only wakes registered waiters).
@@ -478,7 +478,7 @@ impl Ring {
     /// in that same fixed order, so the arithmetic, and with it every bit, is the same as
     /// a round-by-round ring.
     ///
-    /// No float is copied to be sent: the buffer moves into a [`Shared`] for the
+    /// No float is copied to be sent: the buffer moves into a [`LentBuffer`] for the
     /// all-reduce, reduce-scatter chunks go out as loans of its ranges, and all-gather
     /// chunks are forwarded as the very bytes received. `buf` is taken by `&mut Vec` for
     /// that move; it is back, reduced, when this returns `Ok`. After an error its contents
@@ -491,8 +491,8 @@ impl Ring {
         if self.cfg.world() == 1 {
             return Ok(());
         }
-        let shared = Shared::new(std::mem::take(buf));
-        let result = self.ring_all_reduce(step, &shared).await;
+        let mut shared = LentBuffer::new(std::mem::take(buf));
+        let result = self.ring_all_reduce(step, &mut shared).await;
         // After success the successor has taken every chunk, so the transport lets go of
         // the loans at once; after a failure they may sit in a dead connection's queue,
         // and a copy now beats waiting for it.
@@ -501,14 +501,14 @@ impl Ring {
         } else {
             Duration::ZERO
         };
-        *buf = Shared::reclaim(shared, wait).await;
+        *buf = shared.reclaim(wait).await;
         result
     }
 
     async fn ring_all_reduce(
         &mut self,
         step: u64,
-        shared: &Arc<Shared>,
+        shared: &mut LentBuffer,
     ) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         let layout = self.layout(shared.len());
@@ -541,16 +541,17 @@ impl Ring {
                 .map_err(send_error)?;
         let mut first = true;
         let cfg = &self.cfg;
-        let mut send = |permit: chunk_wire::ChunkPermit, id: ChunkId, out: Outgoing| {
-            let mut data = match out {
-                Outgoing::Lend(range) => shared.lend(range),
-                Outgoing::Forward(bytes) => bytes,
+        let mut send =
+            |shared: &LentBuffer, permit: chunk_wire::ChunkPermit, id: ChunkId, out: Outgoing| {
+                let mut data = match out {
+                    Outgoing::Lend(range) => shared.lend(range),
+                    Outgoing::Forward(bytes) => bytes,
+                };
+                if inject && std::mem::take(&mut first) {
+                    data.truncate(data.len().saturating_sub(4));
+                }
+                permit.send(&id.tag(cfg, step), data);
             };
-            if inject && std::mem::take(&mut first) {
-                data.truncate(data.len().saturating_sub(4));
-            }
-            permit.send(&id.tag(cfg, step), data);
-        };
         let mut received = 0;
         loop {
             // Queue what is ready while there is room, without waiting.
@@ -559,7 +560,7 @@ impl Ring {
                     break;
                 };
                 let (id, out) = entry.remove_entry();
-                send(permit, id, out);
+                send(shared, permit, id, out);
             }
             let hop = schedule.get(received);
             if hop.is_none() && ready.is_empty() {
@@ -583,7 +584,7 @@ impl Ring {
                         Err(_) => return Err(send_error(stalled(self.cfg.timeout))),
                     };
                     let (id, out) = ready.pop_first().expect("ready is not empty");
-                    send(permit, id, out);
+                    send(shared, permit, id, out);
                 }
                 data = self.mailbox.take(key, self.cfg.timeout), if hop.is_some() => {
                     let hop = hop.expect("enabled only with a chunk to receive");
@@ -617,17 +618,20 @@ impl Ring {
                     // The range was lent out earlier (sent in reduce-scatter round 0, or
                     // forwarded after its sum): the successor has long received it, for
                     // this chunk depends on it, but the transport must have dropped the
-                    // loan before the range is written.
-                    shared
-                        .write(hop.range.clone(), self.cfg.timeout, |dst| {
-                            apply_le(dst, &data, add)
-                        })
-                        .await
-                        .map_err(|e| CollectiveError::StillLent {
+                    // loan before the range is written. Should the call end meanwhile, its
+                    // status is the better error.
+                    let write = shared.write(hop.range.clone(), self.cfg.timeout, |dst| {
+                        apply_le(dst, &data, add)
+                    });
+                    tokio::select! {
+                        biased;
+                        status = call.ended() => return Err(send_error(status)),
+                        written = write => written.map_err(|e| CollectiveError::StillLent {
                             rank,
                             range: e.0,
                             timeout: self.cfg.timeout,
-                        })?;
+                        })?,
+                    }
                     if let Some(id) = hop.forward {
                         // A sum is lent from the buffer; a final segment is passed on as
                         // the bytes that brought it.
@@ -864,7 +868,7 @@ mod tests {
         .chain([f32::from_bits(0x7fc0_1234), f32::MAX, f32::MIN_POSITIVE])
         .chain((0..37).map(|i| (i as f32 * 0.37).sin() * 1e3))
         .collect();
-        let shared = Shared::new(v.clone());
+        let shared = LentBuffer::new(v.clone());
         let wire = shared.lend(0..v.len());
         assert_eq!(wire.len(), v.len() * 4);
         for (i, x) in v.iter().enumerate() {

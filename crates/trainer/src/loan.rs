@@ -2,19 +2,21 @@
 //!
 //! Sending a chunk used to copy its floats into a fresh allocation that HTTP/2 could own;
 //! on two memory-bound cores that copy cost about as much as the reduction. Instead the
-//! buffer moves into a [`Shared`] for the duration of the all-reduce and chunks go out as
-//! [`Bytes`] that *borrow* ranges of it ([`Shared::lend`]): the kernel's copy into the
-//! socket reads the gradient memory directly.
+//! buffer moves into a [`LentBuffer`] for the duration of the all-reduce and chunks go out
+//! as [`Bytes`] that *borrow* ranges of it ([`LentBuffer::lend`]): the kernel's copy into
+//! the socket reads the gradient memory directly.
 //!
-//! Soundness rests on three rules, all enforced here:
+//! Soundness rests on these rules, all enforced here:
 //! - a lent range is only read, by whoever holds the `Bytes`, and is written again only
-//!   after every loan overlapping it has been dropped ([`Shared::write`] waits for that);
-//! - every write goes through the one raw pointer taken when the buffer moved in, to
-//!   ranges no loan covers, so readers of other ranges never alias a write;
-//! - each loan holds an `Arc` of the buffer, so the memory outlives every loan even when
+//!   after every loan overlapping it has been dropped ([`LentBuffer::write`] waits);
+//! - there is one writer: `LentBuffer` is not `Clone` and writes take `&mut self`, so no
+//!   two writes, and no write and a new loan, overlap in time; every write goes through
+//!   the one raw pointer taken when the buffer moved in, to ranges no loan covers, so
+//!   readers of other ranges never alias it;
+//! - each loan holds an `Arc` of the storage, so the memory outlives every loan even when
 //!   the all-reduce fails or is cancelled with chunks still queued in the transport:
-//!   [`Shared::reclaim`] takes the buffer back only once it is the last owner (or copies
-//!   it out, which is only a read, when the transport is slow to let go).
+//!   [`LentBuffer::reclaim`] takes the buffer back only once it is the last owner (or
+//!   copies it out, which is only a read, when the transport is slow to let go).
 //!
 //! This module and `osrt_model::fastmath`'s feature dispatch are the workspace's only
 //! `unsafe` code.
@@ -22,12 +24,13 @@
 
 use bytes::Bytes;
 use std::ops::Range;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 use tokio::sync::Notify;
+use tokio::time::Instant;
 
-/// An all-reduce's buffer, shared with the chunks lent out of it.
-pub(crate) struct Shared {
+/// The storage: a `Vec<f32>` taken apart, and the ranges currently lent out of it.
+struct Shared {
     ptr: *mut f32,
     len: usize,
     cap: usize,
@@ -36,13 +39,42 @@ pub(crate) struct Shared {
     released: Notify,
 }
 
-// SAFETY: the floats behind `ptr` are owned by `Shared` (a `Vec` taken apart); the access
-// rules in the module docs keep writes and reads of one range apart in time, and `lent`
-// is behind a mutex.
+// SAFETY: the floats behind `ptr` are owned by `Shared` (a `Vec` taken apart) and a
+// `Vec<f32>` may be freed on any thread; the rules in the module docs keep writes and
+// reads of one range apart in time, and `lent` is behind a mutex.
 unsafe impl Send for Shared {}
 unsafe impl Sync for Shared {}
 
-/// A range of a [`Shared`] buffer, seen as the little-endian bytes the wire carries.
+impl Shared {
+    /// `lent`, also after a panic elsewhere poisoned it (the list itself stays valid:
+    /// every update is a single push or removal).
+    fn lent(&self) -> MutexGuard<'_, Vec<Range<usize>>> {
+        self.lent.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// A copy of the floats in `range` (reading is allowed while ranges are lent).
+    fn read(&self, range: Range<usize>) -> Vec<f32> {
+        assert!(
+            range.start <= range.end && range.end <= self.len,
+            "read {range:?}"
+        );
+        // SAFETY: in bounds; the only writer is the `LentBuffer`, and this is called
+        // through it (`&self`), so no write is in progress.
+        unsafe { std::slice::from_raw_parts(self.ptr.add(range.start), range.len()).to_vec() }
+    }
+}
+
+impl Drop for Shared {
+    fn drop(&mut self) {
+        if self.cap != 0 {
+            // SAFETY: the parts came from a `Vec<f32>` in `LentBuffer::new` and were not
+            // given back by `LentBuffer::reclaim` (which zeroes `cap`).
+            drop(unsafe { Vec::from_raw_parts(self.ptr, self.len, self.cap) });
+        }
+    }
+}
+
+/// A range of the storage, seen as the little-endian bytes the wire carries.
 struct Loan {
     shared: Arc<Shared>,
     range: Range<usize>,
@@ -52,7 +84,7 @@ impl AsRef<[u8]> for Loan {
     fn as_ref(&self) -> &[u8] {
         // SAFETY: the range was checked against the buffer's length when lent, the buffer
         // lives as long as `self.shared`, and no one writes the range while this loan is
-        // registered in `lent` (see `Shared::write`).
+        // registered in `lent` (see `LentBuffer::write`).
         unsafe {
             std::slice::from_raw_parts(
                 self.shared.ptr.add(self.range.start).cast::<u8>(),
@@ -64,7 +96,7 @@ impl AsRef<[u8]> for Loan {
 
 impl Drop for Loan {
     fn drop(&mut self) {
-        let mut lent = self.shared.lent.lock().expect("loans");
+        let mut lent = self.shared.lent();
         if let Some(i) = lent.iter().position(|r| *r == self.range) {
             lent.swap_remove(i);
         }
@@ -77,82 +109,84 @@ impl Drop for Loan {
 #[derive(Debug)]
 pub(crate) struct StillLent(pub Range<usize>);
 
-impl Shared {
-    pub(crate) fn new(buf: Vec<f32>) -> Arc<Self> {
+/// `now + timeout`, or a day from now where that overflows (a huge configured timeout).
+pub(crate) fn deadline(timeout: Duration) -> Instant {
+    let now = Instant::now();
+    now.checked_add(timeout)
+        .unwrap_or_else(|| now + Duration::from_secs(86_400))
+}
+
+/// The buffer of one all-reduce: the only handle that writes it, lends ranges of it and
+/// gives it back.
+pub(crate) struct LentBuffer {
+    shared: Arc<Shared>,
+}
+
+impl LentBuffer {
+    pub(crate) fn new(buf: Vec<f32>) -> Self {
         let mut buf = std::mem::ManuallyDrop::new(buf);
-        Arc::new(Self {
-            ptr: buf.as_mut_ptr(),
-            len: buf.len(),
-            cap: buf.capacity(),
-            lent: Mutex::new(Vec::new()),
-            released: Notify::new(),
-        })
+        Self {
+            shared: Arc::new(Shared {
+                ptr: buf.as_mut_ptr(),
+                len: buf.len(),
+                cap: buf.capacity(),
+                lent: Mutex::new(Vec::new()),
+                released: Notify::new(),
+            }),
+        }
     }
 
     pub(crate) fn len(&self) -> usize {
-        self.len
+        self.shared.len
     }
 
     /// The floats of `range` as wire bytes that borrow the buffer (little-endian machines)
     /// or own a copy (big-endian ones, where the bytes differ from memory).
-    pub(crate) fn lend(self: &Arc<Self>, range: Range<usize>) -> Bytes {
+    pub(crate) fn lend(&self, range: Range<usize>) -> Bytes {
         assert!(
-            range.start <= range.end && range.end <= self.len,
+            range.start <= range.end && range.end <= self.shared.len,
             "lend {range:?}"
         );
         if cfg!(target_endian = "big") {
-            let v = self.read(range);
+            let v = self.shared.read(range);
             return Bytes::from(v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>());
         }
-        self.lent.lock().expect("loans").push(range.clone());
+        self.shared.lent().push(range.clone());
         Bytes::from_owner(Loan {
-            shared: self.clone(),
+            shared: self.shared.clone(),
             range,
         })
     }
 
-    /// A copy of the floats in `range` (reading is allowed while ranges are lent).
-    fn read(&self, range: Range<usize>) -> Vec<f32> {
-        assert!(
-            range.start <= range.end && range.end <= self.len,
-            "read {range:?}"
-        );
-        // SAFETY: in bounds; writes only happen from the all-reduce's own task, which is
-        // the caller here, so none is in progress.
-        unsafe { std::slice::from_raw_parts(self.ptr.add(range.start), range.len()).to_vec() }
-    }
-
     /// Runs `f` on the floats of `range` once no loan overlaps it, waiting at most
     /// `timeout` for the transport to drop the loans that do.
-    ///
-    /// The caller must be the only writer (the all-reduce's task): `f` gets exclusive
-    /// access because every reader of the buffer goes through a loan, and none covers it.
     pub(crate) async fn write<R>(
-        &self,
+        &mut self,
         range: Range<usize>,
         timeout: Duration,
         f: impl FnOnce(&mut [f32]) -> R,
     ) -> Result<R, StillLent> {
+        let shared = &*self.shared;
         assert!(
-            range.start <= range.end && range.end <= self.len,
+            range.start <= range.end && range.end <= shared.len,
             "write {range:?}"
         );
-        let deadline = tokio::time::Instant::now() + timeout;
+        let deadline = deadline(timeout);
         loop {
             // Register before looking, or a release between the look and the wait is lost.
-            let notified = self.released.notified();
+            let notified = shared.released.notified();
             tokio::pin!(notified);
             notified.as_mut().enable();
-            let busy = {
-                let lent = self.lent.lock().expect("loans");
-                lent.iter()
-                    .any(|r| r.start < range.end && range.start < r.end)
-            };
+            let busy = shared
+                .lent()
+                .iter()
+                .any(|r| r.start < range.end && range.start < r.end);
             if !busy {
-                // SAFETY: in bounds; no loan covers the range, so no `Bytes` can read it,
-                // and the caller is the only writer; later loans of it start after `f`.
+                // SAFETY: in bounds; no loan covers the range, so no `Bytes` reads it;
+                // `&mut self` makes this the only writer and rules out a new loan while
+                // `f` runs.
                 let s = unsafe {
-                    std::slice::from_raw_parts_mut(self.ptr.add(range.start), range.len())
+                    std::slice::from_raw_parts_mut(shared.ptr.add(range.start), range.len())
                 };
                 return Ok(f(s));
             }
@@ -165,36 +199,26 @@ impl Shared {
     /// The buffer back, once every loan is gone; if the transport still holds one after
     /// `timeout` (a connection stuck mid-write), a copy: the original stays alive until
     /// the last loan drops.
-    pub(crate) async fn reclaim(mut this: Arc<Self>, timeout: Duration) -> Vec<f32> {
-        let deadline = tokio::time::Instant::now() + timeout;
+    pub(crate) async fn reclaim(self, timeout: Duration) -> Vec<f32> {
+        let deadline = deadline(timeout);
+        let mut shared = self.shared;
         loop {
-            match Arc::try_unwrap(this) {
-                Ok(shared) => return shared.into_vec(),
-                Err(still) => this = still,
+            match Arc::try_unwrap(shared) {
+                Ok(mut s) => {
+                    // SAFETY: the parts came from a `Vec<f32>` in `new`; zeroing `cap`
+                    // leaves `Shared::drop` nothing to free, so they become a `Vec` once.
+                    let v = unsafe { Vec::from_raw_parts(s.ptr, s.len, s.cap) };
+                    (s.len, s.cap) = (0, 0);
+                    return v;
+                }
+                Err(still) => shared = still,
             }
-            if tokio::time::Instant::now() >= deadline {
-                return this.read(0..this.len);
+            if Instant::now() >= deadline {
+                return shared.read(0..shared.len);
             }
-            // Rare (the transport drops a written chunk right after writing it): poll.
+            // Rare (the transport drops a written chunk right after writing it), and a
+            // loan notifies before it drops its `Arc`: poll.
             tokio::time::sleep(Duration::from_micros(200)).await;
-        }
-    }
-
-    fn into_vec(mut self) -> Vec<f32> {
-        // SAFETY: the parts came from a `Vec<f32>` in `new`; emptying them here leaves
-        // `drop` nothing to free, so they are turned back into a `Vec` exactly once.
-        let v = unsafe { Vec::from_raw_parts(self.ptr, self.len, self.cap) };
-        (self.len, self.cap) = (0, 0);
-        v
-    }
-}
-
-impl Drop for Shared {
-    fn drop(&mut self) {
-        if self.cap != 0 {
-            // SAFETY: the parts came from a `Vec<f32>` in `new` and were not given back
-            // by `into_vec` (which zeroes `cap`).
-            drop(unsafe { Vec::from_raw_parts(self.ptr, self.len, self.cap) });
         }
     }
 }
@@ -213,7 +237,7 @@ mod tests {
     async fn loans_borrow_and_the_buffer_comes_back_uncopied() {
         let v: Vec<f32> = (0..1000).map(|i| i as f32 * 0.5 - 7.0).collect();
         let (ptr, want) = (v.as_ptr(), v.clone());
-        let shared = Shared::new(v);
+        let shared = LentBuffer::new(v);
         let a = shared.lend(10..20);
         let b = shared.lend(500..1000);
         assert_eq!(&a[..], &le(&want[10..20])[..]);
@@ -228,9 +252,9 @@ mod tests {
         // A clone of the bytes keeps the loan: it ends with the last clone.
         let a2 = a.clone();
         drop((a, b));
-        assert_eq!(shared.lent.lock().unwrap().len(), 1);
+        assert_eq!(shared.shared.lent().len(), 1);
         drop(a2);
-        let back = Shared::reclaim(shared, Duration::from_secs(1)).await;
+        let back = LentBuffer::reclaim(shared, Duration::from_secs(1)).await;
         assert_eq!(back, want);
         assert_eq!(back.as_ptr(), ptr);
     }
@@ -238,21 +262,24 @@ mod tests {
     /// A write waits for overlapping loans to be dropped; one beside them does not wait.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_write_waits_for_overlapping_loans_only() {
-        let shared = Shared::new(vec![1.0f32; 100]);
+        let mut shared = LentBuffer::new(vec![1.0f32; 100]);
         let loan = shared.lend(40..60);
         let t = Duration::from_secs(5);
         // Touches the loan's neighbours only: at once.
         shared.write(0..40, t, |s| s.fill(2.0)).await.unwrap();
         shared.write(60..100, t, |s| s.fill(3.0)).await.unwrap();
-        let s2 = shared.clone();
-        let writer = tokio::spawn(async move { s2.write(50..70, t, |s| s.fill(4.0)).await });
+        let writer = tokio::spawn(async move {
+            let r = shared.write(50..70, t, |s| s.fill(4.0)).await;
+            (r, shared)
+        });
         tokio::time::sleep(Duration::from_millis(100)).await;
         assert!(!writer.is_finished(), "wrote while the range was lent");
         // The loan still reads what was lent.
         assert_eq!(&loan[..], &le(&[1.0; 20])[..]);
         drop(loan);
-        writer.await.unwrap().unwrap();
-        let v = Shared::reclaim(shared, t).await;
+        let (r, shared) = writer.await.unwrap();
+        r.unwrap();
+        let v = LentBuffer::reclaim(shared, t).await;
         let want: Vec<f32> = (0..100)
             .map(|i| match i {
                 0..40 => 2.0,
@@ -268,14 +295,14 @@ mod tests {
     /// hang), and reclaiming then returns a copy while the loan stays readable.
     #[tokio::test]
     async fn a_loan_that_is_never_dropped_times_out_and_reclaim_copies() {
-        let shared = Shared::new((0..64).map(|i| i as f32).collect());
+        let mut shared = LentBuffer::new((0..64).map(|i| i as f32).collect());
         let loan = shared.lend(0..32);
         let e = shared
             .write(16..17, Duration::from_millis(50), |s| s[0] = -1.0)
             .await
             .unwrap_err();
         assert_eq!(e.0, 16..17);
-        let mut back = Shared::reclaim(shared, Duration::from_millis(20)).await;
+        let mut back = LentBuffer::reclaim(shared, Duration::from_millis(20)).await;
         assert_eq!(back, (0..64).map(|i| i as f32).collect::<Vec<_>>());
         back.fill(9.0);
         assert_eq!(
@@ -286,10 +313,10 @@ mod tests {
 
     #[tokio::test]
     async fn an_empty_buffer_round_trips() {
-        let shared = Shared::new(Vec::new());
+        let shared = LentBuffer::new(Vec::new());
         let none = shared.lend(0..0);
         assert!(none.is_empty());
         drop(none);
-        assert!(Shared::reclaim(shared, Duration::ZERO).await.is_empty());
+        assert!(LentBuffer::reclaim(shared, Duration::ZERO).await.is_empty());
     }
 }
