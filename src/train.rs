@@ -310,7 +310,15 @@ pub async fn evaluate_run(
         },
         req.scenes,
     )
-    .await?;
+    .await
+    .with_context(|| match &req.data {
+        // A run records where its data was; that folder may since have moved.
+        None => format!(
+            "reading the {split} split of {data}, the dataset run {run} trained on \
+             (pass --data to evaluate on a copy of it elsewhere)"
+        ),
+        Some(_) => format!("reading the {split} split of {data}"),
+    })?;
     let mut opts = eval_options(&loaded.job);
     opts.grayscale = req.grayscale;
     if let Some(v) = req.views {

@@ -244,4 +244,31 @@ fn train_then_eval_a_tiny_run() {
     let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--json"]);
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["scenes"], 3);
+
+    // The dataset moved away: the error names the run's dataset and the way out, and
+    // `--data` evaluates on it where it is now.
+    let moved = dir.path().join("data-moved");
+    std::fs::rename(&data, &moved).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args(["eval", "--run", run.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("the dataset run")
+            && err.contains(recorded.to_str().unwrap())
+            && err.contains("pass --data"),
+        "{err}"
+    );
+    let out = osrt(&[
+        "eval",
+        "--run",
+        run.to_str().unwrap(),
+        "--data",
+        moved.to_str().unwrap(),
+        "--json",
+    ]);
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["scenes"], 3);
 }
