@@ -1,5 +1,6 @@
-//! Fused CPU ops with hand-written backward passes: LayerNorm, softmax, erf-GELU and the
-//! bias add of a linear layer.
+//! Fused CPU ops with hand-written backward passes: LayerNorm, softmax, erf-GELU, ReLU,
+//! the bias add and the whole of a linear layer, a convolution, and a whole MLP
+//! (`mlp.rs`).
 //!
 //! Why: candle 0.11 composes these from elementwise and broadcast ops, and its backward
 //! pass is slow exactly there (a broadcast's gradient is a `sum_keepdim` over leading
@@ -11,6 +12,10 @@
 //!
 //! The kernels need contiguous f32 on the CPU; anything else (or `OSRT_FUSED_OPS=0`, or
 //! [`with_fused`]`(false, ..)`) takes the composed path.
+
+mod mlp;
+
+pub use mlp::{MlpAct, MlpLayer, mlp, mlp_layer_by_layer};
 
 use crate::fastmath;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
@@ -870,7 +875,7 @@ pub(crate) mod tests {
     use candle_core::{Device, Var};
     use rand::SeedableRng;
 
-    fn randn(shape: &[usize], scale: f32, seed: u64) -> Tensor {
+    pub(super) fn randn(shape: &[usize], scale: f32, seed: u64) -> Tensor {
         let n: usize = shape.iter().product();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         let v: Vec<f32> = crate::params::normal_samples(&mut rng, n)
@@ -894,7 +899,7 @@ pub(crate) mod tests {
         }
     }
 
-    fn max_abs(a: &Tensor) -> f32 {
+    pub(super) fn max_abs(a: &Tensor) -> f32 {
         a.abs()
             .unwrap()
             .flatten_all()
@@ -919,7 +924,7 @@ pub(crate) mod tests {
     }
 
     /// Value and gradients of `Σ f(args) · w` (w fixed random), fused and composed.
-    fn both(
+    pub(super) fn both(
         args: &[Tensor],
         f: impl Fn(&[Tensor]) -> Result<Tensor>,
     ) -> [(Tensor, Vec<Tensor>); 2] {
@@ -940,7 +945,11 @@ pub(crate) mod tests {
         })
     }
 
-    fn assert_matches_composed(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>, tol: f32) {
+    pub(super) fn assert_matches_composed(
+        args: &[Tensor],
+        f: impl Fn(&[Tensor]) -> Result<Tensor>,
+        tol: f32,
+    ) {
         let [(yf, gf), (yc, gc)] = both(args, f);
         assert!(
             max_diff(&yf, &yc) <= tol,
@@ -963,7 +972,10 @@ pub(crate) mod tests {
 
     /// Central finite differences of `Σ f(args) · w`, computed in f64 (where `f` takes the
     /// composed path: the same function), against the fused backward in f32.
-    fn finite_difference_check(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>) {
+    pub(super) fn finite_difference_check(
+        args: &[Tensor],
+        f: impl Fn(&[Tensor]) -> Result<Tensor>,
+    ) {
         let [(y, grads), _] = both(args, &f);
         let f64_ = candle_core::DType::F64;
         let w64 = randn(y.dims(), 1.0, 99).to_dtype(f64_).unwrap();

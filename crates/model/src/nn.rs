@@ -84,6 +84,9 @@ impl Module for LayerNorm {
     }
 }
 
+/// Negative slope of the leaky ReLU (the paper's render MLP: LeakyReLU(0.01)).
+const LEAKY_RELU_SLOPE: f32 = 0.01;
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Activation {
@@ -93,12 +96,13 @@ pub enum Activation {
 }
 
 impl Activation {
-    pub fn apply(self, x: &Tensor) -> Result<Tensor> {
+    /// The fused ops' activation.
+    fn fused(self) -> crate::fused::MlpAct {
         match self {
-            Activation::Relu => crate::fused::relu(x),
+            Activation::Relu => crate::fused::MlpAct::Relu,
             // erf-based GELU, as in the reference transformer.
-            Activation::Gelu => crate::fused::gelu(x),
-            Activation::LeakyRelu => crate::fused::leaky_relu(x, 0.01),
+            Activation::Gelu => crate::fused::MlpAct::Gelu,
+            Activation::LeakyRelu => crate::fused::MlpAct::LeakyRelu(LEAKY_RELU_SLOPE),
         }
     }
 }
@@ -125,14 +129,22 @@ impl Mlp {
 impl Module for Mlp {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let mut h = x.clone();
-        for (i, l) in self.layers.iter().enumerate() {
-            h = l.forward(&h)?;
-            if i + 1 < self.layers.len() {
-                h = self.act.apply(&h)?;
-            }
-        }
-        Ok(h)
+        // One node for the whole MLP over all leading dims (`fused::mlp`; layer by layer
+        // where the fused ops do not apply).
+        let dims = x.dims();
+        let Some((&k, lead)) = dims.split_last() else {
+            candle_core::bail!("mlp: a scalar input")
+        };
+        let rows = lead.iter().product::<usize>();
+        let layers: Vec<_> = self
+            .layers
+            .iter()
+            .map(|l| (&l.weight, l.bias.as_ref()))
+            .collect();
+        let y = crate::fused::mlp(&x.reshape((rows, k))?, &layers, self.act.fused())?;
+        let mut out = lead.to_vec();
+        out.push(y.dim(1)?);
+        y.reshape(out)
     }
 }
 

@@ -1,0 +1,493 @@
+//! A whole MLP, `Linear → act → … → Linear`, as one graph node with a hand-written
+//! backward pass.
+//!
+//! Why: candle's backward costs every graph node a zero tensor and an add of the node's
+//! input gradient (`GradStore::or_insert`), on one thread while gemm runs on all of them.
+//! A three-layer render MLP over the decoder's 8,192 rays is five nodes, four of them
+//! with `[8192, hidden]` inputs; as one node only the MLP's own input is accumulated.
+//! The parameters enter packed (`Tensor::cat` of the flattened weights and biases, a
+//! parameter-sized copy whose backward hands each parameter its slice), so one
+//! `CustomOp2` takes them all and the variables, names and checkpoints stay as they are.
+//!
+//! The arithmetic is the per-layer fused path's, op for op: the same matmuls (candle's CPU
+//! gemm, same operand layouts), the same in-place bias add, the same activation kernels
+//! and column sums. The results are the same bits (tested), so switching it on or off
+//! (`OSRT_FUSED_MLP=0`) changes speed, not training.
+
+use super::{
+    ColumnSum, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
+    leaky_relu_slice, par_elementwise, par_elementwise_grad, usable,
+};
+use candle_core::backend::BackendStorage;
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
+use std::sync::Mutex;
+
+/// One layer's weight `[out, in]` and bias `[out]`, if it has one.
+pub type MlpLayer<'a> = (&'a Tensor, Option<&'a Tensor>);
+
+/// The activation between layers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MlpAct {
+    Relu,
+    /// Leaky ReLU with this negative slope.
+    LeakyRelu(f32),
+    /// erf-based GELU.
+    Gelu,
+}
+
+impl MlpAct {
+    fn forward(self, z: &[f32]) -> Vec<f32> {
+        match self {
+            MlpAct::Relu => par_elementwise(z, |o, x| leaky_relu_slice(o, x, 0.0)),
+            MlpAct::LeakyRelu(s) => par_elementwise(z, |o, x| leaky_relu_slice(o, x, s)),
+            MlpAct::Gelu => par_elementwise(z, gelu_slice),
+        }
+    }
+
+    /// `dy · act'(z)`.
+    fn backward(self, z: &[f32], dy: &[f32]) -> Vec<f32> {
+        match self {
+            MlpAct::Relu => {
+                par_elementwise_grad(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, 0.0))
+            }
+            MlpAct::LeakyRelu(s) => {
+                par_elementwise_grad(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
+            }
+            MlpAct::Gelu => par_elementwise_grad(z, dy, gelu_grad_slice),
+        }
+    }
+
+    /// The same activation as its own node (the layer-by-layer path).
+    fn apply(self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            MlpAct::Relu => super::relu(x),
+            MlpAct::LeakyRelu(s) => super::leaky_relu(x, s),
+            MlpAct::Gelu => super::gelu(x),
+        }
+    }
+}
+
+fn enabled_by_env() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var("OSRT_FUSED_MLP").map_or(true, |v| v != "0"))
+}
+
+/// Widths `[in, hidden…, out]` and whether layers have biases: where each layer's weight
+/// (`[out, in]`, row-major) and bias sit in the packed parameters.
+#[derive(Debug, Clone)]
+struct Plan {
+    dims: Vec<usize>,
+    bias: bool,
+}
+
+impl Plan {
+    fn layers(&self) -> usize {
+        self.dims.len() - 1
+    }
+
+    /// `(in, out, weight offset, bias offset)` of layer `l`.
+    fn layer(&self, l: usize) -> (usize, usize, usize, Option<usize>) {
+        let mut off = 0;
+        for i in 0..l {
+            off += self.dims[i] * self.dims[i + 1] + if self.bias { self.dims[i + 1] } else { 0 };
+        }
+        let (k, o) = (self.dims[l], self.dims[l + 1]);
+        (k, o, off, self.bias.then_some(off + o * k))
+    }
+
+    fn params(&self) -> usize {
+        let (k, o, w, _) = self.layer(self.layers() - 1);
+        w + o * k + if self.bias { o } else { 0 }
+    }
+}
+
+/// `a: [n, k]` (`a_l`) times layer weight `W: [o, k]` (at `w_off` of the packed
+/// parameters)ᵀ → `[n, o]`, through candle's CPU matmul as the per-layer op does.
+fn times_wt(
+    a: &CpuStorage,
+    a_l: &Layout,
+    p: &CpuStorage,
+    p_l: &Layout,
+    (k, o, w_off): (usize, usize, usize),
+) -> Result<Vec<f32>> {
+    let n = a_l.dims()[0];
+    let w_l = Layout::contiguous_with_offset((o, k), p_l.start_offset() + w_off);
+    match a.matmul(p, (1, n, o, k), a_l, &w_l.transpose(0, 1)?)? {
+        CpuStorage::F32(y) => Ok(y),
+        _ => candle_core::bail!("mlp: fused ops take f32"),
+    }
+}
+
+/// What the forward pass keeps for the backward pass: per hidden layer its
+/// pre-activation `z` and activation `a = act(z)`, both `[n, width]`.
+type Saved = Vec<(Vec<f32>, CpuStorage)>;
+
+/// The forward pass: the output `[n, out]` and the hidden layers' `(z, act(z))`.
+fn forward(
+    plan: &Plan,
+    act: MlpAct,
+    x: &CpuStorage,
+    x_l: &Layout,
+    p: &CpuStorage,
+    p_l: &Layout,
+) -> Result<(Vec<f32>, Saved)> {
+    let n = x_l.dims()[0];
+    let params = f32_slice(p, p_l, "mlp parameters")?;
+    let mut saved: Saved = Vec::with_capacity(plan.layers() - 1);
+    for l in 0..plan.layers() {
+        let (k, o, w_off, b_off) = plan.layer(l);
+        let mut z = match saved.last() {
+            None => times_wt(x, x_l, p, p_l, (k, o, w_off))?,
+            Some((_, a)) => times_wt(a, &Layout::contiguous((n, k)), p, p_l, (k, o, w_off))?,
+        };
+        if let Some(b) = b_off {
+            add_bias_rows(&mut z, &params[b..b + o]);
+        }
+        if l + 1 == plan.layers() {
+            return Ok((z, saved));
+        }
+        let a = act.forward(&z);
+        saved.push((z, CpuStorage::F32(a)));
+    }
+    unreachable!("an MLP has at least one layer")
+}
+
+#[cfg(test)]
+thread_local! {
+    /// One-node MLP forwards run on this thread (tests check the fused path ran).
+    static FORWARDS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+struct MlpOp {
+    plan: Plan,
+    act: MlpAct,
+    /// Whether a backward pass can follow (an input carries a gradient): only then are
+    /// the hidden layers kept.
+    keep: bool,
+    saved: Mutex<Option<Saved>>,
+}
+
+impl CustomOp2 for MlpOp {
+    fn name(&self) -> &'static str {
+        "osrt-mlp"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, k) = l1.shape().dims2()?;
+        if k != self.plan.dims[0] || l2.shape().elem_count() != self.plan.params() {
+            candle_core::bail!(
+                "mlp: input [{n}, {k}] and {} packed parameters for widths {:?}",
+                l2.shape().elem_count(),
+                self.plan.dims
+            );
+        }
+        f32_slice(s1, l1, "mlp input")?;
+        #[cfg(test)]
+        FORWARDS.with(|c| c.set(c.get() + 1));
+        let (y, saved) = forward(&self.plan, self.act, s1, l1, s2, l2)?;
+        if self.keep {
+            *self.saved.lock().unwrap_or_else(|e| e.into_inner()) = Some(saved);
+        }
+        let out = *self.plan.dims.last().unwrap_or(&0);
+        Ok((CpuStorage::F32(y), Shape::from((n, out))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        p: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        // Taken, not cloned: a second backward through the same graph recomputes them.
+        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let bwd = MlpBwd {
+            plan: self.plan.clone(),
+            act: self.act,
+            saved: Mutex::new(saved),
+            input_grad: x.track_op(),
+        };
+        let flat = x.apply_op3_no_bwd(p, &grad.contiguous()?, &bwd)?;
+        let n_p = self.plan.params();
+        let dp = flat.narrow(0, flat.dim(0)? - n_p, n_p)?;
+        let dx = if bwd.input_grad {
+            Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?)
+        } else {
+            None
+        };
+        Ok((dx, Some(dp)))
+    }
+}
+
+/// The backward pass of [`MlpOp`] as a no-grad op over `(x, packed, grad)`: one flat
+/// buffer `[dx (when the input carries a gradient) | d packed]`.
+struct MlpBwd {
+    plan: Plan,
+    act: MlpAct,
+    saved: Mutex<Option<Saved>>,
+    input_grad: bool,
+}
+
+impl CustomOp3 for MlpBwd {
+    fn name(&self) -> &'static str {
+        "osrt-mlp-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let plan = &self.plan;
+        let n = l1.dims()[0];
+        let saved = match self.saved.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            Some(s) => s,
+            None => forward(plan, self.act, s1, l1, s2, l2)?.1,
+        };
+        let mut dp = vec![0f32; plan.params()];
+        // dz of the current layer, `[n, o]`.
+        let mut dz = CpuStorage::F32(f32_slice(s3, l3, "mlp gradient")?.to_vec());
+        let mut dx = None;
+        for l in (0..plan.layers()).rev() {
+            let (k, o, w_off, b_off) = plan.layer(l);
+            let dz_l = Layout::contiguous((n, o));
+            if let Some(b) = b_off {
+                let db = ColumnSum { d: o }.cpu_fwd(&dz, &dz_l)?.0;
+                dp[b..b + o].copy_from_slice(f32_slice(&db, &Layout::contiguous(o), "db")?);
+            }
+            // dW = dzᵀ · a_{l−1}: `[o, n] · [n, k]`, a_{−1} being the input.
+            let (a, a_l) = match l {
+                0 => (s1, l1.clone()),
+                _ => (&saved[l - 1].1, Layout::contiguous((n, k))),
+            };
+            let dw = dz.matmul(a, (1, o, k, n), &dz_l.transpose(0, 1)?, &a_l)?;
+            dp[w_off..w_off + o * k].copy_from_slice(f32_slice(
+                &dw,
+                &Layout::contiguous((o, k)),
+                "dW",
+            )?);
+            if l == 0 && !self.input_grad {
+                break;
+            }
+            // da = dz · W: `[n, o] · [o, k]`.
+            let w_l = Layout::contiguous_with_offset((o, k), l2.start_offset() + w_off);
+            let da = match dz.matmul(s2, (1, n, k, o), &dz_l, &w_l)? {
+                CpuStorage::F32(v) => v,
+                _ => candle_core::bail!("mlp: fused ops take f32"),
+            };
+            if l == 0 {
+                dx = Some(da);
+                break;
+            }
+            dz = CpuStorage::F32(self.act.backward(&saved[l - 1].0, &da));
+        }
+        let mut out = dx.unwrap_or_default();
+        out.extend_from_slice(&dp);
+        let len = out.len();
+        Ok((CpuStorage::F32(out), Shape::from(len)))
+    }
+}
+
+/// `x: [n, in]` through `layers` (`(weight [out, in], bias [out])` each) with `act`
+/// between them → `[n, out]`, as one graph node where the fused ops apply (see the
+/// module docs), else layer by layer.
+pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let bias = layers.first().is_some_and(|(_, b)| b.is_some());
+    let mut all = vec![x];
+    for (w, b) in layers {
+        all.push(w);
+        all.extend(*b);
+    }
+    let fits = x.rank() == 2
+        && !layers.is_empty()
+        && layers
+            .iter()
+            .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
+    if !(fits && enabled_by_env() && usable(&all)) {
+        return mlp_layer_by_layer(x, layers, act);
+    }
+    let mut dims = vec![x.dim(1)?];
+    let mut flat = Vec::with_capacity(layers.len() * 2);
+    for (w, b) in layers {
+        let (o, k) = w.dims2()?;
+        if k != *dims.last().unwrap_or(&0) {
+            candle_core::bail!("mlp: a layer of width {k} after width {dims:?}");
+        }
+        dims.push(o);
+        flat.push(w.flatten_all()?);
+        if let Some(b) = b {
+            flat.push(b.flatten_all()?);
+        }
+    }
+    let packed = Tensor::cat(&flat, 0)?;
+    let op = MlpOp {
+        plan: Plan { dims, bias },
+        act,
+        keep: x.track_op() || packed.track_op(),
+        saved: Mutex::new(None),
+    };
+    x.contiguous()?.apply_op2(&packed, op)
+}
+
+/// The same MLP as separate nodes: `fused::linear` and the activation op per layer.
+pub fn mlp_layer_by_layer(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let mut h = x.clone();
+    for (i, (w, b)) in layers.iter().enumerate() {
+        h = super::linear(&h, w, *b)?;
+        if i + 1 < layers.len() {
+            h = act.apply(&h)?;
+        }
+    }
+    Ok(h)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fused::tests::{
+        assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
+    };
+    use crate::fused::with_fused;
+    use candle_core::{Device, Var};
+
+    const ACTS: [MlpAct; 3] = [MlpAct::Relu, MlpAct::LeakyRelu(0.01), MlpAct::Gelu];
+
+    /// `[x, W1, (b1), W2, (b2), …]` for widths `dims` over `n` rows.
+    fn args(n: usize, dims: &[usize], bias: bool, seed: u64) -> Vec<Tensor> {
+        let mut out = vec![randn(&[n, dims[0]], 1.0, seed)];
+        for (i, w) in dims.windows(2).enumerate() {
+            let s = seed + 10 * (i as u64 + 1);
+            out.push(randn(&[w[1], w[0]], 1.0 / (w[0] as f32).sqrt(), s));
+            if bias {
+                out.push(randn(&[w[1]], 0.5, s + 1));
+            }
+        }
+        out
+    }
+
+    /// The MLP of `args` (see [`args`]) through `f`.
+    fn run(
+        t: &[Tensor],
+        bias: bool,
+        act: MlpAct,
+        f: fn(&Tensor, &[MlpLayer], MlpAct) -> Result<Tensor>,
+    ) -> Result<Tensor> {
+        let step = if bias { 2 } else { 1 };
+        let layers: Vec<_> = t[1..].chunks(step).map(|c| (&c[0], c.get(1))).collect();
+        f(&t[0], &layers, act)
+    }
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1().unwrap()
+    }
+
+    /// The one-node MLP and the per-layer fused ops are the same arithmetic: the same bits
+    /// forward and backward, for every activation, with and without biases, over enough
+    /// rows that the row-parallel kernels split the work.
+    #[test]
+    fn the_one_node_mlp_gives_the_per_layer_ops_bits() {
+        for act in ACTS {
+            for bias in [true, false] {
+                let a = args(700, &[11, 32, 17, 5], bias, 1);
+                let before = FORWARDS.with(|c| c.get());
+                let [(y1, g1), (y2, g2)] = [mlp, mlp_layer_by_layer].map(|f| {
+                    let [(y, g), _] = both(&a, |t| run(t, bias, act, f));
+                    (y, g)
+                });
+                // The one-node op ran (once in `both`'s fused half), not a fallback.
+                assert_eq!(FORWARDS.with(|c| c.get()), before + 1);
+                assert_eq!(values(&y1), values(&y2), "{act:?} bias {bias}: forward");
+                for (i, (a, b)) in g1.iter().zip(&g2).enumerate() {
+                    assert_eq!(values(a), values(b), "{act:?} bias {bias}: gradient {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_mlp_matches_the_composed_version_and_finite_differences() {
+        for act in ACTS {
+            let a = args(300, &[7, 24, 24, 4], true, 2);
+            assert_matches_composed(&a, |t| run(t, true, act, mlp), 2e-5);
+            let a = args(40, &[5, 8, 3], false, 3);
+            assert_matches_composed(&a, |t| run(t, false, act, mlp), 2e-5);
+        }
+        // ReLU's kink is where finite differences straddle; the smooth and leaky ones are
+        // checked (with these seeds no pre-activation lies within a step of the kink).
+        for act in [MlpAct::Gelu, MlpAct::LeakyRelu(0.01)] {
+            finite_difference_check(&args(6, &[3, 5, 4, 2], true, 4), |t| run(t, true, act, mlp));
+        }
+    }
+
+    /// Huge inputs and a constant row: the composed ops' values, finite gradients.
+    #[test]
+    fn the_mlp_is_finite_and_matches_on_extreme_inputs() {
+        for act in ACTS {
+            let mut a = args(2, &[3, 6, 2], true, 5);
+            a[0] = Tensor::new(&[[1e18f32, -1e18, 3.0], [2.0, 2.0, 2.0]], &Device::Cpu).unwrap();
+            let [(yf, gf), (yc, gc)] = both(&a, |t| run(t, true, act, mlp));
+            let rel = |x: &Tensor, y: &Tensor| max_diff(x, y) / (1.0 + max_abs(y));
+            assert!(rel(&yf, &yc) <= 1e-6, "{act:?}: forward differs");
+            for (i, (x, y)) in gf.iter().zip(&gc).enumerate() {
+                assert!(
+                    values(x).iter().all(|v| v.is_finite()),
+                    "{act:?}: gradient {i}"
+                );
+                assert!(rel(x, y) <= 1e-6, "{act:?}: gradient {i} differs");
+            }
+        }
+    }
+
+    /// A data input gets no gradient (and costs no `dx` matmul); a second backward through
+    /// the same graph (whose saved activations the first one took) recomputes them and
+    /// gives the same gradients; without any gradient-carrying input nothing is saved.
+    #[test]
+    fn data_inputs_get_no_gradient_and_a_second_backward_recomputes() {
+        let a = args(50, &[4, 9, 3], true, 6);
+        let vars: Vec<Var> = a[1..]
+            .iter()
+            .map(|t| Var::from_tensor(t).unwrap())
+            .collect();
+        let mut ts = vec![a[0].clone()];
+        ts.extend(vars.iter().map(|v| v.as_tensor().clone()));
+        let loss = with_fused(true, || {
+            run(&ts, true, MlpAct::Gelu, mlp)
+                .unwrap()
+                .sqr()
+                .unwrap()
+                .sum_all()
+                .unwrap()
+        });
+        let first = loss.backward().unwrap();
+        let second = loss.backward().unwrap();
+        assert!(first.get(&a[0]).is_none(), "a data input got a gradient");
+        for v in &vars {
+            let (g1, g2) = (
+                first.get(v.as_tensor()).unwrap(),
+                second.get(v.as_tensor()).unwrap(),
+            );
+            assert_eq!(values(g1), values(g2));
+        }
+        let no_grad = with_fused(true, || run(&a, true, MlpAct::Gelu, mlp).unwrap());
+        let with_grad = with_fused(true, || run(&ts, true, MlpAct::Gelu, mlp).unwrap());
+        assert_eq!(values(&no_grad), values(&with_grad));
+    }
+
+    #[test]
+    fn mismatched_widths_are_an_error() {
+        let x = randn(&[3, 4], 1.0, 7);
+        let (w1, w2) = (randn(&[5, 4], 1.0, 8), randn(&[2, 6], 1.0, 9));
+        let err = with_fused(true, || mlp(&x, &[(&w1, None), (&w2, None)], MlpAct::Relu));
+        assert!(err.is_err());
+    }
+}
