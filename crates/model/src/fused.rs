@@ -1,6 +1,6 @@
 //! Fused CPU ops with hand-written backward passes: LayerNorm, softmax, erf-GELU, ReLU,
-//! the bias add and the whole of a linear layer, a convolution, and a whole MLP
-//! (`mlp.rs`).
+//! the bias add and the whole of a linear layer, a convolution, a whole MLP (`mlp.rs`)
+//! and the core of multi-head attention (`attention.rs`).
 //!
 //! Why: candle 0.11 composes these from elementwise and broadcast ops, and its backward
 //! pass is slow exactly there (a broadcast's gradient is a `sum_keepdim` over leading
@@ -13,22 +13,31 @@
 //! The kernels need contiguous f32 on the CPU; anything else (or `OSRT_FUSED_OPS=0`, or
 //! [`with_fused`]`(false, ..)`) takes the composed path.
 
+mod attention;
 mod mlp;
 
+pub use attention::{attention, attention_composed};
 pub use mlp::{MlpAct, MlpLayer, mlp, mlp_layer_by_layer};
 
 use crate::fastmath;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::cell::Cell;
+use std::sync::OnceLock;
 
 thread_local! {
     static OVERRIDE: Cell<Option<bool>> = const { Cell::new(None) };
 }
 
 fn enabled_by_env() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *ON.get_or_init(|| std::env::var("OSRT_FUSED_OPS").map_or(true, |v| v != "0"))
+    static ON: OnceLock<bool> = OnceLock::new();
+    env_switch("OSRT_FUSED_OPS", &ON)
+}
+
+/// Whether the environment leaves the switch `var` on (unset or anything but `0`), read
+/// once into `cache`.
+fn env_switch(var: &str, cache: &'static OnceLock<bool>) -> bool {
+    *cache.get_or_init(|| std::env::var(var).map_or(true, |v| v != "0"))
 }
 
 /// Whether graphs built on this thread use the fused ops.
@@ -220,6 +229,25 @@ pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Resul
 
 // ---------------------------------------------------------------- softmax
 
+/// `o = softmax(x)` of one row.
+fn softmax_row(o: &mut [f32], x: &[f32]) {
+    // Shift by the row's maximum: exp never overflows, the largest term is 1.
+    let m = x.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    // The exp kernel vectorises; the ordered sum stays a separate loop.
+    fastmath::exp_shifted_slice(o, x, m);
+    let sum: f32 = o.iter().sum();
+    let inv = 1.0 / sum;
+    o.iter_mut().for_each(|v| *v *= inv);
+}
+
+/// `o = y ⊙ (dy − Σ y ⊙ dy)` of one row: the softmax's input gradient from its output `y`.
+fn softmax_row_grad(o: &mut [f32], y: &[f32], dy: &[f32]) {
+    let dot: f32 = y.iter().zip(dy).map(|(a, b)| a * b).sum();
+    for ((o, y), dy) in o.iter_mut().zip(y).zip(dy) {
+        *o = y * (dy - dot);
+    }
+}
+
 struct SoftmaxOp;
 
 impl CustomOp1 for SoftmaxOp {
@@ -235,13 +263,7 @@ impl CustomOp1 for SoftmaxOp {
             .zip(x.par_chunks(d * ROWS_PER_TASK))
             .for_each(|(o, x)| {
                 for (o, x) in o.chunks_mut(d).zip(x.chunks(d)) {
-                    // Shift by the row's maximum: exp never overflows, the largest term is 1.
-                    let m = x.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                    // The exp kernel vectorises; the ordered sum stays a separate loop.
-                    fastmath::exp_shifted_slice(o, x, m);
-                    let sum: f32 = o.iter().sum();
-                    let inv = 1.0 / sum;
-                    o.iter_mut().for_each(|v| *v *= inv);
+                    softmax_row(o, x);
                 }
             });
         Ok((CpuStorage::F32(out), l.shape().clone()))
@@ -280,10 +302,7 @@ impl CustomOp2 for SoftmaxBwd {
             )
             .for_each(|(o, (y, dy))| {
                 for ((o, y), dy) in o.chunks_mut(d).zip(y.chunks(d)).zip(dy.chunks(d)) {
-                    let dot: f32 = y.iter().zip(dy).map(|(a, b)| a * b).sum();
-                    for i in 0..d {
-                        o[i] = y[i] * (dy[i] - dot);
-                    }
+                    softmax_row_grad(o, y, dy);
                 }
             });
         Ok((CpuStorage::F32(out), l1.shape().clone()))

@@ -7,7 +7,7 @@
 //! our own fused LayerNorm, softmax, GELU and bias add (`crate::fused`, hand-written
 //! backward passes), falling back to candle's composed ops where those do not apply.
 
-use candle_core::{D, Module, Result, Tensor};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::{Init, VarBuilder};
 use serde::{Deserialize, Serialize};
 
@@ -182,25 +182,14 @@ impl Attention {
     /// # Shapes
     /// `x: [b, n, q_dim]`, `ctx: [b, m, kv_dim]` → `[b, n, q_dim]`
     pub fn forward(&self, x: &Tensor, ctx: &Tensor) -> Result<Tensor> {
-        let (b, n, _) = x.dims3()?;
-        let m = ctx.dim(1)?;
-        let split = |t: Tensor, len: usize| -> Result<Tensor> {
-            // [b, len, h·dh] → [b·h, len, dh]
-            t.reshape((b, len, self.heads, self.head_dim))?
-                .transpose(1, 2)?
-                .reshape((b * self.heads, len, self.head_dim))
-        };
-        let q = split(self.q.forward(x)?, n)?;
-        let k = split(self.k.forward(ctx)?, m)?;
-        let v = split(self.v.forward(ctx)?, m)?;
         let scale = 1.0 / (self.head_dim as f64).sqrt();
-        let logits = (q.matmul(&k.t()?)? * scale)?; // [b·h, n, m]
-        let attn = crate::fused::softmax(&logits, D::Minus1)?;
-        let o = attn.matmul(&v)?; // [b·h, n, dh]
-        let o = o
-            .reshape((b, self.heads, n, self.head_dim))?
-            .transpose(1, 2)?
-            .reshape((b, n, self.heads * self.head_dim))?;
+        let o = crate::fused::attention(
+            &self.q.forward(x)?,
+            &self.k.forward(ctx)?,
+            &self.v.forward(ctx)?,
+            self.heads,
+            scale,
+        )?; // [b, n, h·dh]
         self.out.forward(&o)
     }
 }

@@ -16,7 +16,7 @@
 
 use super::{
     ColumnSum, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
-    leaky_relu_slice, par_elementwise, par_elementwise_grad, usable,
+    leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, usable,
 };
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
@@ -69,7 +69,7 @@ impl MlpAct {
 
 fn enabled_by_env() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *ON.get_or_init(|| std::env::var("OSRT_FUSED_MLP").map_or(true, |v| v != "0"))
+    super::env_switch("OSRT_FUSED_MLP", &ON)
 }
 
 /// Widths `[in, hidden…, out]` and whether layers have biases: where each layer's weight
@@ -101,21 +101,9 @@ impl Plan {
     }
 }
 
-/// `a: [n, k]` (`a_l`) times layer weight `W: [o, k]` (at `w_off` of the packed
-/// parameters)ᵀ → `[n, o]`, through candle's CPU matmul as the per-layer op does.
-fn times_wt(
-    a: &CpuStorage,
-    a_l: &Layout,
-    p: &CpuStorage,
-    p_l: &Layout,
-    (k, o, w_off): (usize, usize, usize),
-) -> Result<Vec<f32>> {
-    let n = a_l.dims()[0];
-    let w_l = Layout::contiguous_with_offset((o, k), p_l.start_offset() + w_off);
-    match a.matmul(p, (1, n, o, k), a_l, &w_l.transpose(0, 1)?)? {
-        CpuStorage::F32(y) => Ok(y),
-        _ => candle_core::bail!("mlp: fused ops take f32"),
-    }
+/// Layer weight `W: [o, k]` at `w_off` of the packed parameters, as a layout.
+fn weight_layout(p_l: &Layout, (k, o, w_off): (usize, usize, usize)) -> Layout {
+    Layout::contiguous_with_offset((o, k), p_l.start_offset() + w_off)
 }
 
 /// What the forward pass keeps for the backward pass: per hidden layer its
@@ -137,8 +125,13 @@ fn forward(
     for l in 0..plan.layers() {
         let (k, o, w_off, b_off) = plan.layer(l);
         let mut z = match saved.last() {
-            None => times_wt(x, x_l, p, p_l, (k, o, w_off))?,
-            Some((_, a)) => times_wt(a, &Layout::contiguous((n, k)), p, p_l, (k, o, w_off))?,
+            None => matmul_xwt(x, x_l, p, &weight_layout(p_l, (k, o, w_off)))?,
+            Some((_, a)) => matmul_xwt(
+                a,
+                &Layout::contiguous((n, k)),
+                p,
+                &weight_layout(p_l, (k, o, w_off)),
+            )?,
         };
         if let Some(b) = b_off {
             add_bias_rows(&mut z, &params[b..b + o]);

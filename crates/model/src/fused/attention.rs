@@ -1,0 +1,465 @@
+//! Multi-head scaled dot-product attention as one graph node with a hand-written
+//! backward.
+//!
+//! Why: composed, the core of an attention layer is ~17 candle nodes — the head split of
+//! q, k and v (reshape, transpose, copy), `k.t()`, two matmuls, the scale, the softmax
+//! and the head merge — and candle's backward pays a zero tensor and an add for every
+//! one of them. In the Slot Mixer's allocation transformer the queries are all of a
+//! step's target rays (`[8192, 128]` on the CPU preset), so those accumulations and
+//! copies were a visible share of the step (perf: `docs/performance.md`). Here the heads
+//! are strided views into the projections: no split or merge copies, one node, and the
+//! attention weights are kept for the backward pass instead of recomputed.
+//!
+//! `OSRT_FUSED_ATTENTION=0` switches it off (the composed version runs): it changes
+//! speed, not training.
+//!
+//! The arithmetic is the composed version's: the same gemm on the same operands, the
+//! scale applied to the logits, then the same row softmax. Tests check values and
+//! gradients against it, against finite differences, and on extreme inputs.
+
+use super::{f32_slice, softmax_row, softmax_row_grad, usable};
+use candle_core::backend::BackendStorage;
+use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+fn enabled_by_env() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    super::env_switch("OSRT_FUSED_ATTENTION", &ON)
+}
+
+/// Sizes of one attention call.
+#[derive(Debug, Clone, Copy)]
+struct Dims {
+    /// Batch, queries, keys, heads, head width.
+    b: usize,
+    n: usize,
+    m: usize,
+    h: usize,
+    dh: usize,
+    scale: f32,
+}
+
+impl Dims {
+    fn inner(&self) -> usize {
+        self.h * self.dh
+    }
+
+    /// Rows `len` of batch element `bi` of a `[b, len, row]` tensor (starting at `off`)
+    /// as `[h, len, dh]`: head `j`'s row `i` is at `(bi·len + i)·row + j·dh` (`row` is
+    /// `h·dh`, or wider where two tensors are packed side by side).
+    fn heads(&self, off: usize, bi: usize, len: usize, row: usize) -> Layout {
+        Layout::new(
+            Shape::from((self.h, len, self.dh)),
+            vec![self.dh, row, 1],
+            off + bi * len * row,
+        )
+    }
+
+    /// Weights-shaped `[h, rows, cols]` (contiguous), transposed when `t`.
+    fn square(&self, rows: usize, cols: usize, t: bool) -> Layout {
+        let l = Layout::contiguous((self.h, rows, cols));
+        if t {
+            Layout::new(
+                Shape::from((self.h, cols, rows)),
+                vec![rows * cols, 1, cols],
+                0,
+            )
+        } else {
+            l
+        }
+    }
+}
+
+/// A `[h, rows, k] · [h, k, cols]` product through candle's CPU matmul.
+fn bmm(
+    a: &CpuStorage,
+    a_l: &Layout,
+    b: &CpuStorage,
+    b_l: &Layout,
+    (h, rows, cols, k): (usize, usize, usize, usize),
+) -> Result<Vec<f32>> {
+    match a.matmul(b, (h, rows, cols, k), a_l, b_l)? {
+        CpuStorage::F32(v) => Ok(v),
+        _ => candle_core::bail!("attention: fused ops take f32"),
+    }
+}
+
+/// `[h, len, dh]` (contiguous) into rows `len` of batch element `bi` of a
+/// `[b, len, h·dh]` buffer.
+fn merge_heads(out: &mut [f32], o: &[f32], d: &Dims, len: usize) {
+    for (j, head) in o.chunks(len * d.dh).enumerate() {
+        for (i, row) in head.chunks(d.dh).enumerate() {
+            let at = i * d.inner() + j * d.dh;
+            out[at..at + d.dh].copy_from_slice(row);
+        }
+    }
+}
+
+/// The attention weights of batch element `bi`: `softmax(scale · Q Kᵀ)`, `[h, n, m]`;
+/// `k` is `(storage, offset, row stride)` of `[b, m, row]` keys.
+fn weights(
+    d: &Dims,
+    bi: usize,
+    (q, q_l): (&CpuStorage, &Layout),
+    (k, k_off, k_row): (&CpuStorage, usize, usize),
+) -> Result<Vec<f32>> {
+    let q_h = d.heads(q_l.start_offset(), bi, d.n, d.inner());
+    let k_t = d.heads(k_off, bi, d.m, k_row).transpose(1, 2)?;
+    let mut s = bmm(q, &q_h, k, &k_t, (d.h, d.n, d.m, d.dh))?;
+    let mut row = vec![0f32; d.m];
+    for r in s.chunks_mut(d.m.max(1)) {
+        r.iter_mut().for_each(|v| *v *= d.scale);
+        row.copy_from_slice(r);
+        softmax_row(r, &row);
+    }
+    Ok(s)
+}
+
+/// Per batch element, the attention weights `[h, n, m]`.
+type Saved = Vec<CpuStorage>;
+
+/// Forward: the output `[b, n, h·dh]` and the weights.
+fn forward(
+    d: &Dims,
+    q: (&CpuStorage, &Layout),
+    k: (&CpuStorage, &Layout),
+    v: (&CpuStorage, &Layout),
+) -> Result<(Vec<f32>, Saved)> {
+    let per: Vec<(Vec<f32>, CpuStorage)> = (0..d.b)
+        .into_par_iter()
+        .map(|bi| {
+            let p = CpuStorage::F32(weights(d, bi, q, (k.0, k.1.start_offset(), d.inner()))?);
+            let v_h = d.heads(v.1.start_offset(), bi, d.m, d.inner());
+            let o = bmm(
+                &p,
+                &d.square(d.n, d.m, false),
+                v.0,
+                &v_h,
+                (d.h, d.n, d.dh, d.m),
+            )?;
+            Ok((o, p))
+        })
+        .collect::<Result<_>>()?;
+    let row = d.n * d.inner();
+    let mut out = vec![0f32; d.b * row];
+    let mut saved = Vec::with_capacity(d.b);
+    for ((o, p), dst) in per.into_iter().zip(out.chunks_mut(row.max(1))) {
+        merge_heads(dst, &o, d, d.n);
+        saved.push(p);
+    }
+    Ok((out, saved))
+}
+
+struct AttentionOp {
+    dims: Dims,
+    /// Whether a backward pass can follow: only then are the weights kept.
+    keep: bool,
+    saved: Mutex<Option<Saved>>,
+}
+
+impl CustomOp3 for AttentionOp {
+    fn name(&self) -> &'static str {
+        "osrt-attention"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        for (s, l, what) in [(s1, l1, "q"), (s2, l2, "k"), (s3, l3, "v")] {
+            f32_slice(s, l, what)?;
+        }
+        let d = &self.dims;
+        let (y, saved) = forward(d, (s1, l1), (s2, l2), (s3, l3))?;
+        if self.keep {
+            *self.saved.lock().unwrap_or_else(|e| e.into_inner()) = Some(saved);
+        }
+        Ok((CpuStorage::F32(y), Shape::from((d.b, d.n, d.inner()))))
+    }
+
+    fn bwd(
+        &self,
+        q: &Tensor,
+        k: &Tensor,
+        v: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        // Taken, not cloned: a second backward through the same graph recomputes them.
+        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let d = self.dims;
+        let bwd = AttentionBwd {
+            dims: d,
+            saved: Mutex::new(saved),
+        };
+        // Keys and values travel as one tensor: the op takes three inputs.
+        let kv = Tensor::cat(&[k, v], D::Minus1)?;
+        let flat = q.apply_op3_no_bwd(&kv, &grad.contiguous()?, &bwd)?;
+        let (nq, nk) = (d.b * d.n * d.inner(), d.b * d.m * d.inner());
+        let part = |t: &Tensor, at: usize, len: usize| -> Result<Option<Tensor>> {
+            Ok(match t.track_op() {
+                true => Some(flat.narrow(0, at, len)?.reshape(t.shape())?),
+                false => None,
+            })
+        };
+        Ok((part(q, 0, nq)?, part(k, nq, nk)?, part(v, nq + nk, nk)?))
+    }
+}
+
+/// The backward pass of [`AttentionOp`] as a no-grad op over `(q, [k | v], grad)`: one
+/// flat buffer `[dq | dk | dv]`.
+struct AttentionBwd {
+    dims: Dims,
+    saved: Mutex<Option<Saved>>,
+}
+
+impl CustomOp3 for AttentionBwd {
+    fn name(&self) -> &'static str {
+        "osrt-attention-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        q: &CpuStorage,
+        q_l: &Layout,
+        kv: &CpuStorage,
+        kv_l: &Layout,
+        g: &CpuStorage,
+        g_l: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let d = &self.dims;
+        let inner = d.inner();
+        for (s, l, what) in [(q, q_l, "q"), (kv, kv_l, "k|v"), (g, g_l, "gradient")] {
+            f32_slice(s, l, what)?;
+        }
+        // `[b, m, 2·h·dh]` as k and v side by side: head views with the wider row.
+        let (k_off, row) = (kv_l.start_offset(), 2 * inner);
+        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let per: Vec<[Vec<f32>; 3]> = (0..d.b)
+            .into_par_iter()
+            .map(|bi| {
+                let k_h = d.heads(k_off, bi, d.m, row);
+                let v_h = d.heads(k_off + inner, bi, d.m, row);
+                let recomputed;
+                let p = match &saved {
+                    Some(s) => &s[bi],
+                    None => {
+                        recomputed = CpuStorage::F32(weights(d, bi, (q, q_l), (kv, k_off, row))?);
+                        &recomputed
+                    }
+                };
+                let g_h = d.heads(g_l.start_offset(), bi, d.n, inner);
+                let q_h = d.heads(q_l.start_offset(), bi, d.n, inner);
+                // dV = Pᵀ · dO: `[h, m, n] · [h, n, dh]`.
+                let dv = bmm(p, &d.square(d.n, d.m, true), g, &g_h, (d.h, d.m, d.dh, d.n))?;
+                // dP = dO · Vᵀ: `[h, n, dh] · [h, dh, m]`.
+                let dp = bmm(g, &g_h, kv, &v_h.transpose(1, 2)?, (d.h, d.n, d.m, d.dh))?;
+                let p = f32_slice(p, &d.square(d.n, d.m, false), "attention weights")?;
+                // dS = scale · P ⊙ (dP − Σ P ⊙ dP), row by row.
+                let mut ds = vec![0f32; p.len()];
+                for ((o, y), dy) in ds
+                    .chunks_mut(d.m.max(1))
+                    .zip(p.chunks(d.m.max(1)))
+                    .zip(dp.chunks(d.m.max(1)))
+                {
+                    softmax_row_grad(o, y, dy);
+                    o.iter_mut().for_each(|v| *v *= d.scale);
+                }
+                let ds = CpuStorage::F32(ds);
+                // dQ = dS · K: `[h, n, m] · [h, m, dh]`; dK = dSᵀ · Q: `[h, m, n] · [h, n, dh]`.
+                let dq = bmm(
+                    &ds,
+                    &d.square(d.n, d.m, false),
+                    kv,
+                    &k_h,
+                    (d.h, d.n, d.dh, d.m),
+                )?;
+                let dk = bmm(
+                    &ds,
+                    &d.square(d.n, d.m, true),
+                    q,
+                    &q_h,
+                    (d.h, d.m, d.dh, d.n),
+                )?;
+                Ok([dq, dk, dv])
+            })
+            .collect::<Result<_>>()?;
+        let (nq, nk) = (d.b * d.n * inner, d.b * d.m * inner);
+        let mut out = vec![0f32; nq + 2 * nk];
+        let (dq_all, rest) = out.split_at_mut(nq);
+        let (dk_all, dv_all) = rest.split_at_mut(nk);
+        for (bi, [dq, dk, dv]) in per.iter().enumerate() {
+            let (rq, rk) = (d.n * inner, d.m * inner);
+            merge_heads(&mut dq_all[bi * rq..(bi + 1) * rq], dq, d, d.n);
+            merge_heads(&mut dk_all[bi * rk..(bi + 1) * rk], dk, d, d.m);
+            merge_heads(&mut dv_all[bi * rk..(bi + 1) * rk], dv, d, d.m);
+        }
+        Ok((CpuStorage::F32(out), Shape::from(nq + 2 * nk)))
+    }
+}
+
+/// Multi-head scaled dot-product attention, `softmax(scale · Q Kᵀ) V` per head, as one
+/// graph node where the fused ops apply (else [`attention_composed`]).
+///
+/// # Shapes
+/// `q: [b, n, heads·dh]`, `k, v: [b, m, heads·dh]` → `[b, n, heads·dh]`
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
+    let (b, n, inner) = q.dims3()?;
+    let (bk, m, ik) = k.dims3()?;
+    if bk != b || ik != inner || k.dims() != v.dims() || heads == 0 || inner % heads != 0 {
+        candle_core::bail!(
+            "attention: q {:?}, k {:?}, v {:?} with {heads} heads",
+            q.dims(),
+            k.dims(),
+            v.dims()
+        );
+    }
+    if !(enabled_by_env() && usable(&[q, k, v]) && n > 0 && m > 0) {
+        return attention_composed(q, k, v, heads, scale);
+    }
+    let op = AttentionOp {
+        dims: Dims {
+            b,
+            n,
+            m,
+            h: heads,
+            dh: inner / heads,
+            scale: scale as f32,
+        },
+        keep: q.track_op() || k.track_op() || v.track_op(),
+        saved: Mutex::new(None),
+    };
+    q.contiguous()?
+        .apply_op3(&k.contiguous()?, &v.contiguous()?, op)
+}
+
+/// The same attention from candle ops: split heads, `Q Kᵀ · scale`, softmax, `· V`,
+/// merge heads.
+pub fn attention_composed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    heads: usize,
+    scale: f64,
+) -> Result<Tensor> {
+    let (b, n, inner) = q.dims3()?;
+    let m = k.dim(1)?;
+    let dh = inner / heads;
+    let split = |t: &Tensor, len: usize| -> Result<Tensor> {
+        // [b, len, h·dh] → [b·h, len, dh]
+        t.reshape((b, len, heads, dh))?
+            .transpose(1, 2)?
+            .reshape((b * heads, len, dh))
+    };
+    let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
+    let logits = (q.matmul(&k.t()?)? * scale)?; // [b·h, n, m]
+    let attn = super::softmax(&logits, D::Minus1)?;
+    attn.matmul(&v)? // [b·h, n, dh]
+        .reshape((b, heads, n, dh))?
+        .transpose(1, 2)?
+        .reshape((b, n, inner))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fused::tests::{
+        assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
+    };
+    use crate::fused::with_fused;
+    use candle_core::{Device, Var};
+
+    /// `[q, k, v]` for `b` batch elements, `n` queries, `m` keys of width `inner`.
+    fn args(b: usize, n: usize, m: usize, inner: usize, seed: u64) -> Vec<Tensor> {
+        vec![
+            randn(&[b, n, inner], 1.0, seed),
+            randn(&[b, m, inner], 1.0, seed + 1),
+            randn(&[b, m, inner], 1.0, seed + 2),
+        ]
+    }
+
+    fn run(t: &[Tensor], heads: usize) -> Result<Tensor> {
+        let dh = t[0].dim(2)? / heads;
+        attention(&t[0], &t[1], &t[2], heads, 1.0 / (dh as f64).sqrt())
+    }
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1().unwrap()
+    }
+
+    #[test]
+    fn attention_matches_the_composed_version_and_finite_differences() {
+        // Self-attention-like (n = m), the decoder's cross-attention (many queries, few
+        // keys), one head and several, one batch element and several.
+        for (b, n, m, inner, heads) in [(3, 9, 9, 16, 4), (2, 70, 7, 32, 4), (1, 5, 3, 8, 1)] {
+            let a = args(b, n, m, inner, 10 + n as u64);
+            assert_matches_composed(&a, |t| run(t, heads), 2e-5);
+        }
+        finite_difference_check(&args(2, 4, 3, 6, 20), |t| run(t, 2));
+        finite_difference_check(&args(1, 3, 5, 4, 21), |t| run(t, 1));
+    }
+
+    /// Large logits (a saturated softmax) and constant rows (uniform weights): the
+    /// composed version's values, finite gradients.
+    #[test]
+    fn attention_is_finite_and_matches_on_extreme_inputs() {
+        let mut big = args(2, 4, 5, 8, 30);
+        big[0] = (&big[0] * 1e3).unwrap();
+        big[1] = (&big[1] * 1e2).unwrap();
+        let mut constant = args(2, 4, 5, 8, 31);
+        constant[0] = Tensor::ones((2, 4, 8), candle_core::DType::F32, &Device::Cpu).unwrap();
+        constant[1] = Tensor::full(3.0f32, (2, 5, 8), &Device::Cpu).unwrap();
+        for a in [big, constant] {
+            let [(yf, gf), (yc, gc)] = both(&a, |t| run(t, 2));
+            let rel = |x: &Tensor, y: &Tensor| max_diff(x, y) / (1.0 + max_abs(y));
+            assert!(rel(&yf, &yc) <= 1e-5, "forward differs");
+            for (i, (x, y)) in gf.iter().zip(&gc).enumerate() {
+                assert!(values(x).iter().all(|v| v.is_finite()), "gradient {i}");
+                assert!(rel(x, y) <= 1e-5, "gradient {i} differs: {}", rel(x, y));
+            }
+        }
+    }
+
+    /// Inputs that are data get no gradient; a second backward through the same graph
+    /// (whose weights the first one took) recomputes them and agrees.
+    #[test]
+    fn data_inputs_get_no_gradient_and_a_second_backward_recomputes() {
+        let a = args(2, 6, 4, 8, 40);
+        let (kv, vv) = (
+            Var::from_tensor(&a[1]).unwrap(),
+            Var::from_tensor(&a[2]).unwrap(),
+        );
+        let ts = [a[0].clone(), kv.as_tensor().clone(), vv.as_tensor().clone()];
+        let loss = with_fused(true, || {
+            run(&ts, 2).unwrap().sqr().unwrap().sum_all().unwrap()
+        });
+        let (first, second) = (loss.backward().unwrap(), loss.backward().unwrap());
+        assert!(first.get(&a[0]).is_none(), "a data input got a gradient");
+        for v in [&kv, &vv] {
+            let (g1, g2) = (
+                first.get(v.as_tensor()).unwrap(),
+                second.get(v.as_tensor()).unwrap(),
+            );
+            assert_eq!(values(g1), values(g2));
+        }
+        let no_grad = with_fused(true, || run(&a, 2).unwrap());
+        let with_grad = with_fused(true, || run(&ts, 2).unwrap());
+        assert_eq!(values(&no_grad), values(&with_grad));
+    }
+
+    #[test]
+    fn mismatched_shapes_are_an_error() {
+        let a = args(2, 3, 4, 8, 50);
+        let short = randn(&[2, 4, 6], 1.0, 51);
+        with_fused(true, || {
+            assert!(attention(&a[0], &short, &a[2], 2, 1.0).is_err());
+            assert!(attention(&a[0], &a[1], &a[2], 3, 1.0).is_err());
+        });
+    }
+}
