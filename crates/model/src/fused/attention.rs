@@ -58,15 +58,13 @@ impl Dims {
 
     /// Weights-shaped `[h, rows, cols]` (contiguous), transposed when `t`.
     fn square(&self, rows: usize, cols: usize, t: bool) -> Layout {
-        let l = Layout::contiguous((self.h, rows, cols));
-        if t {
-            Layout::new(
+        match t {
+            false => Layout::contiguous((self.h, rows, cols)),
+            true => Layout::new(
                 Shape::from((self.h, cols, rows)),
                 vec![rows * cols, 1, cols],
                 0,
-            )
-        } else {
-            l
+            ),
         }
     }
 }
@@ -85,8 +83,7 @@ fn bmm(
     }
 }
 
-/// `[h, len, dh]` (contiguous) into rows `len` of batch element `bi` of a
-/// `[b, len, h·dh]` buffer.
+/// `[h, len, dh]` (contiguous) into one batch element's `[len, h·dh]` rows.
 fn merge_heads(out: &mut [f32], o: &[f32], d: &Dims, len: usize) {
     for (j, head) in o.chunks(len * d.dh).enumerate() {
         for (i, row) in head.chunks(d.dh).enumerate() {
