@@ -23,7 +23,7 @@ use crate::fastmath;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::cell::Cell;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 thread_local! {
     static OVERRIDE: Cell<Option<bool>> = const { Cell::new(None) };
@@ -62,6 +62,25 @@ pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
 pub fn on_device_pool<T: Send>(device: &candle_core::Device, f: impl FnOnce() -> T + Send) -> T {
     let on = enabled();
     device.with_context(|| with_fused(on, f))
+}
+
+/// What a one-node op's forward pass keeps for its backward pass: put there only when a
+/// gradient can follow, and taken (not cloned) by the backward pass, so a second backward
+/// through the same graph finds it empty and recomputes it.
+struct Kept<T>(Mutex<Option<T>>);
+
+impl<T> Kept<T> {
+    fn new(v: Option<T>) -> Self {
+        Self(Mutex::new(v))
+    }
+
+    fn put(&self, v: T) {
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = Some(v);
+    }
+
+    fn take(&self) -> Option<T> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).take()
+    }
 }
 
 /// Rows per parallel task: small tensors stay on one thread.

@@ -17,11 +17,10 @@
 //! scale applied to the logits, then the same row softmax. Tests check values and
 //! gradients against it, against finite differences, and on extreme inputs.
 
-use super::{f32_slice, softmax_row, softmax_row_grad, usable};
+use super::{Kept, f32_slice, softmax_row, softmax_row_grad, usable};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
-use std::sync::Mutex;
 
 fn enabled_by_env() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
@@ -152,7 +151,7 @@ struct AttentionOp {
     dims: Dims,
     /// Whether a backward pass can follow: only then are the weights kept.
     keep: bool,
-    saved: Mutex<Option<Saved>>,
+    saved: Kept<Saved>,
 }
 
 impl CustomOp3 for AttentionOp {
@@ -175,7 +174,7 @@ impl CustomOp3 for AttentionOp {
         let d = &self.dims;
         let (y, saved) = forward(d, (s1, l1), (s2, l2), (s3, l3))?;
         if self.keep {
-            *self.saved.lock().unwrap_or_else(|e| e.into_inner()) = Some(saved);
+            self.saved.put(saved);
         }
         Ok((CpuStorage::F32(y), Shape::from((d.b, d.n, d.inner()))))
     }
@@ -189,11 +188,11 @@ impl CustomOp3 for AttentionOp {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         // Taken, not cloned: a second backward through the same graph recomputes them.
-        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let saved = self.saved.take();
         let d = self.dims;
         let bwd = AttentionBwd {
             dims: d,
-            saved: Mutex::new(saved),
+            saved: Kept::new(saved),
         };
         // Keys and values travel as one tensor: the op takes three inputs.
         let kv = Tensor::cat(&[k, v], D::Minus1)?;
@@ -213,7 +212,7 @@ impl CustomOp3 for AttentionOp {
 /// flat buffer `[dq | dk | dv]`.
 struct AttentionBwd {
     dims: Dims,
-    saved: Mutex<Option<Saved>>,
+    saved: Kept<Saved>,
 }
 
 impl CustomOp3 for AttentionBwd {
@@ -237,7 +236,7 @@ impl CustomOp3 for AttentionBwd {
         }
         // `[b, m, 2·h·dh]` as k and v side by side: head views with the wider row.
         let (k_off, row) = (kv_l.start_offset(), 2 * inner);
-        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let saved = self.saved.take();
         let per: Vec<[Vec<f32>; 3]> = (0..d.b)
             .into_par_iter()
             .map(|bi| {
@@ -330,7 +329,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -
             scale: scale as f32,
         },
         keep: q.track_op() || k.track_op() || v.track_op(),
-        saved: Mutex::new(None),
+        saved: Kept::new(None),
     };
     q.contiguous()?
         .apply_op3(&k.contiguous()?, &v.contiguous()?, op)

@@ -15,12 +15,11 @@
 //! (`OSRT_FUSED_MLP=0`) changes speed, not training.
 
 use super::{
-    ColumnSum, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
+    ColumnSum, Kept, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
     leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, usable,
 };
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
-use std::sync::Mutex;
 
 /// One layer's weight `[out, in]` and bias `[out]`, if it has one.
 pub type MlpLayer<'a> = (&'a Tensor, Option<&'a Tensor>);
@@ -157,7 +156,7 @@ struct MlpOp {
     /// Whether a backward pass can follow (an input carries a gradient): only then are
     /// the hidden layers kept.
     keep: bool,
-    saved: Mutex<Option<Saved>>,
+    saved: Kept<Saved>,
 }
 
 impl CustomOp2 for MlpOp {
@@ -185,7 +184,7 @@ impl CustomOp2 for MlpOp {
         FORWARDS.with(|c| c.set(c.get() + 1));
         let (y, saved) = forward(&self.plan, self.act, s1, l1, s2, l2)?;
         if self.keep {
-            *self.saved.lock().unwrap_or_else(|e| e.into_inner()) = Some(saved);
+            self.saved.put(saved);
         }
         let out = *self.plan.dims.last().unwrap_or(&0);
         Ok((CpuStorage::F32(y), Shape::from((n, out))))
@@ -199,11 +198,11 @@ impl CustomOp2 for MlpOp {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         // Taken, not cloned: a second backward through the same graph recomputes them.
-        let saved = self.saved.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let saved = self.saved.take();
         let bwd = MlpBwd {
             plan: self.plan.clone(),
             act: self.act,
-            saved: Mutex::new(saved),
+            saved: Kept::new(saved),
             input_grad: x.track_op(),
         };
         let flat = x.apply_op3_no_bwd(p, &grad.contiguous()?, &bwd)?;
@@ -223,7 +222,7 @@ impl CustomOp2 for MlpOp {
 struct MlpBwd {
     plan: Plan,
     act: MlpAct,
-    saved: Mutex<Option<Saved>>,
+    saved: Kept<Saved>,
     input_grad: bool,
 }
 
@@ -243,7 +242,7 @@ impl CustomOp3 for MlpBwd {
     ) -> Result<(CpuStorage, Shape)> {
         let plan = &self.plan;
         let n = l1.dims()[0];
-        let saved = match self.saved.lock().unwrap_or_else(|e| e.into_inner()).take() {
+        let saved = match self.saved.take() {
             Some(s) => s,
             None => forward(plan, self.act, s1, l1, s2, l2)?.1,
         };
@@ -327,7 +326,7 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
         plan: Plan { dims, bias },
         act,
         keep: x.track_op() || packed.track_op(),
-        saved: Mutex::new(None),
+        saved: Kept::new(None),
     };
     x.contiguous()?.apply_op2(&packed, op)
 }
