@@ -804,12 +804,41 @@ fn matmul_xwt(s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout) -> Res
 /// Gradients of `x·Wᵀ` for upstream `grad: [n, out]`: `dx = grad·W` only when `x` carries
 /// a gradient (candle's matmul backward computes it for data inputs too), `dW = gradᵀ·x`.
 fn linear_grads(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Tensor)> {
+    // `x: [.., in]` and `grad: [.., out]` as the 2-D `[rows, ·]` views the op computed on.
+    let (x2, grad) = (
+        x.reshape(((), x.dim(D::Minus1)?))?,
+        grad.reshape(((), w.dim(0)?))?,
+    );
     let dx = if x.track_op() {
-        Some(grad.matmul(w)?)
+        Some(grad.matmul(w)?.reshape(x.shape())?)
     } else {
         None
     };
-    Ok((dx, grad.t()?.matmul(x)?))
+    Ok((dx, grad.t()?.matmul(&x2)?))
+}
+
+/// A contiguous `[.., k]` layout as the 2-D `[rows, k]` the matmul kernels take: the
+/// same memory with the leading dims flattened. The ops take N-D inputs themselves
+/// because a `reshape` around them would be two more graph nodes, each costing a zero
+/// tensor and an add of the whole activation in candle's backward pass.
+fn rows_layout(l: &Layout) -> Result<Layout> {
+    let Some(&k) = l.dims().last() else {
+        candle_core::bail!("a scalar where rows of values were expected")
+    };
+    if !l.is_contiguous() {
+        candle_core::bail!("fused ops take contiguous tensors");
+    }
+    let rows = l.shape().elem_count().checked_div(k).unwrap_or(0);
+    Ok(Layout::contiguous_with_offset((rows, k), l.start_offset()))
+}
+
+/// `l`'s shape with its last dim replaced by `last`.
+fn with_last_dim(l: &Layout, last: usize) -> Shape {
+    let mut dims = l.dims().to_vec();
+    if let Some(d) = dims.last_mut() {
+        *d = last;
+    }
+    Shape::from(dims)
 }
 
 /// `y = x·Wᵀ + b` as one graph node (`x: [n, in]`, `W: [out, in]`, `b: [out]`): the bias
@@ -832,13 +861,14 @@ impl CustomOp3 for LinearOp {
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let b = f32_slice(s3, l3, "linear bias")?;
-        let mut y = matmul_xwt(s1, l1, s2, l2)?;
-        let (n, d) = (l1.dims()[0], b.len());
+        let rows = rows_layout(l1)?;
+        let mut y = matmul_xwt(s1, &rows, s2, l2)?;
+        let (n, d) = (rows.dims()[0], b.len());
         if y.len() != n * d {
             candle_core::bail!("linear: bias of {d} for an output of {} values", y.len());
         }
         add_bias_rows(&mut y, b);
-        Ok((CpuStorage::F32(y), Shape::from((n, d))))
+        Ok((CpuStorage::F32(y), with_last_dim(l1, d)))
     }
 
     fn bwd(
@@ -871,9 +901,8 @@ impl CustomOp2 for LinearNoBiasOp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let y = matmul_xwt(s1, l1, s2, l2)?;
-        let shape = Shape::from((l1.dims()[0], l2.dims()[0]));
-        Ok((CpuStorage::F32(y), shape))
+        let y = matmul_xwt(s1, &rows_layout(l1)?, s2, l2)?;
+        Ok((CpuStorage::F32(y), with_last_dim(l1, l2.dims()[0])))
     }
 
     fn bwd(
@@ -888,9 +917,10 @@ impl CustomOp2 for LinearNoBiasOp {
     }
 }
 
-/// `x: [n, in]`, `weight: [out, in]`, `bias: [out]` → `x·weightᵀ + bias: [n, out]`.
+/// `x: [.., in]`, `weight: [out, in]`, `bias: [out]` → `x·weightᵀ + bias: [.., out]`, one
+/// 2-D product over all leading dims (candle's broadcast matmul is slower).
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
-    let fits = x.rank() == 2 && weight.rank() == 2 && bias.is_none_or(|b| b.rank() == 1);
+    let fits = weight.rank() == 2 && bias.is_none_or(|b| b.rank() == 1);
     let mut all = vec![x, weight];
     all.extend(bias);
     if fits && usable(&all) {
@@ -900,11 +930,17 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tens
             None => x.apply_op2(&w, LinearNoBiasOp),
         };
     }
-    let y = x.matmul(&weight.t()?)?;
-    match bias {
-        Some(b) => bias_add(&y, b),
-        None => Ok(y),
-    }
+    let Some((&k, lead)) = x.dims().split_last() else {
+        candle_core::bail!("linear: a scalar input")
+    };
+    let y = x.reshape(((), k))?.matmul(&weight.t()?)?;
+    let y = match bias {
+        Some(b) => bias_add(&y, b)?,
+        None => y,
+    };
+    let mut out = lead.to_vec();
+    out.push(weight.dim(0)?);
+    y.reshape(out)
 }
 
 #[cfg(test)]
@@ -1134,6 +1170,56 @@ pub(crate) mod tests {
         assert!(rel(&yf, &yc) <= 1e-6, "forward differs");
         for (a, b) in gf.iter().zip(&gc) {
             assert!(rel(a, b) <= 1e-6, "gradient differs");
+        }
+    }
+
+    /// Inputs with several leading dims (or none) give the bits of the same rows as one
+    /// `[rows, in]` matrix, forward and backward, fused (the ops flatten the leading dims
+    /// themselves, with no reshape nodes around them) and composed; so does the MLP.
+    #[test]
+    fn linear_and_mlp_take_any_leading_dims() {
+        let (w, b) = (randn(&[6, 11], 1.0, 52), randn(&[6], 1.0, 53));
+        let (w2, b2) = (randn(&[4, 6], 1.0, 54), randn(&[4], 1.0, 55));
+        let lin = |t: &[Tensor]| linear(&t[0], &t[1], Some(&t[2]));
+        let lin_nb = |t: &[Tensor]| linear(&t[0], &t[1], None);
+        let two = |t: &[Tensor]| {
+            mlp(
+                &t[0],
+                &[(&t[1], Some(&t[2])), (&t[3], Some(&t[4]))],
+                MlpAct::Gelu,
+            )
+        };
+        // Each with the number of arguments it takes (each gets a gradient).
+        let fs: [(&dyn Fn(&[Tensor]) -> Result<Tensor>, usize); 3] =
+            [(&lin, 3), (&lin_nb, 2), (&two, 5)];
+        for shape in [vec![3, 5, 11], vec![2, 3, 4, 11], vec![11]] {
+            let x = randn(&shape, 1.0, 51);
+            let all = [x, w.clone(), b.clone(), w2.clone(), b2.clone()];
+            for (f, n) in fs {
+                let args = &all[..n];
+                let nd = both(args, f);
+                let as_rows = both(args, |t: &[Tensor]| {
+                    let mut t = t.to_vec();
+                    t[0] = t[0].reshape(((), 11))?;
+                    let y = f(&t)?;
+                    let mut out = shape[..shape.len() - 1].to_vec();
+                    out.push(y.dim(1)?);
+                    y.reshape(out)
+                });
+                for ((y, g), (y2, g2)) in nd.iter().zip(&as_rows) {
+                    assert_eq!(y.dims(), y2.dims());
+                    assert_eq!(max_diff(y, y2), 0.0, "{shape:?}: forward");
+                    for (a, b) in g.iter().zip(g2) {
+                        assert_eq!(a.dims(), b.dims());
+                        assert_eq!(max_diff(a, b), 0.0, "{shape:?}: gradient");
+                    }
+                }
+                // And fused agrees with composed for these shapes.
+                assert!(
+                    max_diff(&nd[0].0, &nd[1].0) <= 1e-5,
+                    "{shape:?}: fused vs composed"
+                );
+            }
         }
     }
 

@@ -44,17 +44,8 @@ impl Linear {
 impl Module for Linear {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        // One 2-D product over all leading dims (candle's broadcast matmul is slower),
-        // bias included: `fused::linear`.
-        let dims = x.dims();
-        let Some((&k, lead)) = dims.split_last() else {
-            candle_core::bail!("linear: a scalar input")
-        };
-        let rows = lead.iter().product::<usize>();
-        let y = crate::fused::linear(&x.reshape((rows, k))?, &self.weight, self.bias.as_ref())?;
-        let mut out = lead.to_vec();
-        out.push(self.weight.dim(0)?);
-        y.reshape(out)
+        // Bias included, over all leading dims at once, without reshape nodes around it.
+        crate::fused::linear(x, &self.weight, self.bias.as_ref())
     }
 }
 
@@ -131,20 +122,12 @@ impl Module for Mlp {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         // One node for the whole MLP over all leading dims (`fused::mlp`; layer by layer
         // where the fused ops do not apply).
-        let dims = x.dims();
-        let Some((&k, lead)) = dims.split_last() else {
-            candle_core::bail!("mlp: a scalar input")
-        };
-        let rows = lead.iter().product::<usize>();
         let layers: Vec<_> = self
             .layers
             .iter()
             .map(|l| (&l.weight, l.bias.as_ref()))
             .collect();
-        let y = crate::fused::mlp(&x.reshape((rows, k))?, &layers, self.act.fused())?;
-        let mut out = lead.to_vec();
-        out.push(y.dim(1)?);
-        y.reshape(out)
+        crate::fused::mlp(x, &layers, self.act.fused())
     }
 }
 

@@ -16,10 +16,11 @@
 
 use super::{
     ColumnSum, Kept, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
-    leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, usable,
+    leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, rows_layout, usable,
+    with_last_dim,
 };
 use candle_core::backend::BackendStorage;
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 
 /// One layer's weight `[out, in]` and bias `[out]`, if it has one.
 pub type MlpLayer<'a> = (&'a Tensor, Option<&'a Tensor>);
@@ -171,7 +172,8 @@ impl CustomOp2 for MlpOp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (n, k) = l1.shape().dims2()?;
+        let rows = rows_layout(l1)?;
+        let (n, k) = rows.shape().dims2()?;
         if k != self.plan.dims[0] || l2.shape().elem_count() != self.plan.params() {
             candle_core::bail!(
                 "mlp: input [{n}, {k}] and {} packed parameters for widths {:?}",
@@ -182,12 +184,12 @@ impl CustomOp2 for MlpOp {
         f32_slice(s1, l1, "mlp input")?;
         #[cfg(test)]
         FORWARDS.with(|c| c.set(c.get() + 1));
-        let (y, saved) = forward(&self.plan, self.act, s1, l1, s2, l2)?;
+        let (y, saved) = forward(&self.plan, self.act, s1, &rows, s2, l2)?;
         if self.keep {
             self.saved.put(saved);
         }
         let out = *self.plan.dims.last().unwrap_or(&0);
-        Ok((CpuStorage::F32(y), Shape::from((n, out))))
+        Ok((CpuStorage::F32(y), with_last_dim(l1, out)))
     }
 
     fn bwd(
@@ -241,6 +243,7 @@ impl CustomOp3 for MlpBwd {
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let plan = &self.plan;
+        let l1 = &rows_layout(l1)?;
         let n = l1.dims()[0];
         let saved = match self.saved.take() {
             Some(s) => s,
@@ -290,8 +293,8 @@ impl CustomOp3 for MlpBwd {
     }
 }
 
-/// `x: [n, in]` through `layers` (`(weight [out, in], bias [out])` each) with `act`
-/// between them → `[n, out]`, as one graph node where the fused ops apply (see the
+/// `x: [.., in]` through `layers` (`(weight [out, in], bias [out])` each) with `act`
+/// between them → `[.., out]`, as one graph node where the fused ops apply (see the
 /// module docs), else layer by layer.
 pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     let bias = layers.first().is_some_and(|(_, b)| b.is_some());
@@ -300,15 +303,14 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
         all.push(w);
         all.extend(*b);
     }
-    let fits = x.rank() == 2
-        && !layers.is_empty()
+    let fits = !layers.is_empty()
         && layers
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
     if !(fits && enabled_by_env() && usable(&all)) {
         return mlp_layer_by_layer(x, layers, act);
     }
-    let mut dims = vec![x.dim(1)?];
+    let mut dims = vec![x.dim(D::Minus1)?];
     let mut flat = Vec::with_capacity(layers.len() * 2);
     for (w, b) in layers {
         let (o, k) = w.dims2()?;
