@@ -930,17 +930,22 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tens
             None => x.apply_op2(&w, LinearNoBiasOp),
         };
     }
+    let composed = |x: &Tensor| -> Result<Tensor> {
+        let y = x.matmul(&weight.t()?)?;
+        match bias {
+            Some(b) => bias_add(&y, b),
+            None => Ok(y),
+        }
+    };
+    if x.rank() == 2 {
+        return composed(x);
+    }
     let Some((&k, lead)) = x.dims().split_last() else {
         candle_core::bail!("linear: a scalar input")
     };
-    let y = x.reshape(((), k))?.matmul(&weight.t()?)?;
-    let y = match bias {
-        Some(b) => bias_add(&y, b)?,
-        None => y,
-    };
     let mut out = lead.to_vec();
     out.push(weight.dim(0)?);
-    y.reshape(out)
+    composed(&x.reshape(((), k))?)?.reshape(out)
 }
 
 #[cfg(test)]
