@@ -51,6 +51,25 @@ pub struct AllReduceFigures {
     pub tcp_gb_per_s: f64,
     /// all-reduce throughput / one-way copy throughput.
     pub ratio_one_way: f64,
+    /// Busy cores during the timed all-reduces: this process's CPU time (user + system,
+    /// all threads) over their wall time. Near the machine's core count, the all-reduce is
+    /// bound by work (copies, reduction, framing); well below it, by waiting.
+    pub allreduce_busy_cores: f64,
+    /// The same for the copying TCP ring.
+    pub tcp_ring_busy_cores: f64,
+}
+
+/// This process's CPU time so far (user + system, all threads), in seconds, from
+/// `/proc/self/stat` (clock ticks: 10 ms, so only sums over many repeats mean much);
+/// `None` where there is no procfs.
+fn process_cpu_s() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name (which may hold spaces, inside parentheses).
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }
 
 /// One rank's sockets of a bare-TCP ring, with the bytes it sends and a receive buffer.
@@ -203,6 +222,8 @@ pub async fn bench_allreduce(
     let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
     let (mut times, mut tcp, mut ring, mut discard) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    // CPU seconds of the timed all-reduces and TCP rings.
+    let (mut allreduce_cpu, mut ring_cpu) = (0.0, 0.0);
     // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
     let mut tcp_ring = TcpRing::connect(2, bytes, false).await;
     let mut tcp_ring_discard = TcpRing::connect(2, bytes, true).await;
@@ -214,6 +235,7 @@ pub async fn bench_allreduce(
         // TCP baseline runs its ranks): both cores work, neither waits on the other's
         // reduction.
         let bufs = [vec![1.0f32; floats], vec![2.0f32; floats]];
+        let cpu0 = process_cpu_s();
         let t = Instant::now();
         let tasks: Vec<_> = bufs
             .into_iter()
@@ -232,17 +254,28 @@ pub async fn bench_allreduce(
             rings[rank] = Some(ring);
         }
         let elapsed = t.elapsed().as_secs_f64();
+        let cpu1 = process_cpu_s();
         let copy_s = tcp_copy.run().await;
+        let cpu2 = process_cpu_s();
         let ring_s = tcp_ring.run().await;
+        let cpu3 = process_cpu_s();
         let discard_s = tcp_ring_discard.run().await;
         // Step 0 warms up connections and allocator.
         if step > 0 {
+            if let (Some(c0), Some(c1), Some(c2), Some(c3)) = (cpu0, cpu1, cpu2, cpu3) {
+                allreduce_cpu += c1 - c0;
+                ring_cpu += c3 - c2;
+            }
             times.push(elapsed);
             tcp.push(copy_s);
             ring.push(ring_s);
             discard.push(discard_s);
         }
     }
+    let busy = (
+        allreduce_cpu / times.iter().sum::<f64>(),
+        ring_cpu / ring.iter().sum::<f64>(),
+    );
     let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
     let (paired_ring, paired_discard) = (paired(&ring), paired(&discard));
     let (ar, tc, tr, td) = (median(times), median(tcp), median(ring), median(discard));
@@ -262,5 +295,7 @@ pub async fn bench_allreduce(
         median_tcp_copy_s: tc,
         tcp_gb_per_s: bytes as f64 / tc / 1e9,
         ratio_one_way: tc / ar,
+        allreduce_busy_cores: busy.0,
+        tcp_ring_busy_cores: busy.1,
     }
 }
