@@ -1195,8 +1195,8 @@ pub(crate) mod tests {
             )
         };
         // Each with the number of arguments it takes (each gets a gradient).
-        let fs: [(&dyn Fn(&[Tensor]) -> Result<Tensor>, usize); 3] =
-            [(&lin, 3), (&lin_nb, 2), (&two, 5)];
+        type Case<'a> = (&'a dyn Fn(&[Tensor]) -> Result<Tensor>, usize);
+        let fs: [Case; 3] = [(&lin, 3), (&lin_nb, 2), (&two, 5)];
         for shape in [vec![3, 5, 11], vec![2, 3, 4, 11], vec![11]] {
             let x = randn(&shape, 1.0, 51);
             let all = [x, w.clone(), b.clone(), w2.clone(), b2.clone()];
