@@ -228,7 +228,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     );
     for r in &rows {
         println!(
-            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | TCP ring discarding {:>8.2} ms, ratio {:.2} (paired {:.2}) | one-way copy {:>8.2} ms, ratio {:.2} | busy cores: all-reduce {:.2}, TCP ring {:.2}",
+            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | TCP ring discarding {:>8.2} ms, ratio {:.2} (paired {:.2}) | one-way copy {:>8.2} ms, ratio {:.2} | busy cores: all-reduce {:.2} (user {:.2}), TCP ring {:.2}",
             r.floats,
             r.median_allreduce_s * 1e3,
             r.allreduce_gb_per_s,
@@ -242,6 +242,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
             r.median_tcp_copy_s * 1e3,
             r.ratio_one_way,
             r.allreduce_busy_cores,
+            r.allreduce_user_cores,
             r.tcp_ring_busy_cores
         );
     }

@@ -55,21 +55,24 @@ pub struct AllReduceFigures {
     /// all threads) over their wall time. Near the machine's core count, the all-reduce is
     /// bound by work (copies, reduction, framing); well below it, by waiting.
     pub allreduce_busy_cores: f64,
-    /// The same for the copying TCP ring.
+    /// The user-space part of `allreduce_busy_cores` (the rest is the kernel's: socket
+    /// copies, TCP, wake-ups). The TCP ring's is ~0: its work is all in the kernel.
+    pub allreduce_user_cores: f64,
+    /// The same as `allreduce_busy_cores` for the copying TCP ring.
     pub tcp_ring_busy_cores: f64,
 }
 
-/// This process's CPU time so far (user + system, all threads), in seconds, from
+/// This process's CPU time so far, all threads, in seconds: `(user, system)`, from
 /// `/proc/self/stat` (clock ticks: 10 ms, so only sums over many repeats mean much);
 /// `None` where there is no procfs.
-fn process_cpu_s() -> Option<f64> {
+fn process_cpu_s() -> Option<(f64, f64)> {
     let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     // Fields after the command name (which may hold spaces, inside parentheses).
     let rest = &stat[stat.rfind(')')? + 2..];
     let f: Vec<&str> = rest.split_whitespace().collect();
     // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name.
-    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    Some(ticks / 100.0)
+    let ticks = |i: usize| f.get(i)?.parse::<f64>().ok();
+    Some((ticks(11)? / 100.0, ticks(12)? / 100.0))
 }
 
 /// One rank's sockets of a bare-TCP ring, with the bytes it sends and a receive buffer.
@@ -223,7 +226,7 @@ pub async fn bench_allreduce(
     let (mut times, mut tcp, mut ring, mut discard) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     // CPU seconds of the timed all-reduces and TCP rings.
-    let (mut allreduce_cpu, mut ring_cpu) = (0.0, 0.0);
+    let (mut allreduce_cpu, mut allreduce_user, mut ring_cpu) = (0.0, 0.0, 0.0);
     // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
     let mut tcp_ring = TcpRing::connect(2, bytes, false).await;
     let mut tcp_ring_discard = TcpRing::connect(2, bytes, true).await;
@@ -263,8 +266,9 @@ pub async fn bench_allreduce(
         // Step 0 warms up connections and allocator.
         if step > 0 {
             if let (Some(c0), Some(c1), Some(c2), Some(c3)) = (cpu0, cpu1, cpu2, cpu3) {
-                allreduce_cpu += c1 - c0;
-                ring_cpu += c3 - c2;
+                allreduce_cpu += (c1.0 - c0.0) + (c1.1 - c0.1);
+                allreduce_user += c1.0 - c0.0;
+                ring_cpu += (c3.0 - c2.0) + (c3.1 - c2.1);
             }
             times.push(elapsed);
             tcp.push(copy_s);
@@ -272,9 +276,11 @@ pub async fn bench_allreduce(
             discard.push(discard_s);
         }
     }
+    let allreduce_wall = times.iter().sum::<f64>();
     let busy = (
-        allreduce_cpu / times.iter().sum::<f64>(),
+        allreduce_cpu / allreduce_wall,
         ring_cpu / ring.iter().sum::<f64>(),
+        allreduce_user / allreduce_wall,
     );
     let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
     let (paired_ring, paired_discard) = (paired(&ring), paired(&discard));
@@ -296,6 +302,7 @@ pub async fn bench_allreduce(
         tcp_gb_per_s: bytes as f64 / tc / 1e9,
         ratio_one_way: tc / ar,
         allreduce_busy_cores: busy.0,
+        allreduce_user_cores: busy.2,
         tcp_ring_busy_cores: busy.1,
     }
 }
