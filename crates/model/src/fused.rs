@@ -801,7 +801,7 @@ fn matmul_xwt(s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout) -> Res
     }
 }
 
-/// Gradients of `x·Wᵀ` for upstream `grad: [n, out]`: `dx = grad·W` only when `x` carries
+/// Gradients of `x·Wᵀ` for upstream `grad: [.., out]`: `dx = grad·W` only when `x` carries
 /// a gradient (candle's matmul backward computes it for data inputs too), `dW = gradᵀ·x`.
 fn linear_grads(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Tensor)> {
     // `x: [.., in]` and `grad: [.., out]` as the 2-D `[rows, ·]` views the op computed on.
@@ -841,7 +841,7 @@ fn with_last_dim(l: &Layout, last: usize) -> Shape {
     Shape::from(dims)
 }
 
-/// `y = x·Wᵀ + b` as one graph node (`x: [n, in]`, `W: [out, in]`, `b: [out]`): the bias
+/// `y = x·Wᵀ + b` as one graph node (`x: [.., in]`, `W: [out, in]`, `b: [out]`): the bias
 /// is added into the matmul's output in place, and backward skips `dx` for data inputs
 /// and one `[n, out]` gradient accumulation (zeros + add) that matmul + bias add cost.
 struct LinearOp;

@@ -277,11 +277,9 @@ pub async fn bench_allreduce(
         }
     }
     let allreduce_wall = times.iter().sum::<f64>();
-    let busy = (
-        allreduce_cpu / allreduce_wall,
-        ring_cpu / ring.iter().sum::<f64>(),
-        allreduce_user / allreduce_wall,
-    );
+    let allreduce_busy_cores = allreduce_cpu / allreduce_wall;
+    let allreduce_user_cores = allreduce_user / allreduce_wall;
+    let tcp_ring_busy_cores = ring_cpu / ring.iter().sum::<f64>();
     let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
     let (paired_ring, paired_discard) = (paired(&ring), paired(&discard));
     let (ar, tc, tr, td) = (median(times), median(tcp), median(ring), median(discard));
@@ -301,8 +299,8 @@ pub async fn bench_allreduce(
         median_tcp_copy_s: tc,
         tcp_gb_per_s: bytes as f64 / tc / 1e9,
         ratio_one_way: tc / ar,
-        allreduce_busy_cores: busy.0,
-        allreduce_user_cores: busy.2,
-        tcp_ring_busy_cores: busy.1,
+        allreduce_busy_cores,
+        allreduce_user_cores,
+        tcp_ring_busy_cores,
     }
 }
