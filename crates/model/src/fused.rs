@@ -1219,6 +1219,20 @@ pub(crate) mod tests {
                         assert_eq!(max_diff(a, b), 0.0, "{shape:?}: gradient");
                     }
                 }
+                // The point of taking N-D inputs: the fused graph has as many nodes as for
+                // a 2-D input (no reshape nodes around the op, each of which would cost a
+                // zero tensor and an add in backward).
+                let nodes = |x: Tensor| {
+                    with_fused(true, || {
+                        let x = Var::from_tensor(&x).unwrap().as_tensor().clone();
+                        let mut t = args.to_vec();
+                        t[0] = x;
+                        f(&t).unwrap().sorted_nodes().len()
+                    })
+                };
+                let flat = randn(&[shape.iter().product::<usize>() / 11, 11], 1.0, 56);
+                let nd_input = flat.reshape(shape.as_slice()).unwrap();
+                assert_eq!(nodes(nd_input), nodes(flat), "{shape:?}: extra graph nodes");
                 // And fused agrees with composed for these shapes.
                 assert!(
                     max_diff(&nd[0].0, &nd[1].0) <= 1e-5,
