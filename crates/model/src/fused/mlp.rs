@@ -14,12 +14,12 @@
 //! and column sums. The results are the same bits (tested), so switching it on or off
 //! (`OSRT_FUSED_MLP=0`) changes speed, not training.
 
+use super::gemm::{self, MatRef, Threads};
 use super::{
     ColumnSum, Kept, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
     leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, rows_layout, usable,
-    with_last_dim,
+    weight_grad, with_last_dim,
 };
-use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 
 /// One layer's weight `[out, in]` and bias `[out]`, if it has one.
@@ -265,21 +265,18 @@ impl CustomOp3 for MlpBwd {
                 0 => (s1, l1.clone()),
                 _ => (&saved[l - 1].1, Layout::contiguous((n, k))),
             };
-            let dw = dz.matmul(a, (1, o, k, n), &dz_l.transpose(0, 1)?, &a_l)?;
-            dp[w_off..w_off + o * k].copy_from_slice(f32_slice(
-                &dw,
-                &Layout::contiguous((o, k)),
-                "dW",
-            )?);
+            let dw = weight_grad(&dz, &dz_l, a, &a_l)?;
+            dp[w_off..w_off + o * k].copy_from_slice(&dw);
             if l == 0 && !self.input_grad {
                 break;
             }
             // da = dz · W: `[n, o] · [o, k]`.
             let w_l = Layout::contiguous_with_offset((o, k), l2.start_offset() + w_off);
-            let da = match dz.matmul(s2, (1, n, k, o), &dz_l, &w_l)? {
-                CpuStorage::F32(v) => v,
-                _ => candle_core::bail!("mlp: fused ops take f32"),
-            };
+            let da = gemm::matmul(
+                MatRef::of(&dz, &dz_l)?,
+                MatRef::of(s2, &w_l)?,
+                Threads::Pool,
+            )?;
             if l == 0 {
                 dx = Some(da);
                 break;

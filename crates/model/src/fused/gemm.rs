@@ -1,0 +1,271 @@
+//! The fused ops' matrix products: `gemm` called directly (an `unsafe` function, so
+//! this is one of the workspace's few `unsafe` modules, beside `fastmath` and the
+//! trainer's `loan`).
+//!
+//! Why not candle's CPU matmul (which calls the same `gemm`): it zero-fills every output
+//! before `gemm` overwrites it, a serial `memset` on the calling thread while the product
+//! itself runs on all of them. In the decoder those outputs are `[8192, 96–230]`, twenty
+//! of them a step. It also always hands `gemm` the whole pool, so a product inside one of
+//! our parallel tasks cannot run on one thread. Here the output is written once, by
+//! `gemm`, and the caller says how many threads a product may use.
+//!
+//! Soundness rests on two checks made before the call: every element of each operand's
+//! view lies inside its slice ([`MatRef::new`]), and the output is a fresh buffer of
+//! exactly `m·n` values, all of which `gemm` writes when it does not read the destination
+//! (`read_dst = false`: `dst = lhs·rhs`, zeros when the inner dimension is 0; tested with a
+//! NaN-filled destination).
+
+#![allow(unsafe_code)]
+
+use candle_core::{CpuStorage, Layout, Result};
+use gemm::Parallelism;
+
+/// A strided `[rows, cols]` view of f32 values inside a slice: element `(i, j)` is
+/// `data[off + i·rs + j·cs]`. Constructed only through [`MatRef::new`], which checks
+/// that every element is inside `data`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct MatRef<'a> {
+    data: &'a [f32],
+    off: usize,
+    rows: usize,
+    cols: usize,
+    rs: usize,
+    cs: usize,
+}
+
+impl<'a> MatRef<'a> {
+    pub(crate) fn new(
+        data: &'a [f32],
+        off: usize,
+        (rows, cols): (usize, usize),
+        (rs, cs): (usize, usize),
+    ) -> Result<Self> {
+        if rows > 0 && cols > 0 {
+            let last = (rows - 1)
+                .checked_mul(rs)
+                .and_then(|r| (cols - 1).checked_mul(cs).and_then(|c| r.checked_add(c)))
+                .and_then(|rc| rc.checked_add(off));
+            if last.is_none_or(|l| l >= data.len()) {
+                candle_core::bail!(
+                    "matmul: a [{rows}, {cols}] view (offset {off}, strides [{rs}, {cs}]) \
+                     outside {} values",
+                    data.len()
+                );
+            }
+        }
+        Ok(Self {
+            data,
+            off,
+            rows,
+            cols,
+            rs,
+            cs,
+        })
+    }
+
+    /// A 2-D layout of an f32 storage (any strides, offset included).
+    pub(crate) fn of(s: &'a CpuStorage, l: &Layout) -> Result<Self> {
+        let CpuStorage::F32(v) = s else {
+            candle_core::bail!("matmul: fused ops take f32");
+        };
+        let (rows, cols) = l.shape().dims2()?;
+        let st = l.stride();
+        Self::new(v, l.start_offset(), (rows, cols), (st[0], st[1]))
+    }
+
+    pub(crate) fn t(self) -> Self {
+        Self {
+            rows: self.cols,
+            cols: self.rows,
+            rs: self.cs,
+            cs: self.rs,
+            ..self
+        }
+    }
+
+    /// Rows `r0 .. r0 + len`.
+    pub(crate) fn rows(self, r0: usize, len: usize) -> Result<Self> {
+        if r0 + len > self.rows {
+            candle_core::bail!("matmul: rows {r0}..{} of {}", r0 + len, self.rows);
+        }
+        Self::new(
+            self.data,
+            self.off + r0 * self.rs,
+            (len, self.cols),
+            (self.rs, self.cs),
+        )
+    }
+
+    pub(crate) fn dims(&self) -> (usize, usize) {
+        (self.rows, self.cols)
+    }
+}
+
+/// How many threads one product may use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Threads {
+    /// The current rayon pool (candle's device pool inside a step).
+    Pool,
+    /// The calling thread only: for products that are themselves parallel tasks.
+    One,
+}
+
+/// `a · b` → `[a.rows, b.cols]`, row-major.
+pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads) -> Result<Vec<f32>> {
+    let ((m, k), (k2, n)) = (a.dims(), b.dims());
+    if k != k2 {
+        candle_core::bail!("matmul: [{m}, {k}] · [{k2}, {n}]");
+    }
+    let len = m * n;
+    let mut dst: Vec<f32> = Vec::with_capacity(len);
+    // SAFETY: `dst` has room for `m·n` values, written as a row-major `[m, n]`
+    // (strides `n`, 1); `a` and `b` are views checked by `MatRef::new` to lie inside their
+    // slices, which outlive the call and do not overlap `dst` (a fresh allocation). With
+    // `read_dst = false` gemm writes every destination element (`lhs·rhs`, or zeros when
+    // `k = 0`), so all `m·n` values are initialised before `set_len`.
+    unsafe {
+        gemm_into(dst.as_mut_ptr(), a, b, threads);
+        dst.set_len(len);
+    }
+    Ok(dst)
+}
+
+/// `dst[..m·n] = a · b` (row-major `[m, n]`) over an existing buffer (tests: that every
+/// element is written).
+#[cfg(test)]
+pub(crate) fn matmul_over(dst: &mut [f32], a: MatRef, b: MatRef) -> Result<()> {
+    let ((m, k), (k2, n)) = (a.dims(), b.dims());
+    if k != k2 || dst.len() != m * n {
+        candle_core::bail!("matmul: [{m}, {k}] · [{k2}, {n}] into {} values", dst.len());
+    }
+    // SAFETY: as in `matmul`, with `dst` an exclusive borrow of exactly `m·n` values.
+    unsafe { gemm_into(dst.as_mut_ptr(), a, b, Threads::Pool) };
+    Ok(())
+}
+
+/// # Safety
+/// `dst` must be valid for writes of `a.rows · b.cols` f32 values and not overlap `a` or
+/// `b`; `a.cols == b.rows`.
+unsafe fn gemm_into(dst: *mut f32, a: MatRef, b: MatRef, threads: Threads) {
+    let ((m, k), (_, n)) = (a.dims(), b.dims());
+    if m == 0 || n == 0 {
+        return;
+    }
+    let parallelism = match (threads, rayon::current_num_threads()) {
+        (Threads::Pool, t) if t > 1 => Parallelism::Rayon(t),
+        _ => Parallelism::None,
+    };
+    // An empty view (k = 0) may sit at the end of its slice: gemm reads nothing then.
+    let ptr = |v: &MatRef| v.data.as_ptr().wrapping_add(v.off);
+    // SAFETY: the caller's contract for `dst`; the operand views are in bounds
+    // (`MatRef::new`) and only read.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst,
+            1,
+            n as isize,
+            false,
+            ptr(&a),
+            a.cs as isize,
+            a.rs as isize,
+            ptr(&b),
+            b.cs as isize,
+            b.rs as isize,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            parallelism,
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{Device, Tensor};
+
+    fn values(n: usize, seed: usize) -> Vec<f32> {
+        (0..n)
+            .map(|i| (((i + seed) * 7919 % 1009) as f32 / 1009.0) - 0.5)
+            .collect()
+    }
+
+    /// Products of plain, transposed and row-sliced views equal candle's matmul of the same
+    /// tensors, bit for bit (same gemm, same operand strides), for shapes that take gemm's
+    /// general, small-matrix and vector paths.
+    #[test]
+    fn products_match_candle_matmul() {
+        for (m, k, n) in [
+            (37, 19, 23),
+            (1, 64, 9),
+            (5, 1, 7),
+            (16, 16, 16),
+            (130, 70, 3),
+        ] {
+            let a = values(m * k + 3, 1);
+            let b = values(k * n, 2);
+            let ta = Tensor::from_slice(&a[3..], (m, k), &Device::Cpu).unwrap();
+            let tb = Tensor::from_slice(&b, (n, k), &Device::Cpu).unwrap();
+            let want: Vec<f32> = ta
+                .matmul(&tb.t().unwrap())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let va = MatRef::new(&a, 3, (m, k), (k, 1)).unwrap();
+            let vb = MatRef::new(&b, 0, (n, k), (k, 1)).unwrap().t();
+            for threads in [Threads::Pool, Threads::One] {
+                assert_eq!(matmul(va, vb, threads).unwrap(), want, "{m}×{k}×{n}");
+            }
+            // Rows 1.. of the same product through a row slice.
+            if m > 1 {
+                let got = matmul(va.rows(1, m - 1).unwrap(), vb, Threads::One).unwrap();
+                assert_eq!(got, want[n..], "rows 1.. of {m}×{k}×{n}");
+            }
+        }
+    }
+
+    /// Every output element is written: a NaN-filled destination comes back finite, and
+    /// all zeros for an empty inner dimension.
+    #[test]
+    fn every_output_element_is_written() {
+        for (m, k, n) in [(9, 4, 11), (1, 3, 1), (64, 32, 48), (4, 0, 5)] {
+            let (a, b) = (values(m * k, 3), values(k * n, 4));
+            let va = MatRef::new(&a, 0, (m, k), (k, 1)).unwrap();
+            let vb = MatRef::new(&b, 0, (k, n), (n, 1)).unwrap();
+            let mut dst = vec![f32::NAN; m * n];
+            matmul_over(&mut dst, va, vb).unwrap();
+            assert!(dst.iter().all(|v| v.is_finite()), "{m}×{k}×{n}");
+            if k == 0 {
+                assert!(dst.iter().all(|&v| v == 0.0));
+            }
+            assert_eq!(matmul(va, vb, Threads::Pool).unwrap(), dst);
+        }
+    }
+
+    /// Views that would reach outside their slice are refused, not read.
+    #[test]
+    fn views_outside_their_slice_are_refused() {
+        let v = vec![0f32; 12];
+        assert!(MatRef::new(&v, 0, (3, 4), (4, 1)).is_ok());
+        assert!(MatRef::new(&v, 1, (3, 4), (4, 1)).is_err());
+        assert!(MatRef::new(&v, 0, (4, 3), (4, 1)).is_err());
+        assert!(MatRef::new(&v, 0, (2, 2), (usize::MAX, 1)).is_err());
+        assert!(
+            MatRef::new(&v, 0, (3, 4), (4, 1))
+                .unwrap()
+                .rows(2, 2)
+                .is_err()
+        );
+        // Empty views are fine anywhere.
+        assert!(MatRef::new(&v, 12, (0, 4), (4, 1)).is_ok());
+        let a = MatRef::new(&v, 0, (3, 4), (4, 1)).unwrap();
+        assert!(matmul(a, a, Threads::One).is_err(), "inner dims differ");
+    }
+}
