@@ -493,11 +493,147 @@ pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -
         ho,
         wo,
     };
-    let cols = x.contiguous()?.apply_op1(Im2Col(geom))?; // [n·ho·wo, c·k·k]
-    let kmat = kernel.reshape((co, c * k * k))?;
-    // Through `linear`: for an input that is data (the image, the ray encoding) backward
-    // skips the columns' gradient and so the col2im scatter.
-    linear(&cols, &kmat, None)?.reshape((n, ho, wo, co))
+    let op = ConvOp {
+        geom,
+        co,
+        keep: x.track_op() || kernel.track_op(),
+        saved: Kept::new(None),
+    };
+    x.contiguous()?.apply_op2(&kernel.contiguous()?, op)
+}
+
+/// The convolution as one graph node: im2col and the product with the kernel inside.
+///
+/// Why one node: as im2col, `linear` and a reshape it was three, and candle's backward
+/// gives each node a zero tensor and an add of its gradient; the columns are the largest
+/// tensors of the encoder (`[4096, 576]` on the CPU preset, 9 MB), so those accumulations
+/// were a serial share of the step. The columns are kept for the kernel's gradient
+/// instead. The arithmetic is `linear`'s on the same columns (the same products), and for
+/// an input that is data (the image, the ray encoding) the backward pass skips the
+/// columns' gradient and so the col2im scatter.
+struct ConvOp {
+    geom: ConvGeom,
+    co: usize,
+    /// Whether a backward pass can follow: only then are the columns kept.
+    keep: bool,
+    saved: Kept<CpuStorage>,
+}
+
+impl ConvOp {
+    /// The kernel `[c_out, c_in, k, k]` as the `[c_out, c_in·k·k]` matrix the columns
+    /// multiply.
+    fn kernel_matrix(&self, l: &Layout) -> Layout {
+        Layout::contiguous_with_offset((self.co, self.geom.patch()), l.start_offset())
+    }
+}
+
+impl CustomOp2 for ConvOp {
+    fn name(&self) -> &'static str {
+        "osrt-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = self.geom;
+        let (cols, _) = Im2Col(g).cpu_fwd(s1, l1)?;
+        let rows = g.n * g.ho * g.wo;
+        let y = matmul_xwt(
+            &cols,
+            &Layout::contiguous((rows, g.patch())),
+            s2,
+            &self.kernel_matrix(l2),
+        )?;
+        if self.keep {
+            self.saved.put(cols);
+        }
+        Ok((CpuStorage::F32(y), Shape::from((g.n, g.ho, g.wo, self.co))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        kernel: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        // Taken, not cloned: a second backward through the same graph recomputes them.
+        let bwd = ConvBwd {
+            geom: self.geom,
+            co: self.co,
+            saved: Kept::new(self.saved.take()),
+            input_grad: x.track_op(),
+        };
+        let flat = x.apply_op3_no_bwd(kernel, &grad.contiguous()?, &bwd)?;
+        let nk = kernel.elem_count();
+        let dk = flat
+            .narrow(0, flat.dim(0)? - nk, nk)?
+            .reshape(kernel.shape())?;
+        let dx = match bwd.input_grad {
+            true => Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?),
+            false => None,
+        };
+        Ok((dx, Some(dk)))
+    }
+}
+
+/// The backward pass of [`ConvOp`] as a no-grad op over `(x, kernel, grad)`: one flat
+/// buffer `[dx (when the input carries a gradient) | d kernel]`.
+struct ConvBwd {
+    geom: ConvGeom,
+    co: usize,
+    saved: Kept<CpuStorage>,
+    input_grad: bool,
+}
+
+impl CustomOp3 for ConvBwd {
+    fn name(&self) -> &'static str {
+        "osrt-conv2d-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = self.geom;
+        let (rows, p) = (g.n * g.ho * g.wo, g.patch());
+        let cols = match self.saved.take() {
+            Some(c) => c,
+            None => Im2Col(g).cpu_fwd(s1, l1)?.0,
+        };
+        let cols_l = Layout::contiguous((rows, p));
+        let grad_l = Layout::contiguous_with_offset((rows, self.co), l3.start_offset());
+        // d kernel = gradᵀ · columns: `[c_out, rows] · [rows, c·k·k]`.
+        let dk = weight_grad(s3, &grad_l, &cols, &cols_l)?;
+        let mut out = match self.input_grad {
+            true => {
+                // d columns = grad · kernel, then scattered back to the image.
+                let kmat = Layout::contiguous_with_offset((self.co, p), l2.start_offset());
+                let dcols = gemm::matmul(
+                    MatRef::of(s3, &grad_l)?,
+                    MatRef::of(s2, &kmat)?,
+                    Threads::Pool,
+                )?;
+                match Col2Im(g).cpu_fwd(&CpuStorage::F32(dcols), &cols_l)?.0 {
+                    CpuStorage::F32(v) => v,
+                    _ => candle_core::bail!("conv2d: fused ops take f32"),
+                }
+            }
+            false => Vec::with_capacity(dk.len()),
+        };
+        out.extend_from_slice(&dk);
+        let len = out.len();
+        Ok((CpuStorage::F32(out), Shape::from(len)))
+    }
 }
 
 // ---------------------------------------------------------------- GELU (erf)
@@ -1476,6 +1612,69 @@ pub(crate) mod tests {
         for t in std::iter::once(&y).chain(&g) {
             let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
             assert!(v.iter().all(|x| x.is_finite()));
+        }
+        // One node gives the bits of the same convolution in pieces (im2col, `linear`,
+        // reshapes), forward and backward, with and without the input's gradient, and
+        // twice over the same graph (the second backward recomputes the columns).
+        let pieces = |x: &Tensor, kernel: &Tensor, stride: usize, pad: usize| {
+            let (n, h, w, c) = x.dims4().unwrap();
+            let (co, _, k, _) = kernel.dims4().unwrap();
+            let (ho, wo) = (
+                (h + 2 * pad - k) / stride + 1,
+                (w + 2 * pad - k) / stride + 1,
+            );
+            let geom = ConvGeom {
+                n,
+                h,
+                w,
+                c,
+                k,
+                stride,
+                pad,
+                ho,
+                wo,
+            };
+            let cols = x.apply_op1(Im2Col(geom)).unwrap();
+            let kmat = kernel.reshape((co, c * k * k)).unwrap();
+            linear(&cols, &kmat, None)
+                .unwrap()
+                .reshape((n, ho, wo, co))
+                .unwrap()
+        };
+        for (x_is_var, stride, pad) in [(true, 2, 1), (false, 1, 1), (true, 1, 0)] {
+            let x = randn(&[2, 9, 8, 3], 1.0, 59);
+            let x = match x_is_var {
+                true => Var::from_tensor(&x).unwrap().as_tensor().clone(),
+                false => x,
+            };
+            let kv = Var::from_tensor(&randn(&[4, 3, 3, 3], 0.5, 60)).unwrap();
+            let kernel = kv.as_tensor();
+            let u = randn(&pieces(&x, kernel, stride, pad).dims().to_vec(), 1.0, 61);
+            let run = |y: Tensor| {
+                let loss = (&y * &u).unwrap().sum_all().unwrap();
+                let first = loss.backward().unwrap();
+                let second = loss.backward().unwrap();
+                let bits = |t: Option<&Tensor>| -> Option<Vec<f32>> {
+                    t.map(|t| t.flatten_all().unwrap().to_vec1().unwrap())
+                };
+                let all =
+                    |g: &candle_core::backprop::GradStore| (bits(g.get(&x)), bits(g.get(kernel)));
+                (
+                    y.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                    all(&first),
+                    all(&second),
+                    y.sorted_nodes().len(),
+                )
+            };
+            let one = run(conv2d_nhwc(&x, kernel, stride, pad).unwrap());
+            let three = run(pieces(&x, kernel, stride, pad));
+            assert_eq!(one.0, three.0, "forward");
+            assert_eq!(one.1, three.1, "gradients");
+            assert_eq!(one.2, one.1, "a second backward");
+            assert_eq!(one.1.0.is_some(), x_is_var);
+            // One node instead of `linear`, the reshapes of kernel and output and (when
+            // the input is tracked) im2col.
+            assert_eq!(one.3 + 2 + usize::from(x_is_var), three.3);
         }
         // A kernel that does not match the input is an error, not a panic.
         let bad = conv2d_nhwc(
