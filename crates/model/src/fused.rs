@@ -1649,7 +1649,7 @@ pub(crate) mod tests {
             };
             let kv = Var::from_tensor(&randn(&[4, 3, 3, 3], 0.5, 60)).unwrap();
             let kernel = kv.as_tensor();
-            let u = randn(&pieces(&x, kernel, stride, pad).dims().to_vec(), 1.0, 61);
+            let u = randn(pieces(&x, kernel, stride, pad).dims(), 1.0, 61);
             let run = |y: Tensor| {
                 let loss = (&y * &u).unwrap().sum_all().unwrap();
                 let first = loss.backward().unwrap();
