@@ -1,6 +1,7 @@
 //! Fused CPU ops with hand-written backward passes: LayerNorm, softmax, erf-GELU, ReLU,
-//! the bias add and the whole of a linear layer, a convolution, a whole MLP (`mlp.rs`)
-//! and the core of multi-head attention (`attention.rs`).
+//! the bias add and the whole of a linear layer, a convolution, a whole MLP (`mlp.rs`),
+//! the core of multi-head attention (`attention.rs`) and a whole transformer block
+//! (`block.rs`); their matrix products go through `gemm.rs`.
 //!
 //! Why: candle 0.11 composes these from elementwise and broadcast ops, and its backward
 //! pass is slow exactly there (a broadcast's gradient is a `sum_keepdim` over leading
@@ -14,10 +15,12 @@
 //! [`with_fused`]`(false, ..)`) takes the composed path.
 
 mod attention;
+mod block;
 mod gemm;
 mod mlp;
 
 pub use attention::{attention, attention_composed};
+pub use block::{BlockParams, block};
 pub use mlp::{MlpAct, MlpLayer, mlp, mlp_layer_by_layer};
 
 use crate::fastmath;

@@ -220,6 +220,39 @@ impl Block {
     /// # Shapes
     /// `x: [b, n, dim]`, `ctx: [b, m, ctx_dim]` (or `None`) → `[b, n, dim]`
     pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        // One graph node for the whole block where the fused ops apply.
+        let (a, mlp) = (&self.attn, &self.mlp);
+        let params = crate::fused::BlockParams {
+            norm_attn: (&self.norm_attn.weight, &self.norm_attn.bias),
+            q: &a.q.weight,
+            k: &a.k.weight,
+            v: &a.v.weight,
+            out: match &a.out.bias {
+                Some(b) => (&a.out.weight, b),
+                None => return self.forward_composed(x, ctx),
+            },
+            norm_mlp: (&self.norm_mlp.weight, &self.norm_mlp.bias),
+            mlp: mlp
+                .layers
+                .iter()
+                .map(|l| (&l.weight, l.bias.as_ref()))
+                .collect(),
+            act: mlp.act.fused(),
+            heads: a.heads,
+            eps: self.norm_attn.eps,
+        };
+        let biased = a.q.bias.is_some() || a.k.bias.is_some() || a.v.bias.is_some();
+        if self.norm_attn.eps != self.norm_mlp.eps || biased {
+            return self.forward_composed(x, ctx);
+        }
+        match crate::fused::block(x, ctx, &params)? {
+            Some(y) => Ok(y),
+            None => self.forward_composed(x, ctx),
+        }
+    }
+
+    /// The same block from the separate (fused or composed) ops.
+    pub fn forward_composed(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
         let h = self.norm_attn.forward(x)?;
         let a = match ctx {
             Some(c) => self.attn.forward(&h, c)?,

@@ -29,18 +29,18 @@ fn enabled_by_env() -> bool {
 
 /// Sizes of one attention call.
 #[derive(Debug, Clone, Copy)]
-struct Dims {
+pub(super) struct Dims {
     /// Batch, queries, keys, heads, head width.
-    b: usize,
-    n: usize,
-    m: usize,
-    h: usize,
-    dh: usize,
-    scale: f32,
+    pub(super) b: usize,
+    pub(super) n: usize,
+    pub(super) m: usize,
+    pub(super) h: usize,
+    pub(super) dh: usize,
+    pub(super) scale: f32,
 }
 
 impl Dims {
-    fn inner(&self) -> usize {
+    pub(super) fn inner(&self) -> usize {
         self.h * self.dh
     }
 
@@ -113,20 +113,22 @@ fn weights(
 }
 
 /// Per batch element, the attention weights `[h, n, m]`.
-type Saved = Vec<CpuStorage>;
+pub(super) type Saved = Vec<CpuStorage>;
 
-/// Forward: the output `[b, n, h·dh]` and the weights.
-fn forward(
+/// Forward: the output `[b, n, h·dh]` and the weights. Keys and values are
+/// `(storage, offset, row stride)` of `[b, m, row]` rows, the heads' `h·dh` values at the
+/// offset (`row` is wider where k and v sit side by side in one buffer).
+pub(super) fn forward(
     d: &Dims,
     q: (&CpuStorage, &Layout),
-    k: (&CpuStorage, &Layout),
-    v: (&CpuStorage, &Layout),
+    k: (&CpuStorage, usize, usize),
+    v: (&CpuStorage, usize, usize),
 ) -> Result<(Vec<f32>, Saved)> {
     let per: Vec<(Vec<f32>, CpuStorage)> = (0..d.b)
         .into_par_iter()
         .map(|bi| {
-            let p = CpuStorage::F32(weights(d, bi, q, (k.0, k.1.start_offset(), d.inner()))?);
-            let v_h = d.heads(v.1.start_offset(), bi, d.m, d.inner());
+            let p = CpuStorage::F32(weights(d, bi, q, k)?);
+            let v_h = d.heads(v.1, bi, d.m, v.2);
             let o = bmm(
                 &p,
                 &d.square(d.n, d.m, false),
@@ -172,7 +174,13 @@ impl CustomOp3 for AttentionOp {
             f32_slice(s, l, what)?;
         }
         let d = &self.dims;
-        let (y, saved) = forward(d, (s1, l1), (s2, l2), (s3, l3))?;
+        let inner = d.inner();
+        let (y, saved) = forward(
+            d,
+            (s1, l1),
+            (s2, l2.start_offset(), inner),
+            (s3, l3.start_offset(), inner),
+        )?;
         if self.keep {
             self.saved.put(saved);
         }
@@ -210,9 +218,9 @@ impl CustomOp3 for AttentionOp {
 
 /// The backward pass of [`AttentionOp`] as a no-grad op over `(q, [k | v], grad)`: one
 /// flat buffer `[dq | dk | dv]`.
-struct AttentionBwd {
-    dims: Dims,
-    saved: Kept<Saved>,
+pub(super) struct AttentionBwd {
+    pub(super) dims: Dims,
+    pub(super) saved: Kept<Saved>,
 }
 
 impl CustomOp3 for AttentionBwd {
@@ -229,24 +237,45 @@ impl CustomOp3 for AttentionBwd {
         g: &CpuStorage,
         g_l: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let d = &self.dims;
-        let inner = d.inner();
+        let inner = self.dims.inner();
         for (s, l, what) in [(q, q_l, "q"), (kv, kv_l, "k|v"), (g, g_l, "gradient")] {
             f32_slice(s, l, what)?;
         }
         // `[b, m, 2·h·dh]` as k and v side by side: head views with the wider row.
         let (k_off, row) = (kv_l.start_offset(), 2 * inner);
+        let out = self.backward(
+            (q, q_l),
+            (kv, k_off, row),
+            (kv, k_off + inner, row),
+            (g, g_l),
+        )?;
+        let len = out.len();
+        Ok((CpuStorage::F32(out), Shape::from(len)))
+    }
+}
+
+impl AttentionBwd {
+    /// `[dq | dk | dv]` for upstream `g: [b, n, h·dh]`; keys and values as in [`forward`].
+    pub(super) fn backward(
+        &self,
+        (q, q_l): (&CpuStorage, &Layout),
+        k: (&CpuStorage, usize, usize),
+        v: (&CpuStorage, usize, usize),
+        (g, g_l): (&CpuStorage, &Layout),
+    ) -> Result<Vec<f32>> {
+        let d = &self.dims;
+        let inner = d.inner();
         let saved = self.saved.take();
         let per: Vec<[Vec<f32>; 3]> = (0..d.b)
             .into_par_iter()
             .map(|bi| {
-                let k_h = d.heads(k_off, bi, d.m, row);
-                let v_h = d.heads(k_off + inner, bi, d.m, row);
+                let k_h = d.heads(k.1, bi, d.m, k.2);
+                let v_h = d.heads(v.1, bi, d.m, v.2);
                 let recomputed;
                 let p = match &saved {
                     Some(s) => &s[bi],
                     None => {
-                        recomputed = CpuStorage::F32(weights(d, bi, (q, q_l), (kv, k_off, row))?);
+                        recomputed = CpuStorage::F32(weights(d, bi, (q, q_l), k)?);
                         &recomputed
                     }
                 };
@@ -255,7 +284,7 @@ impl CustomOp3 for AttentionBwd {
                 // dV = Pᵀ · dO: `[h, m, n] · [h, n, dh]`.
                 let dv = bmm(p, &d.square(d.n, d.m, true), g, &g_h, (d.h, d.m, d.dh, d.n))?;
                 // dP = dO · Vᵀ: `[h, n, dh] · [h, dh, m]`.
-                let dp = bmm(g, &g_h, kv, &v_h.transpose(1, 2)?, (d.h, d.n, d.m, d.dh))?;
+                let dp = bmm(g, &g_h, v.0, &v_h.transpose(1, 2)?, (d.h, d.n, d.m, d.dh))?;
                 let p = f32_slice(p, &d.square(d.n, d.m, false), "attention weights")?;
                 // dS = scale · P ⊙ (dP − Σ P ⊙ dP), row by row.
                 let mut ds = vec![0f32; p.len()];
@@ -272,7 +301,7 @@ impl CustomOp3 for AttentionBwd {
                 let dq = bmm(
                     &ds,
                     &d.square(d.n, d.m, false),
-                    kv,
+                    k.0,
                     &k_h,
                     (d.h, d.n, d.dh, d.m),
                 )?;
@@ -296,7 +325,7 @@ impl CustomOp3 for AttentionBwd {
             merge_heads(&mut dk_all[bi * rk..(bi + 1) * rk], dk, d, d.m);
             merge_heads(&mut dv_all[bi * rk..(bi + 1) * rk], dv, d, d.m);
         }
-        Ok((CpuStorage::F32(out), Shape::from(nq + 2 * nk)))
+        Ok(out)
     }
 }
 

@@ -75,9 +75,9 @@ fn enabled_by_env() -> bool {
 /// Widths `[in, hidden…, out]` and whether layers have biases: where each layer's weight
 /// (`[out, in]`, row-major) and bias sit in the packed parameters.
 #[derive(Debug, Clone)]
-struct Plan {
-    dims: Vec<usize>,
-    bias: bool,
+pub(super) struct Plan {
+    pub(super) dims: Vec<usize>,
+    pub(super) bias: bool,
 }
 
 impl Plan {
@@ -95,7 +95,7 @@ impl Plan {
         (k, o, off, self.bias.then_some(off + o * k))
     }
 
-    fn params(&self) -> usize {
+    pub(super) fn params(&self) -> usize {
         let (k, o, w, _) = self.layer(self.layers() - 1);
         w + o * k + if self.bias { o } else { 0 }
     }
@@ -108,10 +108,10 @@ fn weight_layout(p_l: &Layout, (k, o, w_off): (usize, usize, usize)) -> Layout {
 
 /// What the forward pass keeps for the backward pass: per hidden layer its
 /// pre-activation `z` and activation `a = act(z)`, both `[n, width]`.
-type Saved = Vec<(Vec<f32>, CpuStorage)>;
+pub(super) type Saved = Vec<(Vec<f32>, CpuStorage)>;
 
 /// The forward pass: the output `[n, out]` and the hidden layers' `(z, act(z))`.
-fn forward(
+pub(super) fn forward(
     plan: &Plan,
     act: MlpAct,
     x: &CpuStorage,
@@ -221,11 +221,11 @@ impl CustomOp2 for MlpOp {
 
 /// The backward pass of [`MlpOp`] as a no-grad op over `(x, packed, grad)`: one flat
 /// buffer `[dx (when the input carries a gradient) | d packed]`.
-struct MlpBwd {
-    plan: Plan,
-    act: MlpAct,
-    saved: Kept<Saved>,
-    input_grad: bool,
+pub(super) struct MlpBwd {
+    pub(super) plan: Plan,
+    pub(super) act: MlpAct,
+    pub(super) saved: Kept<Saved>,
+    pub(super) input_grad: bool,
 }
 
 impl CustomOp3 for MlpBwd {
