@@ -21,7 +21,7 @@ mod mlp;
 
 pub use attention::{attention, attention_composed};
 pub use block::{BlockParams, block};
-pub use mlp::{MlpAct, MlpLayer, mlp, mlp_layer_by_layer};
+pub use mlp::{MlpAct, MlpLayer, mlp, mlp_cat, mlp_layer_by_layer};
 
 use crate::fastmath;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};

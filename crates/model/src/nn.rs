@@ -117,6 +117,22 @@ impl Mlp {
     }
 }
 
+impl Mlp {
+    /// The MLP of `[a, b]` concatenated on the last dim, without building the
+    /// concatenation where the fused ops apply (`fused::mlp_cat`).
+    ///
+    /// # Shapes
+    /// `a: [.., in_a]`, `b: [.., in_b]` with `in_a + in_b = in` → `[.., out]`
+    pub fn forward_cat(&self, a: &Tensor, b: &Tensor) -> Result<Tensor> {
+        let layers: Vec<_> = self
+            .layers
+            .iter()
+            .map(|l| (&l.weight, l.bias.as_ref()))
+            .collect();
+        crate::fused::mlp_cat(a, b, &layers, self.act.fused())
+    }
+}
+
 impl Module for Mlp {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {

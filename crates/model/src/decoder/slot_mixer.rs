@@ -78,8 +78,8 @@ impl SlotMixer {
         let logits = (q.matmul(&k.t()?)? / (self.slot_dim as f64).sqrt())?; // [b, r, k]
         let weights = crate::fused::softmax(&logits, D::Minus1)?;
         let mixed = weights.matmul(slots)?; // [b, r, ds]
-        let h = Tensor::cat(&[&mixed, &query], D::Minus1)?;
-        let rgb = candle_nn::ops::sigmoid(&self.render.forward(&h)?)?;
+        // The render MLP of (mixed ⊕ query), without materialising the concatenation.
+        let rgb = candle_nn::ops::sigmoid(&self.render.forward_cat(&mixed, &query)?)?;
         Ok(DecoderOutput {
             rgb,
             weights: Some(weights),

@@ -178,6 +178,9 @@ fn add_into(acc: &mut [f32], other: &[f32]) {
         .for_each(|(a, o)| a.iter_mut().zip(o).for_each(|(a, o)| *a += *o));
 }
 
+/// `dx`, `d ctx` (cross-attention only) and the packed parameters' gradient.
+type Grads = (Vec<f32>, Option<Vec<f32>>, Vec<f32>);
+
 struct Block<'a> {
     g: &'a Geometry,
     o: Offsets,
@@ -254,7 +257,7 @@ impl<'a> Block<'a> {
         let x2 = CpuStorage::F32(x2);
         let h2 = self.layer_norm(&x2, &rl, o.g2, o.b2)?;
         let mlp_l = self.vec(o.mlp, g.mlp.params());
-        let (mut y, mlp) = mlp::forward(&g.mlp, g.act, &h2, &rl, self.p, &mlp_l)?;
+        let (mut y, mlp) = mlp::forward(&g.mlp, g.act, mlp::Input::One(&h2, &rl), self.p, &mlp_l)?;
         add_into(&mut y, f32s(&x2, "block")?);
         let saved = Saved {
             h1,
@@ -272,14 +275,13 @@ impl<'a> Block<'a> {
 
     /// The backward pass for upstream `dy: [R, d]`: `dx [R, d]`, `d ctx [R_ctx, d_ctx]`
     /// (cross-attention only) and the packed parameters' gradient.
-    #[allow(clippy::type_complexity)]
     fn backward(
         &self,
         x: (&CpuStorage, &Layout),
         ctx: Option<(&CpuStorage, &Layout)>,
         dy: (&CpuStorage, &Layout),
         saved: Saved,
-    ) -> Result<(Vec<f32>, Option<Vec<f32>>, Vec<f32>)> {
+    ) -> Result<Grads> {
         let (g, o) = (self.g, &self.o);
         let (rows, crows, d, dc, inner) = (g.rows(), g.ctx_rows(), g.d, g.dc, g.inner);
         let rl = Layout::contiguous((rows, d));

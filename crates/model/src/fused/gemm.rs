@@ -96,6 +96,11 @@ impl<'a> MatRef<'a> {
         )
     }
 
+    /// Columns `c0 .. c0 + len`.
+    pub(crate) fn cols(self, c0: usize, len: usize) -> Result<Self> {
+        self.t().rows(c0, len).map(Self::t)
+    }
+
     pub(crate) fn dims(&self) -> (usize, usize) {
         (self.rows, self.cols)
     }

@@ -21,6 +21,7 @@ use super::{
     weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
 
 /// One layer's weight `[out, in]` and bias `[out]`, if it has one.
 pub type MlpLayer<'a> = (&'a Tensor, Option<&'a Tensor>);
@@ -110,22 +111,77 @@ fn weight_layout(p_l: &Layout, (k, o, w_off): (usize, usize, usize)) -> Layout {
 /// pre-activation `z` and activation `a = act(z)`, both `[n, width]`.
 pub(super) type Saved = Vec<(Vec<f32>, CpuStorage)>;
 
+/// An MLP's input `[n, in]`: one matrix, or two `[n, in_a]`, `[n, in_b]` that the first
+/// layer reads side by side — the MLP of their concatenation, without building it.
+#[derive(Clone, Copy)]
+pub(super) enum Input<'a> {
+    One(&'a CpuStorage, &'a Layout),
+    Two([(&'a CpuStorage, &'a Layout); 2]),
+}
+
+impl Input<'_> {
+    /// The parts and, for each, the first column of the first layer's weight it meets.
+    fn parts(&self) -> Vec<((&CpuStorage, &Layout), usize)> {
+        match *self {
+            Input::One(x, l) => vec![((x, l), 0)],
+            Input::Two([a, b]) => vec![(a, 0), (b, a.1.dims()[1])],
+        }
+    }
+}
+
+/// Columns `c0 .. c0 + len` of the `[o, k]` weight at `w_off`, as a `[o, len]` view.
+fn weight_cols<'a>(
+    p: &'a CpuStorage,
+    p_l: &Layout,
+    (k, o, w_off): (usize, usize, usize),
+    (c0, len): (usize, usize),
+) -> Result<MatRef<'a>> {
+    MatRef::of(p, &weight_layout(p_l, (k, o, w_off)))?.cols(c0, len)
+}
+
+/// The first layer's product `x·W₀ᵀ` (no bias), `[n, o]`: with two inputs, the sum of
+/// each part times its columns of `W₀`.
+fn first_product(
+    input: Input,
+    p: &CpuStorage,
+    p_l: &Layout,
+    (k, o, w_off): (usize, usize, usize),
+) -> Result<Vec<f32>> {
+    let mut z: Option<Vec<f32>> = None;
+    for ((x, x_l), c0) in input.parts() {
+        let xm = MatRef::of(x, x_l)?;
+        let w = weight_cols(p, p_l, (k, o, w_off), (c0, xm.dims().1))?;
+        let part = gemm::matmul(xm, w.t(), Threads::Pool)?;
+        match &mut z {
+            None => z = Some(part),
+            Some(z) => add_assign(z, &part),
+        }
+    }
+    z.ok_or_else(|| candle_core::Error::Msg("mlp: no input".into()))
+}
+
+/// `acc[i] += v[i]`, in parallel.
+fn add_assign(acc: &mut [f32], v: &[f32]) {
+    acc.par_chunks_mut(8192)
+        .zip(v.par_chunks(8192))
+        .for_each(|(a, v)| a.iter_mut().zip(v).for_each(|(a, v)| *a += *v));
+}
+
 /// The forward pass: the output `[n, out]` and the hidden layers' `(z, act(z))`.
 pub(super) fn forward(
     plan: &Plan,
     act: MlpAct,
-    x: &CpuStorage,
-    x_l: &Layout,
+    input: Input,
     p: &CpuStorage,
     p_l: &Layout,
 ) -> Result<(Vec<f32>, Saved)> {
-    let n = x_l.dims()[0];
+    let n = input.parts()[0].0.1.dims()[0];
     let params = f32_slice(p, p_l, "mlp parameters")?;
     let mut saved: Saved = Vec::with_capacity(plan.layers() - 1);
     for l in 0..plan.layers() {
         let (k, o, w_off, b_off) = plan.layer(l);
         let mut z = match saved.last() {
-            None => matmul_xwt(x, x_l, p, &weight_layout(p_l, (k, o, w_off)))?,
+            None => first_product(input, p, p_l, (k, o, w_off))?,
             Some((_, a)) => matmul_xwt(
                 a,
                 &Layout::contiguous((n, k)),
@@ -184,7 +240,7 @@ impl CustomOp2 for MlpOp {
         f32_slice(s1, l1, "mlp input")?;
         #[cfg(test)]
         FORWARDS.with(|c| c.set(c.get() + 1));
-        let (y, saved) = forward(&self.plan, self.act, s1, &rows, s2, l2)?;
+        let (y, saved) = forward(&self.plan, self.act, Input::One(s1, &rows), s2, l2)?;
         if self.keep {
             self.saved.put(saved);
         }
@@ -242,17 +298,39 @@ impl CustomOp3 for MlpBwd {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let plan = &self.plan;
         let l1 = &rows_layout(l1)?;
-        let n = l1.dims()[0];
+        let (dx, dp) = self.backward(Input::One(s1, l1), s2, l2, (s3, l3))?;
+        let mut out = dx.into_iter().next().flatten().unwrap_or_default();
+        out.extend_from_slice(&dp);
+        let len = out.len();
+        Ok((CpuStorage::F32(out), Shape::from(len)))
+    }
+}
+
+/// Per input part, its gradient (`None` where none was asked for).
+pub(super) type InputGrads = Vec<Option<Vec<f32>>>;
+
+impl MlpBwd {
+    /// For upstream `dy: [n, out]`: each input part's gradient (when `input_grad`) and
+    /// the packed parameters' gradient.
+    pub(super) fn backward(
+        &self,
+        input: Input,
+        p: &CpuStorage,
+        p_l: &Layout,
+        (dy, dy_l): (&CpuStorage, &Layout),
+    ) -> Result<(InputGrads, Vec<f32>)> {
+        let plan = &self.plan;
+        let parts = input.parts();
+        let n = parts[0].0.1.dims()[0];
         let saved = match self.saved.take() {
             Some(s) => s,
-            None => forward(plan, self.act, s1, l1, s2, l2)?.1,
+            None => forward(plan, self.act, input, p, p_l)?.1,
         };
         let mut dp = vec![0f32; plan.params()];
+        let mut dx = vec![None; parts.len()];
         // dz of the current layer, `[n, o]`.
-        let mut dz = CpuStorage::F32(f32_slice(s3, l3, "mlp gradient")?.to_vec());
-        let mut dx = None;
+        let mut dz = CpuStorage::F32(f32_slice(dy, dy_l, "mlp gradient")?.to_vec());
         for l in (0..plan.layers()).rev() {
             let (k, o, w_off, b_off) = plan.layer(l);
             let dz_l = Layout::contiguous((n, o));
@@ -260,33 +338,31 @@ impl CustomOp3 for MlpBwd {
                 let db = ColumnSum { d: o }.cpu_fwd(&dz, &dz_l)?.0;
                 dp[b..b + o].copy_from_slice(f32_slice(&db, &Layout::contiguous(o), "db")?);
             }
-            // dW = dzᵀ · a_{l−1}: `[o, n] · [n, k]`, a_{−1} being the input.
-            let (a, a_l) = match l {
-                0 => (s1, l1.clone()),
-                _ => (&saved[l - 1].1, Layout::contiguous((n, k))),
-            };
-            let dw = weight_grad(&dz, &dz_l, a, &a_l)?;
-            dp[w_off..w_off + o * k].copy_from_slice(&dw);
-            if l == 0 && !self.input_grad {
-                break;
+            if l > 0 {
+                // dW = dzᵀ · a_{l−1}: `[o, n] · [n, k]`; da = dz · W: `[n, o] · [o, k]`.
+                let a_l = Layout::contiguous((n, k));
+                let dw = weight_grad(&dz, &dz_l, &saved[l - 1].1, &a_l)?;
+                dp[w_off..w_off + o * k].copy_from_slice(&dw);
+                let w = MatRef::of(p, &weight_layout(p_l, (k, o, w_off)))?;
+                let da = gemm::matmul(MatRef::of(&dz, &dz_l)?, w, Threads::Pool)?;
+                dz = CpuStorage::F32(self.act.backward(&saved[l - 1].0, &da));
+                continue;
             }
-            // da = dz · W: `[n, o] · [o, k]`.
-            let w_l = Layout::contiguous_with_offset((o, k), l2.start_offset() + w_off);
-            let da = gemm::matmul(
-                MatRef::of(&dz, &dz_l)?,
-                MatRef::of(s2, &w_l)?,
-                Threads::Pool,
-            )?;
-            if l == 0 {
-                dx = Some(da);
-                break;
+            // The first layer, part by part: its columns of dW and its input gradient.
+            for (i, ((x, x_l), c0)) in parts.iter().enumerate() {
+                let kx = x_l.dims()[1];
+                let dw = weight_grad(&dz, &dz_l, x, x_l)?; // [o, kx]
+                for (r, row) in dw.chunks(kx.max(1)).enumerate() {
+                    let at = w_off + r * k + c0;
+                    dp[at..at + kx].copy_from_slice(row);
+                }
+                if self.input_grad {
+                    let w = weight_cols(p, p_l, (k, o, w_off), (*c0, kx))?;
+                    dx[i] = Some(gemm::matmul(MatRef::of(&dz, &dz_l)?, w, Threads::Pool)?);
+                }
             }
-            dz = CpuStorage::F32(self.act.backward(&saved[l - 1].0, &da));
         }
-        let mut out = dx.unwrap_or_default();
-        out.extend_from_slice(&dp);
-        let len = out.len();
-        Ok((CpuStorage::F32(out), Shape::from(len)))
+        Ok((dx, dp))
     }
 }
 
@@ -328,6 +404,142 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
         saved: Kept::new(None),
     };
     x.contiguous()?.apply_op2(&packed, op)
+}
+
+/// An MLP over two inputs read side by side (see [`mlp_cat`]).
+struct MlpCatOp {
+    plan: Plan,
+    act: MlpAct,
+    keep: bool,
+    saved: Kept<Saved>,
+}
+
+impl CustomOp3 for MlpCatOp {
+    fn name(&self) -> &'static str {
+        "osrt-mlp-cat"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (a, b) = (rows_layout(l1)?, rows_layout(l2)?);
+        let widths = a.dims()[1] + b.dims()[1];
+        if a.dims()[0] != b.dims()[0] || widths != self.plan.dims[0] {
+            candle_core::bail!(
+                "mlp: inputs {:?} and {:?} side by side for widths {:?}",
+                l1.dims(),
+                l2.dims(),
+                self.plan.dims
+            );
+        }
+        if l3.shape().elem_count() != self.plan.params() {
+            candle_core::bail!("mlp: {} packed parameters", l3.shape().elem_count());
+        }
+        f32_slice(s1, l1, "mlp input")?;
+        f32_slice(s2, l2, "mlp input")?;
+        let input = Input::Two([(s1, &a), (s2, &b)]);
+        let (y, saved) = forward(&self.plan, self.act, input, s3, l3)?;
+        if self.keep {
+            self.saved.put(saved);
+        }
+        let out = *self.plan.dims.last().unwrap_or(&0);
+        Ok((CpuStorage::F32(y), with_last_dim(l1, out)))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        p: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let grad = grad.contiguous()?;
+        let bwd = MlpBwd {
+            plan: self.plan.clone(),
+            act: self.act,
+            // Taken, not cloned: a second backward through the same graph recomputes it.
+            saved: Kept::new(self.saved.take()),
+            input_grad: a.track_op() || b.track_op(),
+        };
+        let (sa, la) = a.storage_and_layout();
+        let (sb, lb) = b.storage_and_layout();
+        let (sp, lp) = p.storage_and_layout();
+        let (sg, lg) = grad.storage_and_layout();
+        let (la, lb, lg) = (rows_layout(la)?, rows_layout(lb)?, rows_layout(lg)?);
+        let input = Input::Two([(cpu(&sa)?, &la), (cpu(&sb)?, &lb)]);
+        let (dx, dp) = bwd.backward(input, cpu(&sp)?, lp, (cpu(&sg)?, &lg))?;
+        let dev = a.device();
+        let mut dx = dx.into_iter();
+        let mut part = |t: &Tensor| -> Result<Option<Tensor>> {
+            match (dx.next().flatten(), t.track_op()) {
+                (Some(v), true) => Ok(Some(Tensor::from_vec(v, t.shape(), dev)?)),
+                _ => Ok(None),
+            }
+        };
+        let (da, db) = (part(a)?, part(b)?);
+        Ok((da, db, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
+    }
+}
+
+/// The CPU storage of a tensor (the fused ops run on the CPU only).
+fn cpu(s: &candle_core::Storage) -> Result<&CpuStorage> {
+    match s {
+        candle_core::Storage::Cpu(s) => Ok(s),
+        _ => candle_core::bail!("mlp: fused ops run on the CPU"),
+    }
+}
+
+/// The MLP of `[a, b]` concatenated on the last dim — `a: [.., in_a]`, `b: [.., in_b]`,
+/// `layers[0]` of width `in_a + in_b` — as one graph node without the concatenation:
+/// the first layer multiplies each input by its columns of the weight and adds the two
+/// products. Why: the Slot Mixer's render MLP reads (mixed slot ⊕ ray query), and the
+/// concatenated `[8192, 224]` was a copy forward, two copies backward and one more
+/// gradient accumulation. The first layer's sums are split in two, so the bits differ
+/// from the MLP of the concatenation by rounding (tested to float tolerance).
+pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let cat = || mlp(&Tensor::cat(&[a, b], D::Minus1)?, layers, act);
+    let bias = layers.first().is_some_and(|(_, b)| b.is_some());
+    let mut all = vec![a, b];
+    for (w, b) in layers {
+        all.push(w);
+        all.extend(*b);
+    }
+    let lead_fits = a.rank() == b.rank() && a.dims()[..a.rank() - 1] == b.dims()[..b.rank() - 1];
+    let fits = !layers.is_empty()
+        && layers
+            .iter()
+            .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
+    if !(fits && lead_fits && enabled_by_env() && usable(&all)) {
+        return cat();
+    }
+    let mut dims = vec![a.dim(D::Minus1)? + b.dim(D::Minus1)?];
+    let mut flat = Vec::with_capacity(layers.len() * 2);
+    for (w, b) in layers {
+        let (o, k) = w.dims2()?;
+        if k != *dims.last().unwrap_or(&0) {
+            candle_core::bail!("mlp: a layer of width {k} after width {dims:?}");
+        }
+        dims.push(o);
+        flat.push(w.flatten_all()?);
+        if let Some(b) = b {
+            flat.push(b.flatten_all()?);
+        }
+    }
+    let packed = Tensor::cat(&flat, 0)?;
+    let op = MlpCatOp {
+        plan: Plan { dims, bias },
+        act,
+        keep: a.track_op() || b.track_op() || packed.track_op(),
+        saved: Kept::new(None),
+    };
+    a.contiguous()?.apply_op3(&b.contiguous()?, &packed, op)
 }
 
 /// The same MLP as separate nodes: `fused::linear` and the activation op per layer.
@@ -480,5 +692,77 @@ mod tests {
         let (w1, w2) = (randn(&[5, 4], 1.0, 8), randn(&[2, 6], 1.0, 9));
         let err = with_fused(true, || mlp(&x, &[(&w1, None), (&w2, None)], MlpAct::Relu));
         assert!(err.is_err());
+    }
+
+    /// `[a, b, W₁, b₁, …]`: the `args` MLP with its input split into widths `wa` and
+    /// the rest, leading dims `[2, n]`.
+    fn cat_args(n: usize, wa: usize, dims: &[usize], seed: u64) -> Vec<Tensor> {
+        let mut a = args(2 * n, dims, true, seed);
+        let x = a.remove(0);
+        let x = x.reshape((2, n, dims[0])).unwrap();
+        let (left, right) = (
+            x.narrow(2, 0, wa).unwrap().contiguous().unwrap(),
+            x.narrow(2, wa, dims[0] - wa).unwrap().contiguous().unwrap(),
+        );
+        [vec![left, right], a].concat()
+    }
+
+    fn run_cat(t: &[Tensor], act: MlpAct) -> Result<Tensor> {
+        let layers: Vec<_> = t[2..].chunks(2).map(|c| (&c[0], c.get(1))).collect();
+        mlp_cat(&t[0], &t[1], &layers, act)
+    }
+
+    /// Two inputs read side by side give the MLP of their concatenation, forward and
+    /// backward (each input its own gradient, the first layer's weight its columns), to
+    /// float tolerance: only the first layer's sums are split in two. Also against
+    /// candle's composed ops and finite differences, with either input a data input.
+    #[test]
+    fn mlp_cat_is_the_mlp_of_the_concatenation() {
+        for act in ACTS {
+            let a = cat_args(150, 5, &[12, 16, 3], 11);
+            let [(y1, g1), _] = both(&a, |t| run_cat(t, act));
+            let [(y2, g2), _] = both(&a, |t| {
+                let layers: Vec<_> = t[2..].chunks(2).map(|c| (&c[0], c.get(1))).collect();
+                mlp(&Tensor::cat(&[&t[0], &t[1]], D::Minus1)?, &layers, act)
+            });
+            let tol = |b: &Tensor| 1e-5 * (1.0 + max_abs(b));
+            assert!(max_diff(&y1, &y2) <= tol(&y2), "{act:?}: forward");
+            for (i, (a, b)) in g1.iter().zip(&g2).enumerate() {
+                assert!(max_diff(a, b) <= tol(b), "{act:?}: gradient {i}");
+            }
+            assert_matches_composed(&a, |t| run_cat(t, act), 2e-5);
+        }
+        finite_difference_check(&cat_args(4, 2, &[5, 6, 2], 12), |t| {
+            run_cat(t, MlpAct::Gelu)
+        });
+        // Data inputs get no gradient; the other input and the parameters do.
+        let a = cat_args(20, 3, &[7, 8, 2], 13);
+        let vars: Vec<Var> = a[1..]
+            .iter()
+            .map(|t| Var::from_tensor(t).unwrap())
+            .collect();
+        let mut ts = vec![a[0].clone()];
+        ts.extend(vars.iter().map(|v| v.as_tensor().clone()));
+        let y = with_fused(true, || run_cat(&ts, MlpAct::Relu)).unwrap();
+        let g = y.sqr().unwrap().sum_all().unwrap().backward().unwrap();
+        assert!(g.get(&ts[0]).is_none());
+        assert!(ts[1..].iter().all(|t| g.get(t).is_some()));
+        // Widths that do not add up are an error, not a panic.
+        let bad = with_fused(true, || {
+            mlp_cat(&a[0], &a[0], &[(&a[2], Some(&a[3]))], MlpAct::Relu)
+        });
+        assert!(bad.is_err());
+    }
+
+    /// Huge inputs stay finite and agree with the composed version.
+    #[test]
+    fn mlp_cat_is_finite_on_extreme_inputs() {
+        let mut a = cat_args(10, 4, &[9, 6, 2], 14);
+        a[0] = (&a[0] * 1e15).unwrap();
+        let [(y, g), (yc, _)] = both(&a, |t| run_cat(t, MlpAct::LeakyRelu(0.01)));
+        assert!(max_diff(&y, &yc) <= 1e-5 * (1.0 + max_abs(&yc)));
+        for t in std::iter::once(&y).chain(&g) {
+            assert!(max_abs(t).is_finite());
+        }
     }
 }
