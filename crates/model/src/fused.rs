@@ -16,6 +16,7 @@
 
 mod attention;
 mod block;
+mod buffer;
 mod gemm;
 mod mlp;
 
@@ -140,17 +141,16 @@ impl CustomOp3 for LayerNormOp {
         let g = f32_slice(s2, l2, "layer_norm weight")?;
         let b = f32_slice(s3, l3, "layer_norm bias")?;
         let d = g.len();
-        let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(d * ROWS_PER_TASK)
-            .zip(x.par_chunks(d * ROWS_PER_TASK))
-            .for_each(|(o, x)| {
-                for (o, x) in o.chunks_mut(d).zip(x.chunks(d)) {
-                    let (mean, rstd) = row_stats(x, self.eps);
-                    for i in 0..d {
-                        o[i] = (x[i] - mean) * rstd * g[i] + b[i];
-                    }
+        let per = d * ROWS_PER_TASK;
+        let out = buffer::par_filled(x.len(), per, |t, o| {
+            let x = &x[t * per..][..o.len()];
+            for (o, x) in o.chunks_mut(d).zip(x.chunks(d)) {
+                let (mean, rstd) = row_stats(x, self.eps);
+                for i in 0..d {
+                    o[i] = (x[i] - mean) * rstd * g[i] + b[i];
                 }
-            });
+            }
+        });
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
 
@@ -196,37 +196,41 @@ impl CustomOp3 for LayerNormBwd {
         let dy = f32_slice(s3, l3, "layer_norm backward gradient")?;
         let d = g.len();
         let rows = x.len() / d;
-        let mut out = vec![0f32; (rows + 2) * d];
-        let (dx, dgb) = out.split_at_mut(rows * d);
+        let per = d * ROWS_PER_TASK;
         // Per task: dx rows, and partial dγ / dβ sums reduced afterwards in task order
         // (a fixed order: the result does not depend on the thread count's scheduling).
-        let partials: Vec<Vec<f32>> = dx
-            .par_chunks_mut(d * ROWS_PER_TASK)
-            .zip(x.par_chunks(d * ROWS_PER_TASK))
-            .zip(dy.par_chunks(d * ROWS_PER_TASK))
-            .map(|((dx, x), dy)| {
-                let mut acc = vec![0f32; 2 * d];
-                let mut xhat = vec![0f32; d];
-                for ((dx, x), dy) in dx.chunks_mut(d).zip(x.chunks(d)).zip(dy.chunks(d)) {
-                    let (mean, rstd) = row_stats(x, self.eps);
-                    let (mut m1, mut m2) = (0f32, 0f32);
-                    for i in 0..d {
-                        xhat[i] = (x[i] - mean) * rstd;
-                        let gy = dy[i] * g[i];
-                        m1 += gy;
-                        m2 += gy * xhat[i];
-                        acc[i] += dy[i] * xhat[i];
-                        acc[d + i] += dy[i];
-                    }
-                    let (m1, m2) = (m1 / d as f32, m2 / d as f32);
-                    for i in 0..d {
-                        dx[i] = rstd * (dy[i] * g[i] - m1 - xhat[i] * m2);
-                    }
+        // The last 2·d values (dγ, dβ) are left zero by the tasks.
+        let partials = Mutex::new(vec![None; rows.div_ceil(ROWS_PER_TASK)]);
+        let mut out = buffer::par_filled((rows + 2) * d, per, |t, o| {
+            let start = t * per;
+            let n = (rows * d).saturating_sub(start).min(o.len());
+            if n == 0 {
+                return;
+            }
+            let (x, dy) = (&x[start..start + n], &dy[start..start + n]);
+            let mut acc = vec![0f32; 2 * d];
+            let mut xhat = vec![0f32; d];
+            for ((dx, x), dy) in o[..n].chunks_mut(d).zip(x.chunks(d)).zip(dy.chunks(d)) {
+                let (mean, rstd) = row_stats(x, self.eps);
+                let (mut m1, mut m2) = (0f32, 0f32);
+                for i in 0..d {
+                    xhat[i] = (x[i] - mean) * rstd;
+                    let gy = dy[i] * g[i];
+                    m1 += gy;
+                    m2 += gy * xhat[i];
+                    acc[i] += dy[i] * xhat[i];
+                    acc[d + i] += dy[i];
                 }
-                acc
-            })
-            .collect();
-        for p in partials {
+                let (m1, m2) = (m1 / d as f32, m2 / d as f32);
+                for i in 0..d {
+                    dx[i] = rstd * (dy[i] * g[i] - m1 - xhat[i] * m2);
+                }
+            }
+            partials.lock().unwrap_or_else(|e| e.into_inner())[t] = Some(acc);
+        });
+        let dgb = &mut out[rows * d..];
+        let partials = partials.into_inner().unwrap_or_else(|e| e.into_inner());
+        for p in partials.into_iter().flatten() {
             for (o, v) in dgb.iter_mut().zip(p) {
                 *o += v;
             }
@@ -393,25 +397,23 @@ impl CustomOp1 for Im2Col {
         let x = f32_slice(s, l, "im2col")?;
         let g = self.0;
         let p = g.patch();
-        let mut out = vec![0f32; g.n * g.ho * g.wo * p];
-        out.par_chunks_mut(p * g.wo)
-            .enumerate()
-            .for_each(|(row, o)| {
-                let (b, oy) = (row / g.ho, row % g.ho);
-                for ox in 0..g.wo {
-                    let o = &mut o[ox * p..(ox + 1) * p];
-                    for ky in 0..g.k {
-                        for kx in 0..g.k {
-                            if let Some((iy, ix)) = g.source(oy, ox, ky, kx) {
-                                let src = &x[((b * g.h + iy) * g.w + ix) * g.c..][..g.c];
-                                for (ci, v) in src.iter().enumerate() {
-                                    o[(ci * g.k + ky) * g.k + kx] = *v;
-                                }
+        // Each task zeroes its chunk (the padding stays 0) before writing the patches.
+        let out = buffer::par_filled(g.n * g.ho * g.wo * p, p * g.wo, |row, o| {
+            let (b, oy) = (row / g.ho, row % g.ho);
+            for ox in 0..g.wo {
+                let o = &mut o[ox * p..(ox + 1) * p];
+                for ky in 0..g.k {
+                    for kx in 0..g.k {
+                        if let Some((iy, ix)) = g.source(oy, ox, ky, kx) {
+                            let src = &x[((b * g.h + iy) * g.w + ix) * g.c..][..g.c];
+                            for (ci, v) in src.iter().enumerate() {
+                                o[(ci * g.k + ky) * g.k + kx] = *v;
                             }
                         }
                     }
                 }
-            });
+            }
+        });
         Ok((CpuStorage::F32(out), Shape::from((g.n * g.ho * g.wo, p))))
     }
 
@@ -663,11 +665,8 @@ const ELEMENTS_PER_TASK: usize = 8192;
 
 /// `out = kernel(x)`, chunk by chunk in parallel (`kernel` is one of the slice kernels).
 fn par_elementwise(x: &[f32], kernel: impl Fn(&mut [f32], &[f32]) + Sync) -> Vec<f32> {
-    let mut out = vec![0f32; x.len()];
-    out.par_chunks_mut(ELEMENTS_PER_TASK)
-        .zip(x.par_chunks(ELEMENTS_PER_TASK))
-        .for_each(|(o, x)| kernel(o, x));
-    out
+    const E: usize = ELEMENTS_PER_TASK;
+    buffer::par_filled(x.len(), E, |i, o| kernel(o, &x[i * E..][..o.len()]))
 }
 
 /// `dx = kernel(x, dy)`, chunk by chunk in parallel: an elementwise op's backward.
@@ -676,14 +675,11 @@ fn par_elementwise_grad(
     dy: &[f32],
     kernel: impl Fn(&mut [f32], &[f32], &[f32]) + Sync,
 ) -> Vec<f32> {
-    let mut out = vec![0f32; x.len()];
-    out.par_chunks_mut(ELEMENTS_PER_TASK)
-        .zip(
-            x.par_chunks(ELEMENTS_PER_TASK)
-                .zip(dy.par_chunks(ELEMENTS_PER_TASK)),
-        )
-        .for_each(|(o, (x, dy))| kernel(o, x, dy));
-    out
+    const E: usize = ELEMENTS_PER_TASK;
+    buffer::par_filled(x.len(), E, |i, o| {
+        let at = i * E..i * E + o.len();
+        kernel(o, &x[at.clone()], &dy[at])
+    })
 }
 
 fastmath::kernel! {

@@ -140,13 +140,10 @@ pub(super) fn forward(
         })
         .collect::<Result<_>>()?;
     let row = d.n * d.inner();
-    let mut out = vec![0f32; d.b * row];
-    let mut saved = Vec::with_capacity(d.b);
-    for ((o, p), dst) in per.into_iter().zip(out.chunks_mut(row.max(1))) {
-        merge_heads(dst, &o, d, d.n);
-        saved.push(p);
-    }
-    Ok((out, saved))
+    let out = super::buffer::par_filled(d.b * row, row, |bi, dst| {
+        merge_heads(dst, &per[bi].0, d, d.n)
+    });
+    Ok((out, per.into_iter().map(|(_, p)| p).collect()))
 }
 
 struct AttentionOp {
