@@ -18,10 +18,12 @@ mod attention;
 mod block;
 mod buffer;
 mod gemm;
+mod mix;
 mod mlp;
 
 pub use attention::{attention, attention_composed};
 pub use block::{BlockParams, block};
+pub use mix::slot_mix;
 pub use mlp::{MlpAct, MlpLayer, mlp, mlp_cat, mlp_layer_by_layer};
 
 use crate::fastmath;

@@ -8,7 +8,7 @@
 
 use crate::decoder::DecoderOutput;
 use crate::nn::{Activation, Linear, Mlp, Transformer, TransformerConfig, linear};
-use candle_core::{D, Module, Result, Tensor};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
@@ -73,11 +73,15 @@ impl SlotMixer {
     pub fn forward(&self, slots: &Tensor, rays: &Tensor) -> Result<DecoderOutput> {
         let query = self.query_mlp.forward(rays)?; // [b, r, ray_dim]
         let allocated = self.allocation.forward(&query, Some(slots))?; // [b, r, ray_dim]
-        let q = self.mix_q.forward(&allocated)?; // [b, r, ds]
-        let k = self.mix_k.forward(slots)?; // [b, k, ds]
-        let logits = (q.matmul(&k.t()?)? / (self.slot_dim as f64).sqrt())?; // [b, r, k]
-        let weights = crate::fused::softmax(&logits, D::Minus1)?;
-        let mixed = weights.matmul(slots)?; // [b, r, ds]
+        // w = softmax over slots of (allocated W_qᵀ)(S W_kᵀ)ᵀ / √ds, mixed = wᵀS: one graph
+        // node where the fused ops apply (`fused::slot_mix`).
+        let (mixed, weights) = crate::fused::slot_mix(
+            &allocated,
+            slots,
+            self.mix_q.weight(),
+            self.mix_k.weight(),
+            1.0 / (self.slot_dim as f64).sqrt(),
+        )?; // [b, r, ds], [b, r, k]
         // The render MLP of (mixed ⊕ query), without materialising the concatenation.
         let rgb = candle_nn::ops::sigmoid(&self.render.forward_cat(&mixed, &query)?)?;
         Ok(DecoderOutput {
