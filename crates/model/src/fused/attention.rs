@@ -98,11 +98,26 @@ fn weights(
     d: &Dims,
     bi: usize,
     (q, q_l): (&CpuStorage, &Layout),
+    k: (&CpuStorage, usize, usize),
+) -> Result<Vec<f32>> {
+    weights_of_rows(d, bi, (0, d.n), (q, q_l), k)
+}
+
+/// [`weights`] for query rows `r0 .. r0 + len` of batch element `bi`: `[h, len, m]`.
+fn weights_of_rows(
+    d: &Dims,
+    bi: usize,
+    (r0, len): (usize, usize),
+    (q, q_l): (&CpuStorage, &Layout),
     (k, k_off, k_row): (&CpuStorage, usize, usize),
 ) -> Result<Vec<f32>> {
-    let q_h = d.heads(q_l.start_offset(), bi, d.n, d.inner());
+    let q_h = Layout::new(
+        Shape::from((d.h, len, d.dh)),
+        vec![d.dh, d.inner(), 1],
+        q_l.start_offset() + (bi * d.n + r0) * d.inner(),
+    );
     let k_t = d.heads(k_off, bi, d.m, k_row).transpose(1, 2)?;
-    let mut s = bmm(q, &q_h, k, &k_t, (d.h, d.n, d.m, d.dh))?;
+    let mut s = bmm(q, &q_h, k, &k_t, (d.h, len, d.m, d.dh))?;
     let mut row = vec![0f32; d.m];
     for r in s.chunks_mut(d.m.max(1)) {
         r.iter_mut().for_each(|v| *v *= d.scale);
@@ -124,27 +139,59 @@ pub(super) fn forward(
     k: (&CpuStorage, usize, usize),
     v: (&CpuStorage, usize, usize),
 ) -> Result<(Vec<f32>, Saved)> {
-    let per: Vec<(Vec<f32>, CpuStorage)> = (0..d.b)
-        .into_par_iter()
-        .map(|bi| {
-            let p = CpuStorage::F32(weights(d, bi, q, k)?);
+    // One task per batch element, or, with few of them (a render decodes one scene), per
+    // block of query rows too, so the rows still spread over the threads. The split
+    // depends on the shapes only, not on the thread count.
+    let rows = if d.b >= FEW_BATCH {
+        d.n
+    } else {
+        QUERY_ROWS_PER_TASK.min(d.n)
+    };
+    let blocks = d.n.div_ceil(rows.max(1));
+    let tasks: Vec<(usize, usize, usize)> = (0..d.b)
+        .flat_map(|bi| (0..blocks).map(move |j| (bi, j * rows, rows.min(d.n - j * rows))))
+        .collect();
+    let per: Vec<(Vec<f32>, Vec<f32>)> = tasks
+        .par_iter()
+        .map(|&(bi, r0, len)| {
+            let p = CpuStorage::F32(weights_of_rows(d, bi, (r0, len), q, k)?);
             let v_h = d.heads(v.1, bi, d.m, v.2);
-            let o = bmm(
-                &p,
-                &d.square(d.n, d.m, false),
-                v.0,
-                &v_h,
-                (d.h, d.n, d.dh, d.m),
-            )?;
+            let p_l = Layout::contiguous((d.h, len, d.m));
+            let o = bmm(&p, &p_l, v.0, &v_h, (d.h, len, d.dh, d.m))?;
+            let CpuStorage::F32(p) = p else {
+                candle_core::bail!("attention: fused ops take f32")
+            };
             Ok((o, p))
         })
         .collect::<Result<_>>()?;
     let row = d.n * d.inner();
-    let out = super::buffer::par_filled(d.b * row, row, |bi, dst| {
-        merge_heads(dst, &per[bi].0, d, d.n)
-    });
-    Ok((out, per.into_iter().map(|(_, p)| p).collect()))
+    if blocks == 1 {
+        let out = super::buffer::par_filled(d.b * row, row, |bi, dst| {
+            merge_heads(dst, &per[bi].0, d, d.n)
+        });
+        return Ok((
+            out,
+            per.into_iter().map(|(_, p)| CpuStorage::F32(p)).collect(),
+        ));
+    }
+    // Row blocks back into `[b, n, h·dh]` rows and per-element `[h, n, m]` weights.
+    let mut out = vec![0f32; d.b * row];
+    let mut saved = vec![vec![0f32; d.h * d.n * d.m]; d.b];
+    for (&(bi, r0, len), (o, p)) in tasks.iter().zip(&per) {
+        let at = (bi * d.n + r0) * d.inner();
+        merge_heads(&mut out[at..at + len * d.inner()], o, d, len);
+        for j in 0..d.h {
+            let to = (j * d.n + r0) * d.m;
+            saved[bi][to..to + len * d.m].copy_from_slice(&p[j * len * d.m..(j + 1) * len * d.m]);
+        }
+    }
+    Ok((out, saved.into_iter().map(CpuStorage::F32).collect()))
 }
+
+/// Below this many batch elements the forward pass also splits the query rows.
+const FEW_BATCH: usize = 8;
+/// Query rows per task then.
+const QUERY_ROWS_PER_TASK: usize = 128;
 
 struct AttentionOp {
     dims: Dims,
@@ -429,6 +476,30 @@ mod tests {
 
     /// Large logits (a saturated softmax) and constant rows (uniform weights): the
     /// composed version's values, finite gradients.
+    /// With few batch elements the forward pass splits the query rows into blocks (here
+    /// three, the last one short): the values of the one-task-per-element path (the same
+    /// elements inside a batch of `FEW_BATCH`) to float tolerance (gemm may take another
+    /// kernel for fewer rows), forward and backward (the weights kept for the backward
+    /// pass reassembled from the blocks), and the composed version's values.
+    #[test]
+    fn query_row_blocks_give_the_bits_of_whole_elements() {
+        let n = 2 * QUERY_ROWS_PER_TASK + 37;
+        let few = args(2, n, 5, 8, 60);
+        let tiled: Vec<Tensor> = few
+            .iter()
+            .map(|t| Tensor::cat(&[t; FEW_BATCH / 2], 0).unwrap())
+            .collect();
+        let [(y_few, g_few), _] = both(&few, |t| run(t, 2));
+        let [(y_all, g_all), _] = both(&tiled, |t| run(t, 2));
+        let first2 = |t: &Tensor| t.narrow(0, 0, 2).unwrap();
+        assert!(max_diff(&y_few, &first2(&y_all)) <= 1e-6, "forward");
+        for (a, b) in g_few.iter().zip(&g_all) {
+            // Each batch element's gradient is its own (nothing is shared across them).
+            assert!(max_diff(a, &first2(b)) <= 1e-5, "gradient");
+        }
+        assert_matches_composed(&few, |t| run(t, 2), 1e-5);
+    }
+
     #[test]
     fn attention_is_finite_and_matches_on_extreme_inputs() {
         let mut big = args(2, 4, 5, 8, 30);
