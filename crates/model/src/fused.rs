@@ -104,6 +104,14 @@ pub(crate) fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result
     }
 }
 
+/// The CPU storage behind a tensor (the fused ops run on the CPU only).
+fn cpu_storage(s: &candle_core::Storage) -> Result<&CpuStorage> {
+    match s {
+        candle_core::Storage::Cpu(s) => Ok(s),
+        _ => candle_core::bail!("fused ops run on the CPU"),
+    }
+}
+
 fn usable(ts: &[&Tensor]) -> bool {
     enabled()
         && ts

@@ -21,12 +21,10 @@ use super::attention::{self, AttentionBwd, Dims};
 use super::gemm::{self, MatRef, Threads};
 use super::mlp::{self, MlpAct, MlpBwd, MlpLayer, Plan};
 use super::{
-    ColumnSum, Kept, LayerNormBwd, LayerNormOp, add_bias_rows, f32_slice, matmul_xwt, rows_layout,
-    usable, weight_grad,
+    ColumnSum, Kept, LayerNormBwd, LayerNormOp, add_bias_rows, cpu_storage as cpu, f32_slice,
+    matmul_xwt, rows_layout, usable, weight_grad,
 };
-use candle_core::{
-    CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Storage, Tensor,
-};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 fn enabled_by_env() -> bool {
@@ -224,6 +222,24 @@ impl<'a> Block<'a> {
             .0)
     }
 
+    /// LayerNorm's backward for its input `x: [R, d]` (contiguous), weight at `g` and
+    /// upstream `dh`: the input gradient and `[dγ | dβ]`.
+    fn layer_norm_backward(
+        &self,
+        x: &CpuStorage,
+        g: usize,
+        dh: Vec<f32>,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let (rows, d) = (self.g.rows(), self.g.d);
+        let rl = Layout::contiguous((rows, d));
+        let ln = LayerNormBwd { eps: self.g.eps };
+        let gl = self.vec(g, d);
+        let dh = CpuStorage::F32(dh);
+        let mut dx = f32_vec(ln.cpu_fwd(x, &rl, self.p, &gl, &dh, &rl)?.0, "block")?;
+        let dgb = dx.split_off(rows * d);
+        Ok((dx, dgb))
+    }
+
     /// The forward pass: the output `[R, d]` and what the backward pass needs.
     fn forward(
         &self,
@@ -305,14 +321,7 @@ impl<'a> Block<'a> {
         )?;
         put(o.mlp, &dh2.split_off(rows * d));
         // LN₂, then dx₂ = dy + LN₂'s input gradient.
-        let ln = LayerNormBwd { eps: g.eps };
-        let g2 = self.vec(o.g2, d);
-        let mut dx2 = f32_vec(
-            ln.cpu_fwd(&saved.x2, &rl, self.p, &g2, &CpuStorage::F32(dh2), &rl)?
-                .0,
-            "block",
-        )?;
-        let dgb2 = dx2.split_off(rows * d);
+        let (mut dx2, dgb2) = self.layer_norm_backward(&saved.x2, o.g2, dh2)?;
         put(o.g2, &dgb2[..d]);
         put(o.b2, &dgb2[d..]);
         add_into(&mut dx2, f32_slice(dy.0, dy.1, "block gradient")?);
@@ -360,25 +369,11 @@ impl<'a> Block<'a> {
             false => Some(dc_),
         };
         // LN₁, then dx = dx₂ + LN₁'s input gradient.
-        let g1 = self.vec(o.g1, d);
-        let mut dx = f32_vec(
-            ln.cpu_fwd(x.0, x.1, self.p, &g1, &CpuStorage::F32(dh1), &rl)?
-                .0,
-            "block",
-        )?;
-        let dgb1 = dx.split_off(rows * d);
+        let (mut dx, dgb1) = self.layer_norm_backward(x.0, o.g1, dh1)?;
         put(o.g1, &dgb1[..d]);
         put(o.b1, &dgb1[d..]);
         add_into(&mut dx, f32s(&dx2, "block")?);
         Ok((dx, dctx, dp))
-    }
-}
-
-/// The CPU storage of a tensor (the fused ops run on the CPU only).
-fn cpu(s: &Storage) -> Result<&CpuStorage> {
-    match s {
-        Storage::Cpu(s) => Ok(s),
-        _ => candle_core::bail!("block: fused ops run on the CPU"),
     }
 }
 

@@ -13,8 +13,8 @@
 
 use super::attention::{self, AttentionBwd, Dims};
 use super::gemm::{self, MatRef, Threads};
-use super::{Kept, f32_slice, matmul_xwt, rows_layout, usable, weight_grad};
-use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Storage, Tensor};
+use super::{Kept, cpu_storage as cpu, f32_slice, matmul_xwt, rows_layout, usable, weight_grad};
+use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
 use std::sync::{Arc, Mutex};
 
 fn enabled_by_env() -> bool {
@@ -37,13 +37,6 @@ struct MixOp {
     saved: Kept<Saved>,
     /// The weights `[b, r, k]`, for the caller.
     weights_out: Arc<Mutex<Option<Vec<f32>>>>,
-}
-
-fn cpu(s: &Storage) -> Result<&CpuStorage> {
-    match s {
-        Storage::Cpu(s) => Ok(s),
-        _ => candle_core::bail!("slot mix: fused ops run on the CPU"),
-    }
 }
 
 impl MixOp {

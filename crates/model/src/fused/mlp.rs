@@ -16,9 +16,9 @@
 
 use super::gemm::{self, MatRef, Threads};
 use super::{
-    ColumnSum, Kept, add_bias_rows, f32_slice, gelu_grad_slice, gelu_slice, leaky_relu_grad_slice,
-    leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad, rows_layout, usable,
-    weight_grad, with_last_dim,
+    ColumnSum, Kept, add_bias_rows, cpu_storage as cpu, f32_slice, gelu_grad_slice, gelu_slice,
+    leaky_relu_grad_slice, leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad,
+    rows_layout, usable, weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -216,6 +216,25 @@ struct MlpOp {
     saved: Kept<Saved>,
 }
 
+impl MlpOp {
+    /// The forward pass over `input` (laid out as `input_l`), keeping what the backward
+    /// pass needs when one can follow.
+    fn run(
+        &self,
+        input: Input,
+        p: &CpuStorage,
+        p_l: &Layout,
+        input_l: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (y, saved) = forward(&self.plan, self.act, input, p, p_l)?;
+        if self.keep {
+            self.saved.put(saved);
+        }
+        let out = *self.plan.dims.last().unwrap_or(&0);
+        Ok((CpuStorage::F32(y), with_last_dim(input_l, out)))
+    }
+}
+
 impl CustomOp2 for MlpOp {
     fn name(&self) -> &'static str {
         "osrt-mlp"
@@ -240,12 +259,7 @@ impl CustomOp2 for MlpOp {
         f32_slice(s1, l1, "mlp input")?;
         #[cfg(test)]
         FORWARDS.with(|c| c.set(c.get() + 1));
-        let (y, saved) = forward(&self.plan, self.act, Input::One(s1, &rows), s2, l2)?;
-        if self.keep {
-            self.saved.put(saved);
-        }
-        let out = *self.plan.dims.last().unwrap_or(&0);
-        Ok((CpuStorage::F32(y), with_last_dim(l1, out)))
+        self.run(Input::One(s1, &rows), s2, l2, l1)
     }
 
     fn bwd(
@@ -366,6 +380,26 @@ impl MlpBwd {
     }
 }
 
+/// The widths `[in, hidden…, out]` of `layers` after an input of width `input`, and their
+/// parameters packed into one tensor (each weight, then its bias, flattened, layer by
+/// layer): a parameter-sized copy whose backward hands each parameter its slice.
+fn pack(input: usize, layers: &[MlpLayer]) -> Result<(Vec<usize>, Tensor)> {
+    let mut dims = vec![input];
+    let mut flat = Vec::with_capacity(layers.len() * 2);
+    for (w, b) in layers {
+        let (o, k) = w.dims2()?;
+        if k != *dims.last().unwrap_or(&0) {
+            candle_core::bail!("mlp: a layer of width {k} after width {dims:?}");
+        }
+        dims.push(o);
+        flat.push(w.flatten_all()?);
+        if let Some(b) = b {
+            flat.push(b.flatten_all()?);
+        }
+    }
+    Ok((dims, Tensor::cat(&flat, 0)?))
+}
+
 /// `x: [.., in]` through `layers` (`(weight [out, in], bias [out])` each) with `act`
 /// between them → `[.., out]`, as one graph node where the fused ops apply (see the
 /// module docs), else layer by layer.
@@ -383,20 +417,7 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     if !(fits && enabled_by_env() && usable(&all)) {
         return mlp_layer_by_layer(x, layers, act);
     }
-    let mut dims = vec![x.dim(D::Minus1)?];
-    let mut flat = Vec::with_capacity(layers.len() * 2);
-    for (w, b) in layers {
-        let (o, k) = w.dims2()?;
-        if k != *dims.last().unwrap_or(&0) {
-            candle_core::bail!("mlp: a layer of width {k} after width {dims:?}");
-        }
-        dims.push(o);
-        flat.push(w.flatten_all()?);
-        if let Some(b) = b {
-            flat.push(b.flatten_all()?);
-        }
-    }
-    let packed = Tensor::cat(&flat, 0)?;
+    let (dims, packed) = pack(x.dim(D::Minus1)?, layers)?;
     let op = MlpOp {
         plan: Plan { dims, bias },
         act,
@@ -407,12 +428,7 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
 }
 
 /// An MLP over two inputs read side by side (see [`mlp_cat`]).
-struct MlpCatOp {
-    plan: Plan,
-    act: MlpAct,
-    keep: bool,
-    saved: Kept<Saved>,
-}
+struct MlpCatOp(MlpOp);
 
 impl CustomOp3 for MlpCatOp {
     fn name(&self) -> &'static str {
@@ -430,26 +446,21 @@ impl CustomOp3 for MlpCatOp {
     ) -> Result<(CpuStorage, Shape)> {
         let (a, b) = (rows_layout(l1)?, rows_layout(l2)?);
         let widths = a.dims()[1] + b.dims()[1];
-        if a.dims()[0] != b.dims()[0] || widths != self.plan.dims[0] {
+        let plan = &self.0.plan;
+        if a.dims()[0] != b.dims()[0] || widths != plan.dims[0] {
             candle_core::bail!(
                 "mlp: inputs {:?} and {:?} side by side for widths {:?}",
                 l1.dims(),
                 l2.dims(),
-                self.plan.dims
+                plan.dims
             );
         }
-        if l3.shape().elem_count() != self.plan.params() {
+        if l3.shape().elem_count() != plan.params() {
             candle_core::bail!("mlp: {} packed parameters", l3.shape().elem_count());
         }
         f32_slice(s1, l1, "mlp input")?;
         f32_slice(s2, l2, "mlp input")?;
-        let input = Input::Two([(s1, &a), (s2, &b)]);
-        let (y, saved) = forward(&self.plan, self.act, input, s3, l3)?;
-        if self.keep {
-            self.saved.put(saved);
-        }
-        let out = *self.plan.dims.last().unwrap_or(&0);
-        Ok((CpuStorage::F32(y), with_last_dim(l1, out)))
+        self.0.run(Input::Two([(s1, &a), (s2, &b)]), s3, l3, l1)
     }
 
     fn bwd(
@@ -461,11 +472,12 @@ impl CustomOp3 for MlpCatOp {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let grad = grad.contiguous()?;
+        let op = &self.0;
         let bwd = MlpBwd {
-            plan: self.plan.clone(),
-            act: self.act,
+            plan: op.plan.clone(),
+            act: op.act,
             // Taken, not cloned: a second backward through the same graph recomputes it.
-            saved: Kept::new(self.saved.take()),
+            saved: Kept::new(op.saved.take()),
             input_grad: a.track_op() || b.track_op(),
         };
         let (sa, la) = a.storage_and_layout();
@@ -485,14 +497,6 @@ impl CustomOp3 for MlpCatOp {
         };
         let (da, db) = (part(a)?, part(b)?);
         Ok((da, db, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
-    }
-}
-
-/// The CPU storage of a tensor (the fused ops run on the CPU only).
-fn cpu(s: &candle_core::Storage) -> Result<&CpuStorage> {
-    match s {
-        candle_core::Storage::Cpu(s) => Ok(s),
-        _ => candle_core::bail!("mlp: fused ops run on the CPU"),
     }
 }
 
@@ -519,26 +523,13 @@ pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
     if !(fits && lead_fits && enabled_by_env() && usable(&all)) {
         return cat();
     }
-    let mut dims = vec![a.dim(D::Minus1)? + b.dim(D::Minus1)?];
-    let mut flat = Vec::with_capacity(layers.len() * 2);
-    for (w, b) in layers {
-        let (o, k) = w.dims2()?;
-        if k != *dims.last().unwrap_or(&0) {
-            candle_core::bail!("mlp: a layer of width {k} after width {dims:?}");
-        }
-        dims.push(o);
-        flat.push(w.flatten_all()?);
-        if let Some(b) = b {
-            flat.push(b.flatten_all()?);
-        }
-    }
-    let packed = Tensor::cat(&flat, 0)?;
-    let op = MlpCatOp {
+    let (dims, packed) = pack(a.dim(D::Minus1)? + b.dim(D::Minus1)?, layers)?;
+    let op = MlpCatOp(MlpOp {
         plan: Plan { dims, bias },
         act,
         keep: a.track_op() || b.track_op() || packed.track_op(),
         saved: Kept::new(None),
-    };
+    });
     a.contiguous()?.apply_op3(&b.contiguous()?, &packed, op)
 }
 
