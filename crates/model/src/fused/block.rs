@@ -222,11 +222,11 @@ impl<'a> Block<'a> {
             .0)
     }
 
-    /// LayerNorm's backward for its input `x: [R, d]` (contiguous), weight at `g` and
-    /// upstream `dh`: the input gradient and `[dγ | dβ]`.
+    /// LayerNorm's backward for its input `x: [R, d]` (laid out as `x_l`), weight at `g`
+    /// and upstream `dh`: the input gradient and `[dγ | dβ]`.
     fn layer_norm_backward(
         &self,
-        x: &CpuStorage,
+        (x, x_l): (&CpuStorage, &Layout),
         g: usize,
         dh: Vec<f32>,
     ) -> Result<(Vec<f32>, Vec<f32>)> {
@@ -235,7 +235,7 @@ impl<'a> Block<'a> {
         let ln = LayerNormBwd { eps: self.g.eps };
         let gl = self.vec(g, d);
         let dh = CpuStorage::F32(dh);
-        let mut dx = f32_vec(ln.cpu_fwd(x, &rl, self.p, &gl, &dh, &rl)?.0, "block")?;
+        let mut dx = f32_vec(ln.cpu_fwd(x, x_l, self.p, &gl, &dh, &rl)?.0, "block")?;
         let dgb = dx.split_off(rows * d);
         Ok((dx, dgb))
     }
@@ -321,7 +321,7 @@ impl<'a> Block<'a> {
         )?;
         put(o.mlp, &dh2.split_off(rows * d));
         // LN₂, then dx₂ = dy + LN₂'s input gradient.
-        let (mut dx2, dgb2) = self.layer_norm_backward(&saved.x2, o.g2, dh2)?;
+        let (mut dx2, dgb2) = self.layer_norm_backward((&saved.x2, &rl), o.g2, dh2)?;
         put(o.g2, &dgb2[..d]);
         put(o.b2, &dgb2[d..]);
         add_into(&mut dx2, f32_slice(dy.0, dy.1, "block gradient")?);
@@ -369,7 +369,7 @@ impl<'a> Block<'a> {
             false => Some(dc_),
         };
         // LN₁, then dx = dx₂ + LN₁'s input gradient.
-        let (mut dx, dgb1) = self.layer_norm_backward(x.0, o.g1, dh1)?;
+        let (mut dx, dgb1) = self.layer_norm_backward(x, o.g1, dh1)?;
         put(o.g1, &dgb1[..d]);
         put(o.b1, &dgb1[d..]);
         add_into(&mut dx, f32s(&dx2, "block")?);
@@ -766,6 +766,45 @@ mod tests {
                 nodes2 >= 9,
                 "{nodes2} activation-sized nodes in the separate ops"
             );
+        }
+    }
+
+    /// Input and context that start inside a larger buffer (a contiguous view with an
+    /// offset) give the bits of fresh copies, forward and backward.
+    #[test]
+    fn inputs_with_a_storage_offset_give_the_bits_of_copies() {
+        for cross in [false, true] {
+            let a = args(cross, (2, 5, 3), 1.0, 6);
+            let n_inputs = if cross { 2 } else { 1 };
+            let offset: Vec<Tensor> = a
+                .iter()
+                .enumerate()
+                .map(|(i, t)| match i < n_inputs {
+                    // Rows 1.. of a tensor with one extra leading row.
+                    true => Tensor::cat(&[&t.narrow(0, 0, 1).unwrap(), t], 0)
+                        .unwrap()
+                        .narrow(0, 1, t.dim(0).unwrap())
+                        .unwrap(),
+                    false => t.clone(),
+                })
+                .collect();
+            assert!(offset[0].storage_and_layout().1.start_offset() > 0);
+            let f = |ts: &[Tensor]| {
+                let vars: Vec<Var> = ts.iter().map(|t| Var::from_tensor(t).unwrap()).collect();
+                // Var::from_tensor copies; keep the offset views for the inputs.
+                let mut inputs: Vec<Tensor> = ts[..n_inputs].to_vec();
+                inputs.extend(vars[n_inputs..].iter().map(|v| v.as_tensor().clone()));
+                let y = with_fused(true, || run(cross)(&inputs)).unwrap();
+                let g = (&y * &randn(y.dims(), 1.0, 9)).unwrap().sum_all().unwrap();
+                let g = g.backward().unwrap();
+                let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                let grads: Vec<Vec<f32>> = vars[n_inputs..]
+                    .iter()
+                    .map(|v| flat(g.get(v.as_tensor()).unwrap()))
+                    .collect();
+                (flat(&y), grads)
+            };
+            assert_eq!(f(&offset), f(&a), "cross {cross}");
         }
     }
 

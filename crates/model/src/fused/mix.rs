@@ -245,6 +245,7 @@ mod tests {
         assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
     };
     use crate::fused::with_fused;
+    use candle_core::Var;
 
     /// `[x, slots, W_q, W_k]`: `b` elements, `r` rays of width `dx`, `k` slots of `ds`.
     fn args((b, r, k): (usize, usize, usize), scale: f32, seed: u64) -> Vec<Tensor> {
@@ -276,6 +277,39 @@ mod tests {
         let sums = wf.sum(candle_core::D::Minus1).unwrap();
         assert!(max_diff(&sums, &sums.ones_like().unwrap()) <= 1e-5);
         assert!(!wf.track_op(), "the fused weights carry no gradient");
+    }
+
+    /// Queries and slots that start inside a larger buffer (contiguous views with an
+    /// offset) give the bits of fresh copies, forward and backward.
+    #[test]
+    fn inputs_with_a_storage_offset_give_the_bits_of_copies() {
+        let a = args((2, 6, 3), 1.0, 5);
+        let shifted = |t: &Tensor| {
+            Tensor::cat(&[&t.narrow(0, 0, 1).unwrap(), t], 0)
+                .unwrap()
+                .narrow(0, 1, t.dim(0).unwrap())
+                .unwrap()
+        };
+        let offset = vec![shifted(&a[0]), shifted(&a[1]), a[2].clone(), a[3].clone()];
+        assert!(offset[1].storage_and_layout().1.start_offset() > 0);
+        let run = |t: &[Tensor]| {
+            let w = [
+                Var::from_tensor(&t[2]).unwrap(),
+                Var::from_tensor(&t[3]).unwrap(),
+            ];
+            let (y, weights) = with_fused(true, || {
+                slot_mix(&t[0], &t[1], w[0].as_tensor(), w[1].as_tensor(), 0.4)
+            })
+            .unwrap();
+            let g = y.sum_all().unwrap().backward().unwrap();
+            let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let dw: Vec<_> = w
+                .iter()
+                .map(|v| flat(g.get(v.as_tensor()).unwrap()))
+                .collect();
+            (flat(&y), flat(&weights), dw)
+        };
+        assert_eq!(run(&offset), run(&a));
     }
 
     /// Saturated logits (one slot takes all the weight) stay finite and agree with the
