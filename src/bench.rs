@@ -30,6 +30,9 @@ pub struct BenchModelArgs {
     /// quick figure, and the loop to profile.
     #[arg(long)]
     pub step_only: bool,
+    /// Time only the renders (no train steps): the loop for render A/B comparisons.
+    #[arg(long, conflicts_with = "step_only")]
+    pub render_only: bool,
     /// Run in this process only (used by the parent, which sets the thread environment).
     #[arg(long, hide = true)]
     pub child: bool,
@@ -43,7 +46,8 @@ pub struct BenchModelArgs {
 
 fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let mut steps = Vec::new();
-    for p in &a.presets {
+    let presets: &[String] = if a.render_only { &[] } else { &a.presets };
+    for p in presets {
         let job = JobConfig::preset(p)?;
         // The same step with candle's composed ops, for the fused ops' speed-up.
         let variants: &[bool] = if a.step_only { &[true] } else { &[true, false] };
@@ -97,6 +101,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
             &a.steps.to_string(),
         ])
         .args(a.step_only.then_some("--step-only"))
+        .args(a.render_only.then_some("--render-only"))
         .arg("--presets")
         .arg(a.presets.join(","))
         .arg("--slots")

@@ -272,3 +272,48 @@ fn train_then_eval_a_tiny_run() {
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["scenes"], 3);
 }
+
+/// `osrt bench model --render-only` times the three decoders' renders and no train step
+/// (the loop for render A/B runs); with `--step-only` as well it is refused.
+#[test]
+fn bench_model_render_only_times_renders_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_json = dir.path().join("model.json");
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args(["bench", "model", "--render-only", "--slots", "2"])
+        .args(["--threads", "1", "--out", out_json.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+    let one = &v["1"];
+    assert_eq!(one["steps"].as_array().unwrap().len(), 0, "{v}");
+    let renders = one["renders"].as_array().unwrap();
+    let decoders: Vec<&str> = renders
+        .iter()
+        .map(|r| r["decoder"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        decoders,
+        ["slot_mixer", "spatial_broadcast", "transformer"],
+        "{v}"
+    );
+    assert!(
+        renders
+            .iter()
+            .all(|r| r["slots"] == 2 && r["fps"].as_f64().unwrap() > 0.0),
+        "{v}"
+    );
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args(["bench", "model", "--render-only", "--step-only"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot be used with"), "{err}");
+}
