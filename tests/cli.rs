@@ -279,16 +279,17 @@ fn train_then_eval_a_tiny_run() {
 fn bench_model_render_only_times_renders_alone() {
     let dir = tempfile::tempdir().unwrap();
     let out_json = dir.path().join("model.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
-        .args(["bench", "model", "--render-only", "--slots", "2"])
-        .args(["--threads", "1", "--out", out_json.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    osrt(&[
+        "bench",
+        "model",
+        "--render-only",
+        "--slots",
+        "2",
+        "--threads",
+        "1",
+        "--out",
+        out_json.to_str().unwrap(),
+    ]);
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
     let one = &v["1"];
