@@ -1,20 +1,32 @@
 #!/usr/bin/env python3
-"""PyTorch mirror of osrt's `clevr-lite-cpu` model and train step, for side-by-side timing
-with `osrt bench model` (same architecture and parameter count, same batch shape, same
-thread counts). Run by hand; CI does not install PyTorch.
+"""PyTorch mirror of osrt's model and train step, timed on the CPU or a CUDA GPU.
+
+For side-by-side timing with `osrt bench model` (same architecture and parameter count,
+same batch shapes), on the CPU (same thread counts as the Rust side) or on a CUDA GPU, in
+f32 or bf16 autocast. Run by hand; CI does not install PyTorch.
 
     python3 bench/torch_step.py [--steps 10] [--threads 1,2] [--out target/bench/torch.json]
                                 [--worker-allocator]
+    python3 bench/torch_step.py --device cuda [--presets clevr-lite-cpu,paper]
+                                [--batch-size 16,256] [--dtypes f32,bf16 | --bf16]
+                                [--image-size N] [--input-views N] [--rays-per-scene N]
+                                [--cases 1x8192,5x2304] [--warmup N] [--tf32] [--no-render]
+                                [--list]
 
 Mirrors crates/model (ray_encoding, encoder, nn, slot_attention, decoder/slot_mixer) with
-`Config::cpu()` sizes, and crates/trainer/src/bench.rs: the median of `--steps` full
-optimiser steps (forward, MSE on the target rays, backward, AdamW step, zero_grad) after
-one warm-up, batch building excluded; and render speed (decoding one whole 32x32 view,
-1024 rays, from 7 slots, no gradients; median of 5 after one warm-up). Each thread count
-runs in a fresh child process (thread pools are sized once per process), as in Rust.
+the sizes of `Config::cpu()` (preset `clevr-lite-cpu`) or `Config::paper()` (preset
+`paper`), and crates/trainer/src/bench.rs: the median of `--steps` full optimiser steps
+(forward, MSE on the target rays, backward, AdamW step, zero_grad) after `--warmup` steps
+(1 on the CPU, 2 on CUDA), batch building excluded; and render speed (decoding one whole
+input view, image_size² rays, from the model's slots, no gradients; median of 5 after one
+warm-up). On the CPU each (case, thread count) runs in a fresh child process (thread pools
+are sized once per process), as in Rust; on CUDA every case runs in this one process, with
+`torch.cuda.synchronize()` before each timer is read.
 """
 
 import argparse
+import contextlib
+import gc
 import json
 import math
 import os
@@ -23,19 +35,39 @@ import subprocess
 import sys
 import time
 
-# The clevr-lite-cpu preset (`osrt config --preset clevr-lite-cpu`; model = Config::cpu()).
-CFG = dict(
-    origin_octaves=8, origin_start=-3, direction_octaves=8, direction_start=0,
-    conv_channels=[32, 64], dim=128, enc_layers=2, enc_heads=4, enc_head_dim=32, enc_mlp=256,
-    ray_input="add",
-    num_slots=7, slot_dim=128, slot_mlp=256, iterations=3, eps=1e-8,
-    query_hidden=192, alloc_layers=1, alloc_heads=4, alloc_head_dim=32, alloc_mlp=192,
-    render_hidden=[128, 128],
-    batch_size=16, rays_per_scene=512, input_views=1, image_size=32,
-    lr=3e-4, beta1=0.9, beta2=0.999, adam_eps=1e-8, weight_decay=0.0,
-)
+# Model sizes and benchmark shapes per job preset (`osrt config --preset NAME`).
+# `shapes`: the (input views, target rays per scene) cases timed by default.
+PRESETS = {
+    # model = Config::cpu()
+    "clevr-lite-cpu": dict(
+        origin_octaves=8, origin_start=-3, direction_octaves=8, direction_start=0,
+        conv_channels=[32, 64], dim=128, enc_layers=2, enc_heads=4, enc_head_dim=32,
+        enc_mlp=256, ray_input="add",
+        num_slots=7, slot_dim=128, slot_mlp=256, iterations=3, eps=1e-8,
+        query_hidden=192, alloc_layers=1, alloc_heads=4, alloc_head_dim=32, alloc_mlp=192,
+        render_hidden=[128, 128],
+        batch_size=16, image_size=32, shapes=[(1, 512)],
+        lr=3e-4, beta1=0.9, beta2=0.999, adam_eps=1e-8, weight_decay=0.0,
+    ),
+    # model = Config::paper() (ray_encoding, encoder, slot_attention, slot_mixer `paper()`);
+    # optimiser = TrainConfig::reference(). The Rust preset trains batch 256 × 8192 rays;
+    # here the default batch is 32 (what one GPU holds), 128 px input views, and the two
+    # cases of the issue's table: 1 view + 8192 rays, 5 views + 2304 rays.
+    "paper": dict(
+        origin_octaves=15, origin_start=-5, direction_octaves=15, direction_start=0,
+        conv_channels=[96, 192, 384], dim=768, enc_layers=5, enc_heads=12, enc_head_dim=64,
+        enc_mlp=1536, ray_input="concat",
+        num_slots=6, slot_dim=1536, slot_mlp=3072, iterations=1, eps=1e-8,
+        query_hidden=360, alloc_layers=2, alloc_heads=12, alloc_head_dim=128, alloc_mlp=3072,
+        render_hidden=[1536, 1536, 1536, 1536],
+        batch_size=32, image_size=128, shapes=[(1, 8192), (5, 2304)],
+        lr=1e-4, beta1=0.9, beta2=0.999, adam_eps=1e-8, weight_decay=0.0,
+    ),
+}
+CFG = PRESETS["clevr-lite-cpu"]
 
-# The Rust model's parameter count (`osrt bench model --json` → "parameters"). By module:
+# The Rust model's parameter count per preset (`osrt bench model --json` → "parameters").
+# clevr-lite-cpu, by module:
 #   ray encoding: 6·(8+8) = 96 dims, no parameters
 #   encoder  607,072 = convs 3→32→64→64→128 (3×3, no bias) 864+18,432+36,864+73,728
 #                      + 1×1 projection 16,384
@@ -48,7 +80,19 @@ CFG = dict(
 #                        MLP 96→192→96 37,152)
 #                      + mix_q 12,288 + mix_k 16,384
 #                      + render MLP 224→128→128→3 28,800+16,512+387
-RUST_PARAMETERS = 1_029_379
+# paper, by module:
+#   ray encoding: 6·(15+15) = 180 dims, no parameters
+#   encoder  29,514,144 = convs (3+180)→96→192→192→384→384→768 (3×3, no bias) 5,300,640
+#                         + 1×1 projection 589,824 (ray_input = "concat": no ray embedding)
+#                         + 5 blocks × 4,724,736 (width 768, 12 heads × 64, MLP 1536)
+#   slots    28,342,272 = 3 LN 7,680, q 2,359,296, k/v 2×1,179,648, GRU 2×7,082,496,
+#                         MLP 1536→3072→1536 9,441,792, init 6×1536 = 9,216
+#   decoder  25,253,583 = query MLP 180→360→180 130,140
+#                         + 2 blocks × 6,381,624 (width 180, cross-attention into the
+#                           slots with 12 heads × 128, MLP 180→3072→180)
+#                         + mix_q 276,480 + mix_k 2,359,296
+#                         + render MLP 1716→1536→1536→1536→1536→3 9,724,419
+RUST_PARAMETERS = {"clevr-lite-cpu": 1_029_379, "paper": 83_109_999}
 
 # What `osrt bench model` re-executes itself with (src/cluster.rs, WORKER_MALLOC_ENV).
 WORKER_MALLOC_ENV = {
@@ -58,7 +102,7 @@ WORKER_MALLOC_ENV = {
 }
 
 
-def build(torch):
+def build(torch, c):
     nn = torch.nn
 
     class RayEncoding(nn.Module):
@@ -272,126 +316,306 @@ def build(torch):
         def decode(self, slots, origins, directions):
             return self.decoder(slots, self.rays(origins, directions))
 
-    return Osrt(CFG)
+    return Osrt(c)
 
 
-def unit(torch, *shape):
-    d = torch.randn(*shape)
+def unit(torch, *shape, device="cpu"):
+    d = torch.randn(*shape, device=device)
     return d / d.norm(dim=-1, keepdim=True)
 
 
-def child(threads, steps):
-    import torch
-    torch.set_num_threads(threads)
+def run_case(torch, case):
+    """Times one case (a dict: preset, batch_size, input_views, rays_per_scene, image_size,
+    dtype, device, steps, warmup, render) in this process; returns its figures."""
+    c = PRESETS[case["preset"]]
+    dev = torch.device(case["device"])
+    cuda = dev.type == "cuda"
+    bf16 = case["dtype"] == "bf16"
     torch.manual_seed(0)
-    c = CFG
-    model = build(torch)
+    model = build(torch, c).to(dev)
     count = lambda m: sum(p.numel() for p in m.parameters())
     params = count(model)
+    # f32 master weights and f32 AdamW state; bf16 only inside autocast (forward + loss).
     opt = torch.optim.AdamW(model.parameters(), lr=c["lr"], betas=(c["beta1"], c["beta2"]),
                             eps=c["adam_eps"], weight_decay=c["weight_decay"])
-    b, s, r, v = c["batch_size"], c["image_size"], c["rays_per_scene"], c["input_views"]
+    b, s = case["batch_size"], case["image_size"]
+    r, v = case["rays_per_scene"], case["input_views"]
     # Random inputs of the benchmark's shapes: one camera per view (origin of norm 10, the
-    # same for all its pixels), unit ray directions; 512 target rays per scene.
-    images = torch.rand(b, v, s, s, 3)
-    origins = 10.0 * unit(torch, b, v, 1, 1, 3).expand(-1, -1, s, s, -1).contiguous()
-    directions = unit(torch, b, v, s, s, 3)
-    t_orig = (10.0 * unit(torch, b, 1, 3)).expand(-1, r, -1).contiguous()
-    t_dir = unit(torch, b, r, 3)
-    target = torch.rand(b, r, 3)
+    # same for all its pixels), unit ray directions; r target rays per scene.
+    images = torch.rand(b, v, s, s, 3, device=dev)
+    origins = 10.0 * unit(torch, b, v, 1, 1, 3, device=dev).expand(-1, -1, s, s, -1).contiguous()
+    directions = unit(torch, b, v, s, s, 3, device=dev)
+    t_orig = (10.0 * unit(torch, b, 1, 3, device=dev)).expand(-1, r, -1).contiguous()
+    t_dir = unit(torch, b, r, 3, device=dev)
+    target = torch.rand(b, r, 3, device=dev)
+    autocast = ((lambda: torch.autocast(dev.type, dtype=torch.bfloat16)) if bf16
+                else contextlib.nullcontext)
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats(dev)
     step_s, fb_s, losses = [], [], []
-    for i in range(steps + 1):
+    for i in range(case["warmup"] + case["steps"]):
+        sync()
         t0 = time.perf_counter()
-        rgb, _ = model.decode(model.encode(images, origins, directions), t_orig, t_dir)
-        loss = ((rgb - target) ** 2).mean()
+        with autocast():
+            rgb, _ = model.decode(model.encode(images, origins, directions), t_orig, t_dir)
+            loss = ((rgb.float() - target) ** 2).mean()  # .float(): a no-op in f32
         loss.backward()
+        sync()
         t1 = time.perf_counter()
         opt.step()
         opt.zero_grad(set_to_none=True)
+        sync()
         t2 = time.perf_counter()
         losses.append(loss.item())
-        if i > 0:
+        if i >= case["warmup"]:
             step_s.append(t2 - t0)
             fb_s.append(t1 - t0)
-    # Render: one whole view (s·s rays) from the model's 7 slots, no gradients; the slots
-    # are encoded once (excluded), as in bench_render.
-    with torch.no_grad():
-        slots = model.encode(images[:1], origins[:1], directions[:1])
-        ro = origins[:1, 0].reshape(1, -1, 3)
-        rd = directions[:1, 0].reshape(1, -1, 3)
-        render_s = []
-        for i in range(6):
-            t0 = time.perf_counter()
-            rgb, _ = model.decode(slots, ro, rd)
-            rgb.flatten().tolist()  # as the Rust bench reads the pixels back
-            if i > 0:
-                render_s.append(time.perf_counter() - t0)
+    if cuda:
+        peak = torch.cuda.max_memory_allocated(dev) / 2**30
+        peak_kind = "torch.cuda.max_memory_allocated"
+    else:
+        import resource
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB → GiB
+        peak_kind = "process max RSS"
     m = statistics.median(step_s)
-    frame = statistics.median(render_s)
-    return dict(
-        preset="clevr-lite-cpu", framework=f"torch {torch.__version__}", threads=threads,
-        torch_threads=torch.get_num_threads(),
+    out = dict(
+        preset=case["preset"], framework=f"torch {torch.__version__}",
+        device=case["device"],
+        device_name=torch.cuda.get_device_name(dev) if cuda else "cpu",
+        dtype=case["dtype"],
+        threads=case.get("threads"), torch_threads=torch.get_num_threads(),
         parameters=params,
         parameters_by_module={k: count(getattr(model, k))
                               for k in ("encoder", "slot_attention", "decoder")},
-        batch_size=b, rays_per_scene=r, image_size=s, steps=steps,
+        batch_size=b, input_views=v, rays_per_scene=r, image_size=s,
+        steps=case["steps"], warmup_steps=case["warmup"],
         median_step_s=m, median_forward_backward_s=statistics.median(fb_s),
         scenes_per_s=b / m,
-        render={"decoder": "slot_mixer", "slots": int(slots.shape[1]), "image_size": s,
-                "median_frame_s": frame, "fps": 1.0 / frame},
-        render_fps=1.0 / frame,
+        peak_memory_gib=peak, peak_memory_kind=peak_kind,
         losses=losses,
     )
+    if cuda:
+        out["tf32"] = bool(torch.backends.cuda.matmul.allow_tf32)
+    del opt, images, origins, directions, t_orig, t_dir, target, rgb, loss
+    if case["render"]:
+        # Render: one whole input view (s·s rays) from the model's slots, no gradients;
+        # the slots are encoded once (excluded), as in bench_render.
+        with torch.no_grad(), autocast():
+            x = torch.rand(1, 1, s, s, 3, device=dev)
+            ro = 10.0 * unit(torch, 1, 1, 1, 1, 3, device=dev).expand(-1, -1, s, s, -1)
+            rd = unit(torch, 1, 1, s, s, 3, device=dev)
+            slots = model.encode(x, ro.contiguous(), rd)
+            ro, rd = ro.reshape(1, -1, 3), rd.reshape(1, -1, 3)
+            render_s = []
+            for i in range(6):
+                sync()
+                t0 = time.perf_counter()
+                rgb, _ = model.decode(slots, ro, rd)
+                rgb.float().flatten().tolist()  # as the Rust bench reads the pixels back
+                if i > 0:
+                    render_s.append(time.perf_counter() - t0)
+        frame = statistics.median(render_s)
+        out["render"] = {"decoder": "slot_mixer", "slots": int(slots.shape[1]),
+                         "image_size": s, "median_frame_s": frame, "fps": 1.0 / frame}
+        out["render_fps"] = 1.0 / frame
+    return out
+
+
+def child(threads, case):
+    import torch
+    torch.set_num_threads(threads)
+    return run_case(torch, dict(case, threads=threads))
+
+
+def ints(text):
+    return [int(x) for x in str(text).split(",") if x.strip()]
+
+
+def plan(a, ap):
+    """The cases to time: presets × batch sizes × (views, rays) shapes × dtypes."""
+    presets = [p.strip() for p in a.presets.split(",") if p.strip()]
+    for p in presets:
+        if p not in PRESETS:
+            ap.error(f"unknown preset {p!r}: expected one of {', '.join(PRESETS)}")
+    if a.bf16 and a.dtypes is not None:
+        ap.error("give --bf16 or --dtypes, not both")
+    dtypes = ["bf16"] if a.bf16 else (a.dtypes or "f32").split(",")
+    for d in dtypes:
+        if d not in ("f32", "bf16"):
+            ap.error(f"unknown dtype {d!r}: expected f32 or bf16")
+    if a.cases and (a.input_views is not None or a.rays_per_scene is not None):
+        ap.error("give --cases or --input-views/--rays-per-scene, not both")
+    explicit = None
+    if a.cases:
+        try:
+            explicit = [tuple(int(n) for n in x.lower().split("x")) for x in a.cases.split(",")]
+            assert all(len(t) == 2 for t in explicit)
+        except (ValueError, AssertionError):
+            ap.error("--cases wants VIEWSxRAYS[,VIEWSxRAYS…], e.g. 1x8192,5x2304")
+    cases = []
+    for p in presets:
+        c = PRESETS[p]
+        shapes = []
+        for v, r in explicit or c["shapes"]:
+            v = a.input_views if a.input_views is not None else v
+            r = a.rays_per_scene if a.rays_per_scene is not None else r
+            if (v, r) not in shapes:
+                shapes.append((v, r))
+        for bs in (ints(a.batch_size) if a.batch_size else [c["batch_size"]]):
+            for v, r in shapes:
+                for d in dtypes:
+                    cases.append(dict(
+                        preset=p, batch_size=bs, input_views=v, rays_per_scene=r,
+                        image_size=a.image_size or c["image_size"], dtype=d,
+                        device=a.device, steps=a.steps, warmup=a.warmup,
+                        render=not a.no_render))
+    return cases
+
+
+def label(r, by_threads):
+    if by_threads:  # the one default CPU case: keyed by thread count, as before
+        return str(r["threads"])
+    key = (f"{r['preset']} b{r['batch_size']} {r['input_views']}v {r['rays_per_scene']}r "
+           f"{r['image_size']}px {r['dtype']}")
+    return key + (f" {r['threads']}t" if r["device"] == "cpu" else "")
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--steps", type=int, default=10, help="timed steps after one warm-up")
-    ap.add_argument("--threads", default="1,2", help="thread counts, one child process each")
+    ap.add_argument("--steps", type=int, default=10, help="timed steps after the warm-up")
+    ap.add_argument("--warmup", type=int,
+                    help="untimed steps first (default 1 on the CPU, 2 on CUDA; CUDA needs ≥ 2)")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="cpu: one child process per case and thread count; cuda: one "
+                         "process, model, batch and optimiser on the GPU")
+    ap.add_argument("--threads", default="1,2",
+                    help="CPU thread counts, one child process each (ignored with cuda)")
+    ap.add_argument("--presets", default="clevr-lite-cpu",
+                    help=f"comma list of {', '.join(PRESETS)}")
+    ap.add_argument("--batch-size", help="comma list of batch sizes replacing each "
+                                         "preset's (clevr-lite-cpu 16, paper 32)")
+    ap.add_argument("--image-size", type=int,
+                    help="input-view side in pixels (default: clevr-lite-cpu 32, paper 128)")
+    ap.add_argument("--input-views", type=int,
+                    help="input views per scene, replacing each preset case's")
+    ap.add_argument("--rays-per-scene", type=int,
+                    help="target rays per scene, replacing each preset case's")
+    ap.add_argument("--cases", help="VIEWSxRAYS comma list replacing every preset's "
+                                    "(views, rays) cases (clevr-lite-cpu 1x512, paper "
+                                    "1x8192,5x2304)")
+    ap.add_argument("--dtypes", help="comma list of f32, bf16 (default f32)")
+    ap.add_argument("--bf16", action="store_true",
+                    help="same as --dtypes bf16: torch.autocast bf16 around forward + loss, "
+                         "f32 weights and AdamW")
+    ap.add_argument("--tf32", action="store_true",
+                    help="cuda: allow TF32 in f32 matmuls and cuDNN convolutions (default: "
+                         "off in both, so f32 is f32)")
+    ap.add_argument("--no-render", action="store_true", help="skip the render timing")
+    ap.add_argument("--list", action="store_true", help="print the cases and exit")
     ap.add_argument("--out", default="target/bench/torch.json")
     ap.add_argument("--worker-allocator", action="store_true",
                     help="give the children the glibc malloc settings `osrt bench model` uses")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--child-case", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.steps < 1:
         ap.error("--steps must be at least 1")
+    if a.warmup is None:
+        a.warmup = 2 if a.device == "cuda" else 1
+    if a.device == "cuda" and a.warmup < 2:
+        ap.error("--warmup must be at least 2 on cuda (the first steps load kernels)")
+    if a.warmup < 0:
+        ap.error("--warmup must not be negative")
     if a.child:
-        print(json.dumps(child(a.child, a.steps)))
+        print(json.dumps(child(a.child, json.loads(a.child_case))))
         return
-    results = {}
-    for t in [int(x) for x in a.threads.split(",")]:
-        print(f"benchmarking with {t} thread(s)…", file=sys.stderr)
-        env = dict(os.environ, OMP_NUM_THREADS=str(t), MKL_NUM_THREADS=str(t))
-        if a.worker_allocator:
-            env.update(WORKER_MALLOC_ENV)
-        out = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", str(t),
-                              "--steps", str(a.steps)], env=env, capture_output=True, text=True)
-        if out.returncode != 0:
-            sys.exit(f"benchmark child ({t} threads) failed:\n{out.stderr}")
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        r["worker_allocator"] = a.worker_allocator
-        results[str(t)] = r
+    cases = plan(a, ap)
+    if a.list:
+        for case in cases:
+            print(json.dumps(case))
+        return
 
-    first = next(iter(results.values()))
-    p = first["parameters"]
-    check = "= Rust" if p == RUST_PARAMETERS else f"!= Rust {RUST_PARAMETERS:,} — MISMATCH"
-    print(f"{first['preset']} mirror, {first['framework']}: {p:,} parameters ({check}; "
-          + ", ".join(f"{k} {n:,}" for k, n in first["parameters_by_module"].items())
-          + f"), batch {first['batch_size']} × {first['rays_per_scene']} rays, "
-          f"{first['image_size']}px, median of {a.steps} step(s) after 1 warm-up"
-          + (", workers' allocator" if a.worker_allocator else ""))
-    head = ("threads", "step ms", "fwd+bwd ms", "scenes/s", "render ms", "render fps")
-    print("  ".join(f"{h:>10}" for h in head))
-    for t, r in results.items():
-        row = (t, f"{r['median_step_s'] * 1e3:.1f}", f"{r['median_forward_backward_s'] * 1e3:.1f}",
-               f"{r['scenes_per_s']:.1f}", f"{r['render']['median_frame_s'] * 1e3:.2f}",
-               f"{r['render']['fps']:.1f}")
-        print("  ".join(f"{x:>10}" for x in row))
+    results = []
+    if a.device == "cpu":
+        for case in cases:
+            for t in ints(a.threads):
+                print(f"benchmarking {case['preset']} batch {case['batch_size']}, "
+                      f"{case['input_views']} view(s), {case['rays_per_scene']} rays, "
+                      f"{case['image_size']}px, {case['dtype']}, {t} thread(s)…",
+                      file=sys.stderr)
+                env = dict(os.environ, OMP_NUM_THREADS=str(t), MKL_NUM_THREADS=str(t))
+                if a.worker_allocator:
+                    env.update(WORKER_MALLOC_ENV)
+                out = subprocess.run([sys.executable, os.path.abspath(__file__),
+                                      "--child", str(t), "--child-case", json.dumps(case),
+                                      "--steps", str(a.steps)],
+                                     env=env, capture_output=True, text=True)
+                if out.returncode != 0:
+                    sys.exit(f"benchmark child ({t} threads) failed:\n{out.stderr}")
+                r = json.loads(out.stdout.strip().splitlines()[-1])
+                r["worker_allocator"] = a.worker_allocator
+                results.append(r)
+    else:
+        import torch
+        if not torch.cuda.is_available():
+            sys.exit("--device cuda: torch.cuda.is_available() is False")
+        torch.backends.cuda.matmul.allow_tf32 = a.tf32
+        torch.backends.cudnn.allow_tf32 = a.tf32
+        for case in cases:
+            print(f"benchmarking {case['preset']} batch {case['batch_size']}, "
+                  f"{case['input_views']} view(s), {case['rays_per_scene']} rays, "
+                  f"{case['image_size']}px, {case['dtype']} on "
+                  f"{torch.cuda.get_device_name()}…", file=sys.stderr)
+            try:
+                results.append(run_case(torch, case))
+            except torch.cuda.OutOfMemoryError as e:
+                print(f"  out of memory: {str(e).splitlines()[0]}", file=sys.stderr)
+                results.append(dict(case, error="out of memory",
+                                    framework=f"torch {torch.__version__}",
+                                    device_name=torch.cuda.get_device_name()))
+            gc.collect()
+            torch.cuda.empty_cache()
+
+    ok = True
+    ran = [r for r in results if "error" not in r]
+    for p in dict.fromkeys(r["preset"] for r in ran):
+        r = next(x for x in ran if x["preset"] == p)
+        n, want = r["parameters"], RUST_PARAMETERS[p]
+        check = "= Rust" if n == want else f"!= Rust {want:,} — MISMATCH"
+        ok &= n == want
+        print(f"{p} mirror, {r['framework']} on {r['device_name']}: {n:,} parameters "
+              f"({check}; " + ", ".join(f"{k} {m:,}" for k, m in r["parameters_by_module"].items())
+              + f"), median of {a.steps} step(s) after {a.warmup} warm-up"
+              + (", workers' allocator" if a.worker_allocator else "")
+              + (", TF32 allowed" if a.device == "cuda" and a.tf32 else ""))
+    head = ("preset", "params", "threads" if a.device == "cpu" else "device", "batch", "views",
+            "rays", "px", "dtype", "step ms", "fwd+bwd ms", "scenes/s", "peak GiB",
+            "render ms", "render fps")
+    widths = (14, 11, 7, 5, 5, 6, 4, 5, 9, 10, 9, 8, 9, 10)
+    print("  ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
+    for r in results:
+        where = str(r.get("threads")) if a.device == "cpu" else "cuda"
+        if "error" in r:
+            row = (r["preset"], "", where, r["batch_size"], r["input_views"],
+                   r["rays_per_scene"], r["image_size"], r["dtype"], r["error"])
+            print("  ".join(f"{x!s:>{w}}" for x, w in zip(row, widths)))
+            continue
+        row = (r["preset"], f"{r['parameters']:,}", where, r["batch_size"], r["input_views"],
+               r["rays_per_scene"], r["image_size"], r["dtype"],
+               f"{r['median_step_s'] * 1e3:.1f}", f"{r['median_forward_backward_s'] * 1e3:.1f}",
+               f"{r['scenes_per_s']:.{1 if r['scenes_per_s'] >= 10 else 3}f}",
+               f"{r['peak_memory_gib']:.2f}",
+               f"{r['render']['median_frame_s'] * 1e3:.2f}" if "render" in r else "-",
+               f"{r['render']['fps']:.1f}" if "render" in r else "-")
+        print("  ".join(f"{x!s:>{w}}" for x, w in zip(row, widths)))
+    by_threads = a.device == "cpu" and len(cases) == 1
+    saved = {label(r, by_threads): r for r in results}
     os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
     with open(a.out, "w") as f:
-        json.dump(results, f, indent=2)
+        json.dump(saved, f, indent=2)
     print(f"saved to {a.out}")
-    if p != RUST_PARAMETERS:
+    if not ok:
         sys.exit(1)
 
 

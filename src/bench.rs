@@ -4,9 +4,10 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use osrt_model::Precision;
 use osrt_model::fused::with_fused;
-use osrt_trainer::JobConfig;
 use osrt_trainer::bench::{bench_render, bench_step};
+use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
 
 #[derive(Args)]
@@ -36,6 +37,22 @@ pub struct BenchModelArgs {
     /// Run in this process only (used by the parent, which sets the thread environment).
     #[arg(long, hide = true)]
     pub child: bool,
+    /// Where the model runs: cpu, or cuda / cuda:N (one process with every core; no
+    /// composed-vs-fused comparison, the fused ops are CPU-only).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Matrix products in f32 or bf16 (GPU only).
+    #[arg(long, default_value = "f32")]
+    pub precision: Precision,
+    /// Override the presets' scenes per step.
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    /// Override the presets' input views.
+    #[arg(long)]
+    pub input_views: Option<usize>,
+    /// Override the presets' target rays per scene.
+    #[arg(long)]
+    pub rays_per_scene: Option<usize>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -44,16 +61,34 @@ pub struct BenchModelArgs {
     pub out: std::path::PathBuf,
 }
 
+/// A preset with the command line's overrides.
+fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
+    let mut job = JobConfig::preset(preset)?;
+    let t = &mut job.train;
+    t.batch_size = a.batch_size.unwrap_or(t.batch_size);
+    t.input_views = a.input_views.unwrap_or(t.input_views);
+    t.rays_per_scene = a.rays_per_scene.unwrap_or(t.rays_per_scene);
+    t.device = a.device;
+    t.precision = a.precision;
+    job.validate()?;
+    Ok(job)
+}
+
 fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
+    let device = a.device.open()?;
     let mut steps = Vec::new();
     let presets: &[String] = if a.render_only { &[] } else { &a.presets };
     for p in presets {
-        let job = JobConfig::preset(p)?;
+        let job = bench_job(a, p)?;
         // The same step with candle's composed ops, for the fused ops' speed-up.
-        let variants: &[bool] = if a.step_only { &[true] } else { &[true, false] };
+        let variants: &[bool] = if a.step_only || a.device.is_cuda() {
+            &[true]
+        } else {
+            &[true, false]
+        };
         for &fused in variants {
             steps.push(with_fused(fused, || {
-                bench_step(p, &job, a.image_size, a.steps)
+                bench_step(p, &job, a.image_size, a.steps, &device)
             })?);
         }
     }
@@ -62,7 +97,7 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let slots: &[usize] = if a.step_only { &[] } else { &a.slots };
     for &k in slots {
         for d in ["slot_mixer", "spatial_broadcast", "transformer"] {
-            renders.push(bench_render(&model, d, k, a.image_size, 5)?);
+            renders.push(bench_render(&model, d, k, a.image_size, 5, &device)?);
         }
     }
     Ok(json!({ "steps": steps, "renders": renders }))
@@ -88,7 +123,13 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
     }
     let exe = std::env::current_exe()?;
     let mut by_threads = serde_json::Map::new();
-    for &n in &a.threads {
+    // A GPU benchmark runs once, with every core for the host's share of the step.
+    let threads = if a.device.is_cuda() {
+        vec![std::thread::available_parallelism().map_or(1, |n| n.get())]
+    } else {
+        a.threads.clone()
+    };
+    for &n in &threads {
         eprintln!("benchmarking with {n} thread(s)…");
         let mut cmd = std::process::Command::new(&exe);
         cmd.args([
@@ -102,6 +143,23 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         ])
         .args(a.step_only.then_some("--step-only"))
         .args(a.render_only.then_some("--render-only"))
+        .args(["--device", &a.device.to_string()])
+        .args(["--precision", &a.precision.to_string()])
+        .args(
+            a.batch_size
+                .iter()
+                .flat_map(|v| ["--batch-size".to_string(), v.to_string()]),
+        )
+        .args(
+            a.input_views
+                .iter()
+                .flat_map(|v| ["--input-views".to_string(), v.to_string()]),
+        )
+        .args(
+            a.rays_per_scene
+                .iter()
+                .flat_map(|v| ["--rays-per-scene".to_string(), v.to_string()]),
+        )
         .arg("--presets")
         .arg(a.presets.join(","))
         .arg("--slots")
@@ -132,22 +190,33 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
     for (threads, v) in report.as_object().expect("object") {
         println!("{threads} thread(s):");
         for s in v["steps"].as_array().expect("array") {
+            let ms = |k: &str| s[k].as_f64().unwrap_or(0.0) * 1e3;
             println!(
-                "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} rays, {}px)",
+                "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} view(s), {} rays, {}px, {} {})",
                 s["preset"].as_str().unwrap_or(""),
                 if s["fused"] == true {
                     "fused"
                 } else {
                     "composed"
                 },
-                s["median_step_s"].as_f64().unwrap_or(0.0) * 1e3,
+                ms("median_step_s"),
                 s["scenes_per_s"].as_f64().unwrap_or(0.0),
-                s["median_forward_backward_s"].as_f64().unwrap_or(0.0) * 1e3,
+                ms("median_forward_backward_s"),
                 s["parameters"],
                 s["batch_size"],
+                s["input_views"],
                 s["rays_per_scene"],
-                s["image_size"]
+                s["image_size"],
+                s["device"].as_str().unwrap_or(""),
+                s["precision"].as_str().unwrap_or(""),
             );
+            if ms("median_gradient_transfer_s") > 0.0 {
+                println!(
+                    "    gradient device → host → device: {:.2} ms median ({:.1} % of the step)",
+                    ms("median_gradient_transfer_s"),
+                    100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
+                );
+            }
         }
         let steps = v["steps"].as_array().expect("array");
         for p in &a.presets {

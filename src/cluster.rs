@@ -9,7 +9,7 @@ use osrt_coordinator::{Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
-use osrt_trainer::{JobConfig, WorkerOptions, run_worker};
+use osrt_trainer::{DeviceSpec, JobConfig, WorkerOptions, run_worker};
 use std::io::IsTerminal;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -28,7 +28,8 @@ pub struct CoordinatorArgs {
     /// Job config (TOML, a full `JobConfig`); default: the `--preset`.
     #[arg(long, env = "OSRT_CONFIG")]
     pub config: Option<PathBuf>,
-    /// Named job preset when no --config is given: clevr-lite-cpu, tiny, paper.
+    /// Named job preset when no --config is given: clevr-lite-cpu, clevr-lite-gpu, tiny,
+    /// paper.
     #[arg(long, env = "OSRT_PRESET", default_value = "clevr-lite-cpu")]
     pub preset: String,
     /// Dataset directory or URL (read by the workers).
@@ -74,6 +75,10 @@ pub struct WorkerArgs {
     /// Compute threads (candle's pool); the process re-executes itself to apply it.
     #[arg(long, env = "OSRT_THREADS")]
     pub threads: Option<usize>,
+    /// Where this worker computes: cpu, cuda or cuda:N (default: the job config's
+    /// `train.device`). Each worker owns one GPU.
+    #[arg(long, env = "OSRT_DEVICE")]
+    pub device: Option<DeviceSpec>,
     /// Give up after the coordinator has been unreachable this long.
     #[arg(long, default_value_t = 60.0)]
     pub coordinator_timeout_s: f64,
@@ -253,6 +258,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
         listen: a.listen,
         advertise: a.advertise,
         threads,
+        device: a.device,
         token,
         tls: Tls::from_env()?,
         name: format!("{host}:{}", std::process::id()),
@@ -270,7 +276,12 @@ pub struct LocalJob {
     pub resume: bool,
 }
 
-fn spawn_worker(coordinator: &str, threads: usize, token: &Token) -> Result<tokio::process::Child> {
+fn spawn_worker(
+    coordinator: &str,
+    threads: usize,
+    device: DeviceSpec,
+    token: &Token,
+) -> Result<tokio::process::Child> {
     let mut cmd = tokio::process::Command::new(std::env::current_exe()?);
     cmd.args([
         "worker",
@@ -280,10 +291,13 @@ fn spawn_worker(coordinator: &str, threads: usize, token: &Token) -> Result<toki
         "127.0.0.1:0",
         "--threads",
         &threads.to_string(),
-    ])
-    .env(TOKEN_ENV, token.as_str())
-    .envs(compute_thread_env(threads))
-    .kill_on_drop(true);
+    ]);
+    if device.is_cuda() {
+        cmd.args(["--device", &device.to_string()]);
+    }
+    cmd.env(TOKEN_ENV, token.as_str())
+        .envs(compute_thread_env(threads))
+        .kill_on_drop(true);
     for (k, v) in WORKER_MALLOC_ENV {
         if std::env::var_os(k).is_none() {
             cmd.env(k, v);
@@ -301,6 +315,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let token = Token::generate();
     let max_steps = job.spec.max_steps;
     let max_restarts = job.spec.job.cluster.max_restarts;
+    let device = job.spec.job.train.device;
     let coord = Coordinator::open(job.spec, job.resume).await?;
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = format!("http://{}", listener.local_addr()?);
@@ -318,9 +333,21 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             },
         ),
     );
+    // Worker k computes on GPU k (GPUs shared round-robin when there are fewer).
+    let gpus = if device.is_cuda() {
+        osrt_trainer::device::cuda_device_count()
+    } else {
+        0
+    };
+    let device_of = |k: usize| device.for_local_worker(k, gpus);
     let mut children = Vec::new();
-    for _ in 0..job.workers {
-        children.push(spawn_worker(&addr, job.threads_per_worker, &token)?);
+    for k in 0..job.workers {
+        children.push(spawn_worker(
+            &addr,
+            job.threads_per_worker,
+            device_of(k),
+            &token,
+        )?);
     }
     let bar = if std::io::stderr().is_terminal() {
         let b = match max_steps {
@@ -380,7 +407,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             v1::JobState::try_from(s.state),
             Ok(v1::JobState::Done | v1::JobState::Failed)
         );
-        for child in children.iter_mut() {
+        for (k, child) in children.iter_mut().enumerate() {
             if let Ok(Some(exit)) = child.try_wait()
                 && !over
             {
@@ -389,7 +416,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
                     bail!("worker exited ({exit}) and {max_restarts} replacements are used up");
                 }
                 tracing::warn!(%exit, "worker exited; starting a replacement");
-                *child = spawn_worker(&addr, job.threads_per_worker, &token)?;
+                *child = spawn_worker(&addr, job.threads_per_worker, device_of(k), &token)?;
                 respawned += 1;
             }
         }

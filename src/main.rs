@@ -4,6 +4,7 @@
 mod bench;
 mod cluster;
 mod data;
+mod device;
 mod render;
 mod sweep;
 mod train;
@@ -46,6 +47,8 @@ enum Command {
     Sweep(sweep::SweepArgs),
     /// Charts and a static HTML page of a run or a sweep (error against run time).
     Report(sweep::ReportArgs),
+    /// Compare a GPU's train step with the CPU's (gradients, one optimiser step).
+    CheckDevice(device::CheckDeviceArgs),
     /// Benchmarks that print (and save) throughput figures.
     Bench {
         #[command(subcommand)]
@@ -83,6 +86,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Eval(args) => train::eval(args).await,
         Command::Render(args) => render::render(*args).await,
         Command::Sweep(args) => sweep::sweep(args).await,
+        Command::CheckDevice(args) => device::run(args),
         Command::Report(args) => sweep::report(args).await,
         Command::Config { preset } => {
             print!("{}", osrt_trainer::JobConfig::preset(&preset)?.to_toml());

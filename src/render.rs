@@ -9,7 +9,7 @@ use osrt_sweep::pictures::{
     rgb_image, rgb8_image, segmentation_image, strip, write_gif, write_png,
 };
 use osrt_trainer::render::{encode_scene, orbit, render_view};
-use osrt_trainer::{LoadedRun, load_run};
+use osrt_trainer::{DeviceSpec, LoadedRun, load_run, load_run_on};
 use serde_json::json;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -55,6 +55,9 @@ pub struct RenderArgs {
     /// Output folder (frame-NNN.png, render.gif, render.json).
     #[arg(long)]
     pub out: PathBuf,
+    /// Where the model runs: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 fn parse_add_slot(s: &str) -> std::result::Result<(u64, usize), String> {
@@ -209,7 +212,7 @@ pub async fn render(a: RenderArgs) -> Result<()> {
     if a.motion == Motion::Orbit && a.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let loaded = load_run(&a.run)
+    let loaded = load_run_on(&a.run, None, a.device)
         .await
         .with_context(|| format!("loading run {}", a.run))?;
     let data = a.data.clone().unwrap_or_else(|| loaded.info.data.clone());

@@ -4,9 +4,9 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
-use osrt_model::SlotInit;
+use osrt_model::{Precision, SlotInit};
 use osrt_trainer::run::eval_options;
-use osrt_trainer::{JobConfig, evaluate, load_run_with_slots};
+use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -18,15 +18,17 @@ pub struct TrainArgs {
     /// Job config (TOML, a full `JobConfig`); default: the `--preset`.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Named job preset when no --config is given: clevr-lite-cpu, tiny, paper.
+    /// Named job preset when no --config is given: clevr-lite-cpu, clevr-lite-gpu, tiny,
+    /// paper.
     #[arg(long, default_value = "clevr-lite-cpu")]
     pub preset: String,
     /// Dataset directory or URL; the default ./data is generated (clevr-lite) if absent.
     #[arg(long, default_value = DEFAULT_DATA)]
     pub data: String,
-    /// Worker processes on this machine (a coordinator runs in this process).
-    #[arg(long, default_value_t = 2)]
-    pub workers: usize,
+    /// Worker processes on this machine (a coordinator runs in this process); default 2
+    /// on the CPU, one per GPU on `cuda`.
+    #[arg(long)]
+    pub workers: Option<usize>,
     /// Compute threads per worker (default: the machine's cores divided among workers).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -74,6 +76,13 @@ pub struct TrainArgs {
     /// option beyond the paper: RGB-only CNN plus a ray-patch embedding).
     #[arg(long)]
     pub ray_input: Option<String>,
+    /// Where the workers compute: cpu, cuda or cuda:N (worker k takes GPU k; needs a
+    /// build with the `cuda` feature).
+    #[arg(long)]
+    pub device: Option<DeviceSpec>,
+    /// Matrix products in f32 or bf16 (GPU only; weights and optimiser stay f32).
+    #[arg(long)]
+    pub precision: Option<Precision>,
     /// Override seconds between validation runs.
     #[arg(long)]
     pub eval_every_s: Option<f64>,
@@ -106,6 +115,9 @@ pub struct EvalArgs {
     /// Slots at test time (random slot init only), e.g. more slots on the `ood` split.
     #[arg(long)]
     pub slots: Option<usize>,
+    /// Where the model runs: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -137,6 +149,12 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.eval_scenes {
         t.eval_scenes = v;
+    }
+    if let Some(v) = a.device {
+        t.device = v;
+    }
+    if let Some(v) = a.precision {
+        t.precision = v;
     }
     if let Some(d) = &a.decoder {
         job.model = job.model.clone().with_decoder(d).with_context(|| {
@@ -207,15 +225,21 @@ pub async fn ensure_default_data(data: &str) -> Result<()> {
 }
 
 pub async fn train(a: TrainArgs) -> Result<()> {
-    if a.workers == 0 {
+    if a.workers == Some(0) {
         bail!("--workers must be at least 1");
     }
     if a.resume && a.run.is_none() {
         bail!("--resume needs the --run folder to continue");
     }
     let mut job = job_config(&a)?;
-    job.cluster.min_workers = a.workers;
-    job.cluster.max_workers = job.cluster.max_workers.max(a.workers);
+    job.train.device.check_available()?;
+    let workers = a.workers.unwrap_or(if job.train.device.is_cuda() {
+        osrt_trainer::device::cuda_device_count().max(1)
+    } else {
+        2
+    });
+    job.cluster.min_workers = workers;
+    job.cluster.max_workers = job.cluster.max_workers.max(workers);
     ensure_default_data(&a.data).await?;
     let run = a.run.clone().unwrap_or_else(|| {
         let now = std::time::SystemTime::now()
@@ -237,17 +261,23 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     let cores = std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1);
-    let threads = a.threads.unwrap_or((cores / a.workers).max(1));
+    let threads = a.threads.unwrap_or((cores / workers).max(1));
     eprintln!(
-        "run folder: {run} ({} worker{} × {threads} thread{})",
-        a.workers,
-        if a.workers == 1 { "" } else { "s" },
-        if threads == 1 { "" } else { "s" }
+        "run folder: {run} ({} worker{} × {threads} thread{}, on {}{})",
+        workers,
+        if workers == 1 { "" } else { "s" },
+        if threads == 1 { "" } else { "s" },
+        job.train.device,
+        if job.train.device.is_cuda() && workers > 1 {
+            ", worker k on GPU k"
+        } else {
+            ""
+        },
     );
     let spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes)?;
     let status = crate::cluster::run_local(crate::cluster::LocalJob {
         spec,
-        workers: a.workers,
+        workers,
         threads_per_worker: threads,
         resume: a.resume,
     })
@@ -287,6 +317,7 @@ pub struct EvalRequest {
     pub views: Option<usize>,
     pub grayscale: bool,
     pub slots: Option<usize>,
+    pub device: DeviceSpec,
 }
 
 /// A run's newest committed checkpoint evaluated as `req` asks; returns the checkpoint's
@@ -296,7 +327,7 @@ pub async fn evaluate_run(
     req: &EvalRequest,
 ) -> Result<(u64, String, osrt_trainer::EvalResult)> {
     let split = req.split.as_str();
-    let loaded = load_run_with_slots(run, req.slots)
+    let loaded = load_run_on(run, req.slots, req.device)
         .await
         .with_context(|| format!("loading run {run}"))?;
     let data = req.data.clone().unwrap_or_else(|| loaded.info.data.clone());
@@ -342,6 +373,7 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
         views: a.views,
         grayscale: a.grayscale,
         slots: a.slots,
+        device: a.device,
     };
     let (step, data, r) = evaluate_run(&a.run, &req).await?;
     if a.json {

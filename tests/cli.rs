@@ -89,6 +89,33 @@ fn bad_arguments_are_clear_errors() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("is empty"), "{err}");
+    // Device and precision are checked before any worker starts.
+    for (args, want) in [
+        (vec!["--device", "tpu"], "expected cpu, cuda or cuda:N"),
+        (vec!["--precision", "fp8"], "expected f32 or bf16"),
+        (vec!["--precision", "bf16"], "bf16 runs on a GPU only"),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+            .arg("train")
+            .args(&args)
+            .args(["--data", dir.path().to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+    // Without the `cuda` feature a GPU preset is one clear error, not a worker restart loop.
+    if !cfg!(feature = "cuda") {
+        let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+            .args(["train", "--preset", "clevr-lite-gpu", "--max-steps", "1"])
+            .args(["--data", dir.path().to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("scripts/build-cuda.sh"), "{err}");
+    }
 }
 
 /// pyarrow reads what we wrote. CI installs pyarrow (`.ci/run`); elsewhere the test says

@@ -1,7 +1,10 @@
 //! The Kubernetes manifests in deploy/k8s: validated offline against the API schemas
 //! (kubernetes-validate --strict), and run the way their pods run — the same binary, the
 //! same arguments and the same environment variables (values for loopback and a local
-//! S3-compatible server substituted) — until the job completes.
+//! S3-compatible server substituted) — until the job completes. The GPU overlay,
+//! deploy/k8s-gpu, is built as `kubectl apply -k` builds it and validated the same way;
+//! its pods are not run (no GPU here), but its workers are shown to be the CPU workers
+//! plus `--device cuda` on one GPU each.
 
 mod common;
 
@@ -13,6 +16,24 @@ use std::time::Duration;
 
 fn k8s_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/k8s")
+}
+
+fn k8s_gpu_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/k8s-gpu")
+}
+
+fn python_helper(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/python")
+        .join(name)
+}
+
+fn output_text(out: &std::process::Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
 }
 
 fn manifests() -> Vec<PathBuf> {
@@ -83,6 +104,197 @@ fn manifests_validate_strictly_and_a_broken_one_is_rejected() {
     }
 }
 
+/// `kubectl kustomize DIR`: the resources `kubectl apply -k DIR` creates, built by
+/// tests/python/kustomize_lite.py (checked against kubectl itself where it is installed)
+/// into `out`/built.yaml. `None` when PyYAML is missing outside CI.
+fn kustomize_build(dir: &Path, out: &Path) -> Option<PathBuf> {
+    let mut cmd = Command::new("python3");
+    cmd.arg(python_helper("kustomize_lite.py")).arg(dir);
+    let kubectl = Command::new("kubectl")
+        .args(["version", "--client"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if kubectl {
+        cmd.arg("--check-kubectl");
+    }
+    let built = cmd.output().expect("python3");
+    if built.status.code() == Some(77) {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "PyYAML missing in CI: {}",
+            output_text(&built)
+        );
+        eprintln!("skipped: PyYAML not installed");
+        return None;
+    }
+    assert!(
+        built.status.success(),
+        "building {}: {}",
+        dir.display(),
+        output_text(&built)
+    );
+    let path = out.join("built.yaml");
+    std::fs::write(&path, &built.stdout).unwrap();
+    Some(path)
+}
+
+/// Copies the files (not subfolders) of `from` into a new folder `to`.
+fn copy_files(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, to.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+}
+
+#[test]
+fn gpu_overlay_validates_strictly_and_a_broken_one_is_rejected() {
+    // The base and the overlay, each as `kubectl apply -k` would create it.
+    for dir in [k8s_dir(), k8s_gpu_dir()] {
+        let tmp = tempfile::tempdir().unwrap();
+        let Some(built) = kustomize_build(&dir, tmp.path()) else {
+            return;
+        };
+        let Some(out) = validate(&[built]) else {
+            return;
+        };
+        let text = output_text(&out);
+        assert!(out.status.success(), "{}: {text}", dir.display());
+        for kind in [
+            "configmap/osrt-job",
+            "deployment/osrt-coordinator",
+            "service/osrt-coordinator",
+            "job/osrt-workers",
+            "service/osrt-workers",
+        ] {
+            assert!(text.contains(kind), "{kind} validated: {text}");
+        }
+    }
+    // The check can fail: a misspelt field and a wrongly typed one in the overlay's
+    // patch reach the built Job and are rejected (the copy keeps the layout: the
+    // overlay names its base as ../k8s).
+    let patch = std::fs::read_to_string(k8s_gpu_dir().join("workers-gpu.yaml")).unwrap();
+    for (what, broken) in [
+        (
+            "unknown field",
+            patch.replace("tolerations:", "toleration:"),
+        ),
+        (
+            "wrong type",
+            patch.replace("nvidia.com/gpu: 1", "nvidia.com/gpu: [1]"),
+        ),
+    ] {
+        assert_ne!(broken, patch, "{what}: the substitution applied");
+        let tmp = tempfile::tempdir().unwrap();
+        copy_files(&k8s_dir(), &tmp.path().join("k8s"));
+        copy_files(&k8s_gpu_dir(), &tmp.path().join("k8s-gpu"));
+        std::fs::write(tmp.path().join("k8s-gpu/workers-gpu.yaml"), broken).unwrap();
+        let built = kustomize_build(&tmp.path().join("k8s-gpu"), tmp.path()).unwrap();
+        let out = validate(&[built]).unwrap();
+        assert!(!out.status.success(), "{what} was accepted");
+    }
+}
+
+/// What the pods of the kustomization in `dir` run (tests/python/render_pods.py), or
+/// `None` when PyYAML is missing outside CI.
+fn render_pods(dir: &Path) -> Option<serde_json::Value> {
+    let out = Command::new("python3")
+        .arg(python_helper("render_pods.py"))
+        .arg(dir)
+        .output()
+        .unwrap();
+    if out.status.code() == Some(77) && std::env::var_os("CI").is_none() {
+        eprintln!("skipped: PyYAML not installed");
+        return None;
+    }
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Some(serde_json::from_slice(&out.stdout).unwrap())
+}
+
+/// The GPU overlay's workers are the CPU workers (whose command lines the test below
+/// runs) with the CUDA image, `--device cuda` and one GPU each; its coordinator is the
+/// CPU one writing another run folder.
+#[test]
+fn gpu_workers_are_the_cpu_workers_with_one_gpu_each() {
+    let (Some(cpu), Some(gpu)) = (render_pods(&k8s_dir()), render_pods(&k8s_gpu_dir())) else {
+        return;
+    };
+    let (cw, gw) = (&cpu["worker"], &gpu["worker"]);
+
+    // One GPU per pod, requested and limited; CPU and memory Guaranteed as well.
+    let resources = &gw["resources"];
+    for side in ["requests", "limits"] {
+        let gpus = &resources[side]["nvidia.com/gpu"];
+        assert!(
+            gpus.as_u64() == Some(1) || gpus.as_str() == Some("1"),
+            "{side}: nvidia.com/gpu = {gpus}"
+        );
+    }
+    assert_eq!(resources["requests"], resources["limits"], "{resources}");
+    let tolerated = gw["tolerations"].as_array().unwrap().iter().any(|t| {
+        t["key"] == "nvidia.com/gpu" && t["operator"] == "Exists" && t["effect"] == "NoSchedule"
+    });
+    assert!(
+        tolerated,
+        "no nvidia.com/gpu toleration: {}",
+        gw["tolerations"]
+    );
+    assert!(cw["tolerations"].as_array().unwrap().is_empty());
+
+    // The CUDA build of the same version; the coordinator keeps the CPU image (the CUDA
+    // binary needs the driver library, which only GPU pods get).
+    let cpu_image = cw["image"].as_str().unwrap();
+    assert_eq!(gw["image"], format!("{cpu_image}-cuda"));
+    assert_eq!(gpu["coordinator"]["image"], cpu["coordinator"]["image"]);
+
+    // The environment: the CPU worker's plus OSRT_DEVICE=cuda, threads following the
+    // (larger) CPU limit.
+    let mut genv = gw["env"].as_object().unwrap().clone();
+    let cenv = cw["env"].as_object().unwrap();
+    assert!(
+        !cenv.contains_key("OSRT_DEVICE"),
+        "the CPU workers set no device"
+    );
+    assert_eq!(
+        genv.remove("OSRT_DEVICE"),
+        Some(serde_json::json!({"value": "cuda"})),
+        "the GPU workers run --device cuda"
+    );
+    let threads = genv.get_mut("OSRT_THREADS").unwrap();
+    assert_eq!(threads["resourceFieldRef"], "limits.cpu");
+    assert_eq!(threads["value"], resources["limits"]["cpu"]);
+    threads["value"] = cenv["OSRT_THREADS"]["value"].clone();
+    assert_eq!(&genv, cenv);
+    for key in ["args", "files", "ports", "parallelism"] {
+        assert_eq!(gw[key], cw[key], "{key}");
+    }
+
+    // The coordinator and the job config are the base's, with the GPU job's own run.
+    let (cc, gc) = (&cpu["coordinator"], &gpu["coordinator"]);
+    let mut genv = gc["env"].as_object().unwrap().clone();
+    let mut cenv = cc["env"].as_object().unwrap().clone();
+    let (grun, crun) = (genv.remove("OSRT_RUN"), cenv.remove("OSRT_RUN"));
+    assert_ne!(grun, crun, "the GPU job writes its own run folder");
+    assert_eq!(genv, cenv);
+    for key in ["args", "files", "ports", "resources"] {
+        assert_eq!(gc[key], cc[key], "{key}");
+    }
+
+    // OSRT_DEVICE is the variable of the worker's --device flag.
+    let help = osrt(&["worker", "--help"]);
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(
+        help.contains("--device") && help.contains("OSRT_DEVICE"),
+        "{help}"
+    );
+}
+
 /// The environment of a rendered container, with `overrides` replacing manifest values.
 /// Every overridden name must exist in the manifest: the test uses its variables.
 fn pod_env(
@@ -135,21 +347,9 @@ fn the_pods_command_lines_run_the_job_against_s3() {
     let Some(s3) = S3Server::start(&["osrt"]) else {
         return;
     };
-    let out = Command::new("python3")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/render_pods.py"))
-        .arg(k8s_dir())
-        .output()
-        .unwrap();
-    if out.status.code() == Some(77) && std::env::var_os("CI").is_none() {
-        eprintln!("skipped: PyYAML not installed");
+    let Some(pods) = render_pods(&k8s_dir()) else {
         return;
-    }
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let pods: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    };
     let coord = &pods["coordinator"];
     let worker = &pods["worker"];
     let s3_env: BTreeMap<&str, String> = s3

@@ -1,29 +1,28 @@
-"""Renders what the pods of deploy/k8s run: for the coordinator Deployment and the worker
-Job, the container args, the environment (envFrom ConfigMaps/Secrets resolved from the
-manifests, `$(VAR)` references kept, fieldRef/resourceFieldRef described) and the files
-mounted from ConfigMaps. Prints JSON. Exit 77: PyYAML missing."""
-import glob
+"""Renders what the pods of a kustomization in deploy/ (deploy/k8s, or an overlay such as
+deploy/k8s-gpu) run, built the way `kubectl apply -k` builds it (kustomize_lite.py): for
+the coordinator Deployment and the worker Job, the image, the container args, the
+environment (envFrom ConfigMaps/Secrets resolved from the manifests, `$(VAR)` references
+kept, fieldRef/resourceFieldRef described), the resources, the tolerations and the files
+mounted from ConfigMaps. Secrets come from the manifests beside the kustomizations
+(secret.example.yaml). Prints JSON. Exit 77: PyYAML missing."""
 import json
 import os
 import re
 import sys
 
-try:
-    import yaml
-except ImportError as e:  # pragma: no cover
-    print(f"PyYAML not installed: {e}", file=sys.stderr)
-    sys.exit(77)
+from kustomize_lite import KustomizeError, build
 
 folder = sys.argv[1]
-docs = []
-for path in sorted(glob.glob(os.path.join(folder, "*.yaml"))):
-    if os.path.basename(path) == "kustomization.yaml":
-        continue
-    with open(path) as f:
-        docs.extend(d for d in yaml.safe_load_all(f) if d)
+try:
+    docs, extras = build(folder)
+except KustomizeError as e:
+    print(f"kustomize_lite: {e}", file=sys.stderr)
+    sys.exit(1)
 
-config_maps = {d["metadata"]["name"]: d.get("data", {}) for d in docs if d["kind"] == "ConfigMap"}
-secrets = {d["metadata"]["name"]: d.get("stringData", {}) for d in docs if d["kind"] == "Secret"}
+config_maps = {d["metadata"]["name"]: d.get("data", {}) for d in docs + extras
+               if d["kind"] == "ConfigMap"}
+secrets = {d["metadata"]["name"]: d.get("stringData", {}) for d in docs + extras
+           if d["kind"] == "Secret"}
 ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -54,8 +53,10 @@ def render(pod_spec):
             data = config_maps[v["configMap"]["name"]]
             for item in v["configMap"].get("items", [{"key": k, "path": k} for k in data]):
                 files[os.path.join(m["mountPath"], item["path"])] = data[item["key"]]
-    return {"args": c.get("args", []), "env": env, "files": files,
-            "ports": [p["containerPort"] for p in c.get("ports", [])]}
+    return {"image": c["image"], "args": c.get("args", []), "env": env, "files": files,
+            "ports": [p["containerPort"] for p in c.get("ports", [])],
+            "resources": c.get("resources", {}),
+            "tolerations": pod_spec.get("tolerations", [])}
 
 
 out = {}

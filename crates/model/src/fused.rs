@@ -35,6 +35,74 @@ use std::sync::{Mutex, OnceLock};
 
 thread_local! {
     static OVERRIDE: Cell<Option<bool>> = const { Cell::new(None) };
+    static PRECISION: Cell<Precision> = const { Cell::new(Precision::F32) };
+}
+
+/// The number format of the matrix products (linear layers, convolutions, attention) on
+/// the composed path: `bf16` rounds both operands to bfloat16 and the product comes back
+/// as f32 (cuBLAS accumulates in f32), as PyTorch's autocast does; LayerNorm, softmax,
+/// the loss, gradients' sums over the batch and the optimiser stay in f32. The fused CPU
+/// kernels are f32 only.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    #[default]
+    F32,
+    Bf16,
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        })
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "f32" => Ok(Self::F32),
+            "bf16" => Ok(Self::Bf16),
+            other => Err(format!("unknown precision `{other}`: expected f32 or bf16")),
+        }
+    }
+}
+
+/// The matrix products' precision of graphs built on this thread.
+pub fn precision() -> Precision {
+    PRECISION.with(|p| p.get())
+}
+
+/// Runs `f` with the matrix products in `p` on this thread.
+pub fn with_precision<T>(p: Precision, f: impl FnOnce() -> T) -> T {
+    let prev = PRECISION.with(|c| c.replace(p));
+    let out = f();
+    PRECISION.with(|c| c.set(prev));
+    out
+}
+
+/// `a · b` (candle's batched matmul) in this thread's [`precision`].
+pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    in_precision(&[a, b], |t| t[0].matmul(&t[1]))
+}
+
+/// Runs a product-like op on its f32 operands rounded to bf16 when the thread's precision
+/// asks for it (the result back in f32; the casts carry the gradient back to f32).
+fn in_precision(ts: &[&Tensor], op: impl FnOnce(&[Tensor]) -> Result<Tensor>) -> Result<Tensor> {
+    use candle_core::DType;
+    let cast = precision() == Precision::Bf16 && ts.iter().all(|t| t.dtype() == DType::F32);
+    if !cast {
+        let owned: Vec<Tensor> = ts.iter().map(|t| (*t).clone()).collect();
+        return op(&owned);
+    }
+    let low = ts
+        .iter()
+        .map(|t| t.to_dtype(DType::BF16))
+        .collect::<Result<Vec<_>>>()?;
+    op(&low)?.to_dtype(DType::F32)
 }
 
 fn enabled_by_env() -> bool {
@@ -68,8 +136,8 @@ pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
 /// across threads and waited for (the step took 1.04–1.12× as long at 1 thread in
 /// interleaved runs: docs/performance.md).
 pub fn on_device_pool<T: Send>(device: &candle_core::Device, f: impl FnOnce() -> T + Send) -> T {
-    let on = enabled();
-    device.with_context(|| with_fused(on, f))
+    let (on, p) = (enabled(), precision());
+    device.with_context(|| with_fused(on, || with_precision(p, f)))
 }
 
 /// What a one-node op's forward pass keeps for its backward pass: put there only when a
@@ -492,10 +560,11 @@ pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -
     let ho = (h + 2 * padding - k) / stride + 1;
     let wo = (w + 2 * padding - k) / stride + 1;
     if !usable(&[x, kernel]) {
-        return x
-            .permute((0, 3, 1, 2))?
-            .conv2d(kernel, padding, stride, 1, 1)?
-            .permute((0, 2, 3, 1));
+        return in_precision(&[x, kernel], |t| {
+            t[0].permute((0, 3, 1, 2))?
+                .conv2d(&t[1], padding, stride, 1, 1)?
+                .permute((0, 2, 3, 1))
+        });
     }
     let geom = ConvGeom {
         n,
@@ -1160,7 +1229,7 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tens
         };
     }
     let composed = |x: &Tensor| -> Result<Tensor> {
-        let y = x.matmul(&weight.t()?)?;
+        let y = matmul(x, &weight.t()?)?;
         match bias {
             Some(b) => bias_add(&y, b),
             None => Ok(y),
@@ -1191,6 +1260,45 @@ pub(crate) mod tests {
             .map(|x| x * scale)
             .collect();
         Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    /// bf16 products (the composed path, as on a GPU): values and gradients within bf16's
+    /// rounding of the f32 ones, the gradient arrives in f32, and inputs near f32's range
+    /// limits neither underflow nor overflow (bf16 keeps f32's exponent range). The
+    /// precision setting also travels to the pool thread.
+    #[test]
+    fn bf16_products_track_f32_and_keep_f32_gradients() {
+        let rel = |a: &Tensor, b: &Tensor| -> f32 {
+            let d = (a - b).unwrap().sqr().unwrap().sum_all().unwrap();
+            let n = b.sqr().unwrap().sum_all().unwrap();
+            (d.to_scalar::<f32>().unwrap() / n.to_scalar::<f32>().unwrap()).sqrt()
+        };
+        for scale in [1.0f32, 1e-18, 1e17] {
+            let x = randn(&[2, 9, 24], scale, 1);
+            let w = Var::from_tensor(&randn(&[16, 24], 0.2, 2)).unwrap();
+            let b = Var::from_tensor(&randn(&[16], 0.2, 3)).unwrap();
+            let k = randn(&[2, 5, 16], 1.0, 4);
+            let run = |p: Precision| {
+                with_fused(false, || {
+                    with_precision(p, || {
+                        let h = linear(&x, w.as_tensor(), Some(b.as_tensor())).unwrap();
+                        let a = attention_composed(&h, &k, &k, 2, 0.25).unwrap();
+                        let g = a.sqr().unwrap().sum_all().unwrap().backward().unwrap();
+                        (h, g.get(w.as_tensor()).unwrap().clone())
+                    })
+                })
+            };
+            let (h32, g32) = run(Precision::F32);
+            let (h16, g16) = run(Precision::Bf16);
+            assert_eq!(g16.dtype(), candle_core::DType::F32);
+            assert!(rel(&h16, &h32) < 1e-2, "scale {scale}: {}", rel(&h16, &h32));
+            assert!(rel(&g16, &g32) < 5e-2, "scale {scale}: {}", rel(&g16, &g32));
+            let finite = g16.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert!(finite.iter().all(|v| v.is_finite()), "scale {scale}");
+        }
+        let seen = with_precision(Precision::Bf16, || on_device_pool(&Device::Cpu, precision));
+        assert_eq!(seen, Precision::Bf16);
+        assert_eq!(precision(), Precision::F32, "restored after the closure");
     }
 
     /// `on_device_pool` runs its closure on a pool thread, where the thread-local switch

@@ -23,6 +23,7 @@ pub mod slot_attention;
 mod tests;
 
 pub use decoder::{Decoder, DecoderOutput};
+pub use fused::Precision;
 pub use osrt::{Config, Osrt, add_slot, drop_slot};
 pub use params::Params;
 pub use slot_attention::{SlotInit, SlotOutput};

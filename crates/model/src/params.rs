@@ -112,8 +112,23 @@ impl Params {
         self.vars().iter().map(|(_, v)| v.elem_count()).sum()
     }
 
+    /// All parameters as one flat f32 tensor on their device, in the fixed order.
+    pub fn flatten_tensor(&self) -> Result<Tensor> {
+        let parts = self
+            .vars()
+            .iter()
+            .map(|(_, v)| v.as_tensor().flatten_all()?.to_dtype(DType::F32))
+            .collect::<Result<Vec<_>>>()?;
+        Tensor::cat(&parts, 0)
+    }
+
     /// All parameters as one flat f32 buffer, in the fixed order.
     pub fn flatten(&self) -> Result<Vec<f32>> {
+        let vars = self.vars();
+        if vars.first().is_some_and(|(_, v)| !v.device().is_cpu()) {
+            // One copy from the device instead of one per parameter.
+            return self.flatten_tensor()?.to_vec1::<f32>();
+        }
         let mut out = Vec::with_capacity(self.num_elements());
         for (_, v) in self.vars() {
             out.extend(
@@ -140,6 +155,30 @@ impl Params {
         for (_, v) in vars {
             let n = v.elem_count();
             let t = Tensor::from_slice(&flat[off..off + n], v.shape(), v.device())?
+                .to_dtype(v.dtype())?;
+            v.set(&t)?;
+            off += n;
+        }
+        Ok(())
+    }
+
+    /// Overwrites every parameter from a flat f32 tensor in the fixed order (on the
+    /// parameters' device: nothing crosses to the host).
+    pub fn load_flat_tensor(&self, flat: &Tensor) -> Result<()> {
+        let vars = self.vars();
+        let total: usize = vars.iter().map(|(_, v)| v.elem_count()).sum();
+        if flat.dims() != [total] {
+            candle_core::bail!(
+                "flat parameter tensor has shape {:?}, the model has {total} values",
+                flat.dims()
+            );
+        }
+        let mut off = 0;
+        for (_, v) in vars {
+            let n = v.elem_count();
+            let t = flat
+                .narrow(0, off, n)?
+                .reshape(v.shape())?
                 .to_dtype(v.dtype())?;
             v.set(&t)?;
             off += n;

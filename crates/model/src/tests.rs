@@ -114,6 +114,23 @@ fn decoder_variants(base: Config) -> Vec<(String, Config)> {
     out
 }
 
+/// The flat tensor view of the parameters (what a GPU's optimiser updates) holds the
+/// host buffer's values in the same order, and writing one back sets every parameter;
+/// a buffer of the wrong length is refused.
+#[test]
+fn flat_parameter_tensors_round_trip_in_the_fixed_order() {
+    let p = Params::new(3);
+    Osrt::new(&Config::tiny(), p.var_builder(&CPU)).unwrap();
+    let flat = p.flatten().unwrap();
+    assert_eq!(p.flatten_tensor().unwrap().to_vec1::<f32>().unwrap(), flat);
+    let doubled: Vec<f32> = flat.iter().map(|x| 2.0 * x + 1.0).collect();
+    p.load_flat_tensor(&Tensor::from_slice(&doubled, doubled.len(), &CPU).unwrap())
+        .unwrap();
+    assert_eq!(p.flatten().unwrap(), doubled);
+    let short = Tensor::zeros(flat.len() - 1, DType::F32, &CPU).unwrap();
+    assert!(p.load_flat_tensor(&short).is_err());
+}
+
 #[test]
 fn paper_preset_has_the_papers_parameter_count() {
     let p = Params::new(0);

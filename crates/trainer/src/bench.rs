@@ -5,10 +5,12 @@
 use crate::config::JobConfig;
 use crate::error::Result;
 use crate::step::{BatchTensors, Trainer};
-use candle_core::Device;
+use candle_core::{DType, Device, Tensor};
 use osrt_dataset::bench::median;
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
+use osrt_dataset::{
+    Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene,
+};
 use osrt_model::{Config, Osrt, Params};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -20,12 +22,20 @@ pub struct StepFigures {
     pub preset: String,
     pub parameters: usize,
     pub batch_size: usize,
+    pub input_views: usize,
     pub rays_per_scene: usize,
     pub image_size: u32,
-    /// Whether the fused ops (osrt_model::fused) were on.
+    /// `cpu` or `cuda:N`.
+    pub device: String,
+    /// The matrix products' precision.
+    pub precision: String,
+    /// Whether the fused ops (osrt_model::fused, CPU only) ran.
     pub fused: bool,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
+    /// On a GPU: a round trip of a gradient-sized f32 buffer, device → host → device, as
+    /// the step makes it for the all-reduce (median; 0 on the CPU).
+    pub median_gradient_transfer_s: f64,
     pub scenes_per_s: f64,
 }
 
@@ -38,27 +48,32 @@ pub struct RenderFigures {
     pub fps: f64,
 }
 
-fn bench_scenes(n: u64, size: u32) -> Result<Vec<Scene>> {
+/// `n` scenes of `size`² pixels with at least `views` views.
+fn bench_scenes(n: u64, size: u32, views: usize) -> Result<Vec<Scene>> {
+    let base = GeneratorConfig::clevr_lite();
+    let cameras = base.cameras.clone().with_views(views.max(3));
     let cfg = GeneratorConfig {
         image_size: size,
-        ..GeneratorConfig::clevr_lite()
+        cameras,
+        ..base
     };
     Ok((0..n)
         .map(|i| generate_scene(&cfg, 0, "bench", i))
         .collect::<osrt_dataset::Result<_>>()?)
 }
 
-/// Median time of a full optimiser step (batch build excluded) over `steps` after one
-/// warm-up step, with the fused ops as this thread has them (`fused::with_fused`).
-pub fn bench_step(
-    preset: &str,
-    job: &JobConfig,
-    image_size: u32,
-    steps: usize,
-) -> Result<StepFigures> {
-    let scenes = bench_scenes(job.train.batch_size as u64, image_size)?;
-    let refs: Vec<&Scene> = scenes.iter().collect();
-    let mut trainer = Trainer::new(job.clone(), Device::Cpu)?;
+/// Distinct scenes a benchmark batch cycles through (rendering big scenes is slow, and
+/// the step's time does not depend on which scenes fill the batch).
+const DISTINCT_SCENES: usize = 16;
+
+/// Scenes for a benchmark batch of `job` (cycled to the batch size) and how batches are
+/// drawn from them.
+fn bench_data(job: &JobConfig, image_size: u32) -> Result<(Vec<Scene>, BatchConfig)> {
+    let scenes = bench_scenes(
+        job.train.batch_size.min(DISTINCT_SCENES) as u64,
+        image_size,
+        job.train.input_views + 1,
+    )?;
     let cfg = BatchConfig {
         input_views: job.train.input_views,
         input_selection: InputSelection::Random,
@@ -67,32 +82,85 @@ pub fn bench_step(
         with_masks: false,
         salient_fraction: 0.0,
     };
+    Ok((scenes, cfg))
+}
+
+/// One batch of `job`'s shape from generated scenes.
+pub fn bench_batch(job: &JobConfig, image_size: u32, rng: &mut ChaCha8Rng) -> Result<Batch> {
+    let (scenes, cfg) = bench_data(job, image_size)?;
+    let refs: Vec<&Scene> = scenes.iter().cycle().take(job.train.batch_size).collect();
+    Ok(build_batch(&refs, &cfg, rng)?)
+}
+
+/// Median time of a full optimiser step (batch build excluded) over `steps` after the
+/// warm-up steps (one on the CPU; two on a GPU, whose first step loads its kernels), with
+/// the fused ops as this thread has them (`fused::with_fused`), on `device`.
+pub fn bench_step(
+    preset: &str,
+    job: &JobConfig,
+    image_size: u32,
+    steps: usize,
+    device: &Device,
+) -> Result<StepFigures> {
+    let b = job.train.batch_size;
+    let (scenes, cfg) = bench_data(job, image_size)?;
+    let refs: Vec<&Scene> = scenes.iter().cycle().take(b).collect();
+    let mut trainer = Trainer::new(job.clone(), device.clone())?;
+    let warmup = if device.is_cpu() { 1 } else { 2 };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut step_s = Vec::new();
     let mut fb_s = Vec::new();
-    for i in 0..=steps {
+    let mut transfer_s = Vec::new();
+    for i in 0..steps + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
+        // Both halves end in a copy to the host (the gradient, the finiteness check), so
+        // the clock reads a finished step on a GPU too.
         let t0 = Instant::now();
         let g = trainer.gradients(&batch, &mut rng)?;
         let t1 = Instant::now();
         trainer.apply(g.loss, g.grads)?;
-        if i > 0 {
+        if i >= warmup {
             step_s.push(t0.elapsed().as_secs_f64());
             fb_s.push((t1 - t0).as_secs_f64());
+            if !device.is_cpu() {
+                transfer_s.push(gradient_round_trip(trainer.num_parameters(), device)?);
+            }
         }
     }
     let m = median(step_s);
     Ok(StepFigures {
         preset: preset.to_string(),
         parameters: trainer.num_parameters(),
-        batch_size: job.train.batch_size,
+        batch_size: b,
+        input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        fused: osrt_model::fused::enabled(),
+        device: crate::DeviceSpec::from_device(device).to_string(),
+        precision: job.train.precision.to_string(),
+        fused: osrt_model::fused::enabled() && device.is_cpu(),
         median_step_s: m,
         median_forward_backward_s: median(fb_s),
-        scenes_per_s: job.train.batch_size as f64 / m,
+        median_gradient_transfer_s: if transfer_s.is_empty() {
+            0.0
+        } else {
+            median(transfer_s)
+        },
+        scenes_per_s: b as f64 / m,
     })
+}
+
+/// Seconds for an `n`-float buffer to go device → host → device the way the step moves
+/// its gradient (`to_vec1`, then `from_vec`), synchronised at the end.
+fn gradient_round_trip(n: usize, device: &Device) -> Result<f64> {
+    let g = Tensor::ones(n, DType::F32, device)?;
+    device.synchronize()?;
+    let t0 = Instant::now();
+    let host = g.to_vec1::<f32>()?;
+    let back = Tensor::from_vec(host, n, device)?;
+    device.synchronize()?;
+    let s = t0.elapsed().as_secs_f64();
+    drop(back);
+    Ok(s)
 }
 
 /// Median time to decode one whole `image_size²` view from `slots` slots (encoding
@@ -103,6 +171,7 @@ pub fn bench_render(
     slots: usize,
     image_size: u32,
     repeats: usize,
+    device: &Device,
 ) -> Result<RenderFigures> {
     let mut cfg = model_cfg
         .clone()
@@ -110,8 +179,8 @@ pub fn bench_render(
         .expect("known decoder");
     cfg.slot_attention.num_slots = slots;
     let params = Params::new(0);
-    let model = Osrt::new(&cfg, params.var_builder(&Device::Cpu))?;
-    let scenes = bench_scenes(1, image_size)?;
+    let model = Osrt::new(&cfg, params.var_builder(device))?;
+    let scenes = bench_scenes(1, image_size, 2)?;
     let bcfg = BatchConfig {
         input_views: 1,
         input_selection: InputSelection::First,
@@ -121,7 +190,7 @@ pub fn bench_render(
         salient_fraction: 0.0,
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;
-    let t = BatchTensors::new(&batch, &Device::Cpu)?;
+    let t = BatchTensors::new(&batch, device)?;
     let s = model
         .encode(&t.images, &t.origins, &t.directions, None)?
         .slots;
@@ -134,7 +203,7 @@ pub fn bench_render(
     for i in 0..=repeats {
         let t0 = Instant::now();
         // As the render path runs it (render::decode_rays).
-        let out = osrt_model::fused::on_device_pool(&Device::Cpu, || model.decode(&s, &o, &d))?;
+        let out = osrt_model::fused::on_device_pool(device, || model.decode(&s, &o, &d))?;
         let _ = out.rgb.flatten_all()?.to_vec1::<f32>()?;
         if i > 0 {
             times.push(t0.elapsed().as_secs_f64());

@@ -125,11 +125,12 @@ impl Snapshot {
             .into_iter()
             .map(|(n, v)| (n, v.dims().to_vec()))
             .collect();
+        let (m, v) = trainer.opt.moments()?;
         Ok(Self {
             names,
             params: trainer.params.flatten()?,
-            m: trainer.opt.m.clone(),
-            v: trainer.opt.v.clone(),
+            m,
+            v,
             state,
         })
     }
@@ -334,7 +335,8 @@ pub async fn load(run: &Location, step: u64, trainer: &mut Trainer) -> Result<Ch
         .params
         .load_tensors(&model)
         .map_err(|e| bad(MODEL, e.to_string()))?;
-    let opt = candle_core::safetensors::load_buffer(&files[OPTIMIZER], &dev)
+    // The moments pass through the host as flat buffers either way.
+    let opt = candle_core::safetensors::load_buffer(&files[OPTIMIZER], &Device::Cpu)
         .map_err(|e| bad(OPTIMIZER, e.to_string()))?;
     let n = trainer.num_parameters();
     let moment = |k: &str| -> Result<Vec<f32>> {
@@ -350,9 +352,9 @@ pub async fn load(run: &Location, step: u64, trainer: &mut Trainer) -> Result<Ch
         }
         Ok(v)
     };
-    trainer.opt.m = moment("m")?;
-    trainer.opt.v = moment("v")?;
-    trainer.opt.t = state.adam_t;
+    trainer
+        .opt
+        .restore(moment("m")?, moment("v")?, state.adam_t)?;
     trainer.step = state.step;
     trainer.skipped_total = state.skipped_total;
     trainer.skipped_in_a_row = 0;

@@ -4,11 +4,13 @@
 
 pub mod bench;
 pub mod bench_allreduce;
+pub mod check;
 pub mod checkpoint;
 pub mod chunk_wire;
 pub mod collective;
 pub mod config;
 pub mod data;
+pub mod device;
 pub mod distributed;
 pub mod error;
 pub mod eval;
@@ -22,8 +24,9 @@ pub mod step;
 pub mod worker;
 
 pub use config::{ClusterConfig, JobConfig, TrainConfig};
+pub use device::DeviceSpec;
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
-pub use run::{LoadedRun, load_run, load_run_with_slots};
+pub use run::{LoadedRun, load_run, load_run_on, load_run_with_slots};
 pub use step::{ApplyOutcome, StepGradients, Trainer};
 pub use worker::{WorkerOptions, run_worker};

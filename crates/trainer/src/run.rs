@@ -12,10 +12,10 @@
 
 use crate::checkpoint;
 use crate::config::JobConfig;
+use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use crate::eval::EvalOptions;
 use crate::step::Trainer;
-use candle_core::Device;
 use object_store::ObjectStoreExt;
 use osrt_dataset::Location;
 use serde::{Deserialize, Serialize};
@@ -85,6 +85,15 @@ pub async fn load_run(run: &str) -> Result<LoadedRun> {
 /// init has weights independent of the slot count; the learned and tokens inits hold one
 /// embedding per slot and are refused with a clear error.
 pub async fn load_run_with_slots(run: &str, num_slots: Option<usize>) -> Result<LoadedRun> {
+    load_run_on(run, num_slots, DeviceSpec::Cpu).await
+}
+
+/// [`load_run_with_slots`] with the model on `device` (evaluation and rendering on a GPU).
+pub async fn load_run_on(
+    run: &str,
+    num_slots: Option<usize>,
+    device: DeviceSpec,
+) -> Result<LoadedRun> {
     let loc = Location::parse(run)?;
     let missing = |name: &str| TrainError::Run {
         path: loc.describe(&loc.path(name)),
@@ -126,7 +135,7 @@ pub async fn load_run_with_slots(run: &str, num_slots: Option<usize>) -> Result<
         }
         sa.num_slots = k;
     }
-    let mut trainer = Trainer::new(job.clone(), Device::Cpu)?;
+    let mut trainer = Trainer::new(job.clone(), device.open()?)?;
     let step = checkpoint::latest_verified(&loc, None)
         .await?
         .ok_or_else(|| TrainError::Run {

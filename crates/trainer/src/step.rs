@@ -3,10 +3,15 @@
 //! order** (sorted names), and [`Trainer::apply`] takes such a buffer (possibly averaged
 //! over workers) and performs the optimiser step. A non-finite loss, gradient or updated
 //! weight skips the step: nothing non-finite ever reaches the weights.
+//!
+//! On the CPU the optimiser runs on the host over `Vec<f32>` buffers; on a GPU its
+//! moments stay on the device ([`DeviceAdamW`]) and only the flat gradient crosses to the
+//! host for the all-reduce and back. Matrix products run in the job's `precision`
+//! (`train.precision`: f32, or bf16 on a GPU), weights and optimiser state in f32.
 
 use crate::config::JobConfig;
 use crate::error::Result;
-use crate::optim::{AdamW, clip_global_norm};
+use crate::optim::{AdamW, DeviceAdamW, clip_global_norm};
 use candle_core::{Device, Tensor};
 use osrt_dataset::Batch;
 use osrt_model::{Osrt, Params};
@@ -59,11 +64,52 @@ pub enum ApplyOutcome {
     },
 }
 
+/// The optimiser's state where it lives: on the host (CPU training) or on the device.
+pub enum Optimizer {
+    Host(AdamW),
+    Device(DeviceAdamW),
+}
+
+impl Optimizer {
+    /// Updates applied so far (AdamW's `t`).
+    pub fn t(&self) -> u64 {
+        match self {
+            Self::Host(o) => o.t,
+            Self::Device(o) => o.hyper.t,
+        }
+    }
+
+    /// First and second moments, copied to the host (for a checkpoint).
+    pub fn moments(&self) -> Result<(Vec<f32>, Vec<f32>)> {
+        Ok(match self {
+            Self::Host(o) => (o.m.clone(), o.v.clone()),
+            Self::Device(o) => (o.m.to_vec1::<f32>()?, o.v.to_vec1::<f32>()?),
+        })
+    }
+
+    /// Restores moments and step count (from a checkpoint).
+    pub fn restore(&mut self, m: Vec<f32>, v: Vec<f32>, t: u64) -> Result<()> {
+        match self {
+            Self::Host(o) => {
+                (o.m, o.v, o.t) = (m, v, t);
+            }
+            Self::Device(o) => {
+                let dev = o.m.device().clone();
+                o.m = Tensor::from_vec(m, o.m.dims1()?, &dev)?;
+                o.v = Tensor::from_vec(v, o.v.dims1()?, &dev)?;
+                o.hyper.t = t;
+            }
+        }
+        Ok(())
+    }
+}
+
 pub struct Trainer {
     pub cfg: JobConfig,
     pub params: Params,
     pub model: Osrt,
-    pub opt: AdamW,
+    pub opt: Optimizer,
+    num_parameters: usize,
     /// Optimiser steps taken (applied or skipped).
     pub step: u64,
     pub skipped_total: u64,
@@ -79,12 +125,18 @@ impl Trainer {
         let model = Osrt::new(&cfg.model, params.var_builder(&device))?;
         let n = params.num_elements();
         let t = &cfg.train;
-        let opt = AdamW::new(n, t.beta1, t.beta2, t.adam_eps, t.weight_decay);
+        let opt = if crate::device::is_cpu(&device) {
+            Optimizer::Host(AdamW::new(n, t.beta1, t.beta2, t.adam_eps, t.weight_decay))
+        } else {
+            let hyper = AdamW::new(0, t.beta1, t.beta2, t.adam_eps, t.weight_decay);
+            Optimizer::Device(DeviceAdamW::new(n, hyper, &device)?)
+        };
         Ok(Self {
             cfg,
             params,
             model,
             opt,
+            num_parameters: n,
             step: 0,
             skipped_total: 0,
             skipped_in_a_row: 0,
@@ -97,7 +149,7 @@ impl Trainer {
     }
 
     pub fn num_parameters(&self) -> usize {
-        self.opt.m.len()
+        self.num_parameters
     }
 
     /// Standard-normal slot noise for random slot init (from the caller's seeded RNG).
@@ -107,7 +159,10 @@ impl Trainer {
 
     /// MSE on the sampled target rays, and its gradient as one flat buffer.
     pub fn gradients(&self, batch: &Batch, rng: &mut (impl Rng + Send)) -> Result<StepGradients> {
-        osrt_model::fused::on_device_pool(&self.device, || self.gradients_here(batch, rng))
+        let precision = self.cfg.train.precision;
+        osrt_model::fused::with_precision(precision, || {
+            osrt_model::fused::on_device_pool(&self.device, || self.gradients_here(batch, rng))
+        })
     }
 
     fn gradients_here(&self, batch: &Batch, rng: &mut impl Rng) -> Result<StepGradients> {
@@ -121,14 +176,29 @@ impl Trainer {
             .decode(&slots.slots, &t.target_origins, &t.target_directions)?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
         let grads = loss.backward()?;
-        let mut flat = Vec::with_capacity(self.num_parameters());
-        for (_, var) in self.params.vars() {
-            match grads.get(var.as_tensor()) {
-                Some(g) => flat.extend(g.flatten_all()?.to_vec1::<f32>()?),
-                // A parameter the loss does not reach (e.g. unused init of another mode).
-                None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
+        let flat = if crate::device::is_cpu(&self.device) {
+            let mut flat = Vec::with_capacity(self.num_parameters());
+            for (_, var) in self.params.vars() {
+                match grads.get(var.as_tensor()) {
+                    Some(g) => flat.extend(g.flatten_all()?.to_vec1::<f32>()?),
+                    // A parameter the loss does not reach (e.g. unused init of another mode).
+                    None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
+                }
             }
-        }
+            flat
+        } else {
+            // One flat tensor on the device, then one copy to the host.
+            let parts = self
+                .params
+                .vars()
+                .iter()
+                .map(|(_, var)| match grads.get(var.as_tensor()) {
+                    Some(g) => g.to_dtype(candle_core::DType::F32)?.flatten_all(),
+                    None => Tensor::zeros(var.elem_count(), candle_core::DType::F32, &self.device),
+                })
+                .collect::<candle_core::Result<Vec<_>>>()?;
+            Tensor::cat(&parts, 0)?.to_vec1::<f32>()?
+        };
         Ok(StepGradients {
             loss: loss.to_scalar::<f32>()? as f64,
             grads: flat,
@@ -164,13 +234,27 @@ impl Trainer {
             None => crate::optim::global_norm(&grads),
         };
         let lr = self.cfg.train.lr_at(step);
-        let params = self.params.flatten()?;
-        let (new, m, v) = self.opt.propose(&params, &grads, lr);
-        if new.iter().any(|p| !p.is_finite()) {
-            return skip(self, "non-finite updated weight");
+        match &mut self.opt {
+            Optimizer::Host(opt) => {
+                let params = self.params.flatten()?;
+                let (new, m, v) = opt.propose(&params, &grads, lr);
+                if new.iter().any(|p| !p.is_finite()) {
+                    return skip(self, "non-finite updated weight");
+                }
+                self.params.load_flat(&new)?;
+                opt.commit(m, v);
+            }
+            Optimizer::Device(opt) => {
+                let params = self.params.flatten_tensor()?;
+                let grads = Tensor::from_vec(grads, params.dims1()?, &self.device)?;
+                let new = opt.propose(&params, &grads, lr)?;
+                if !new.finite {
+                    return skip(self, "non-finite updated weight or moment");
+                }
+                self.params.load_flat_tensor(&new.params)?;
+                opt.commit(new.m, new.v);
+            }
         }
-        self.params.load_flat(&new)?;
-        self.opt.commit(m, v);
         self.skipped_in_a_row = 0;
         Ok(ApplyOutcome::Applied { grad_norm, lr })
     }

@@ -21,7 +21,6 @@ use crate::error::{Result, TrainError};
 use crate::eval::evaluate;
 use crate::shard::{EpochPlan, step_rng};
 use crate::step::{ApplyOutcome, Trainer};
-use candle_core::Device;
 use osrt_dataset::{BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch};
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::auth::{AttachToken, Token};
@@ -47,6 +46,8 @@ pub struct WorkerOptions {
     /// Host name or IP the other workers reach this one at (default: the listen IP).
     pub advertise: Option<String>,
     pub threads: usize,
+    /// Overrides the job config's `train.device` (each worker its own GPU).
+    pub device: Option<crate::device::DeviceSpec>,
     pub token: Token,
     /// Mutual TLS for both services (see `osrt_proto::tls`).
     pub tls: Option<Tls>,
@@ -434,7 +435,11 @@ async fn run_generation(
     worker_id: u64,
     plan: &WorkerPlan,
 ) -> Result<Ended> {
-    let job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
+    let mut job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
+    if let Some(d) = opts.device {
+        job.train.device = d;
+    }
+    let device = job.train.device.open()?;
     job.validate()?;
     let cfg_hash = checkpoint::config_hash(&plan.job_config_toml);
     let t = job.train.clone();
@@ -491,7 +496,7 @@ async fn run_generation(
         }
     };
 
-    let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), Device::Cpu))?;
+    let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
     let mut state = match plan.resume_step {
         Some(step) => {
             let st = checkpoint::load(&run, step, &mut trainer).await?;
@@ -705,7 +710,7 @@ async fn run_generation(
                 epoch: epoch.plan.epoch,
                 epoch_start_step: epoch.start_step,
                 world_size: world,
-                adam_t: trainer.opt.t,
+                adam_t: trainer.opt.t(),
                 skipped_total: trainer.skipped_total,
                 wall_s: wall(gen_start),
                 train_s,

@@ -427,9 +427,9 @@ pub fn attention_composed(
             .reshape((b * heads, len, dh))
     };
     let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
-    let logits = (q.matmul(&k.t()?)? * scale)?; // [b·h, n, m]
+    let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b·h, n, m]
     let attn = super::softmax(&logits, D::Minus1)?;
-    attn.matmul(&v)? // [b·h, n, dh]
+    super::matmul(&attn, &v)? // [b·h, n, dh]
         .reshape((b, heads, n, dh))?
         .transpose(1, 2)?
         .reshape((b, n, inner))

@@ -196,9 +196,9 @@ pub fn slot_mix(
     let composed = || -> Result<(Tensor, Tensor)> {
         let q = super::linear(x, w_q, None)?; // [b, r, ds]
         let k = super::linear(slots, w_k, None)?; // [b, k, ds]
-        let logits = (q.matmul(&k.t()?)? * scale)?; // [b, r, k]
+        let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
         let weights = super::softmax(&logits, D::Minus1)?;
-        Ok((weights.matmul(slots)?, weights))
+        Ok((super::matmul(&weights, slots)?, weights))
     };
     let (Ok((b, r, dx)), Ok((bs, k, ds))) = (x.dims3(), slots.dims3()) else {
         return composed();

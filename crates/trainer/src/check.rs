@@ -1,0 +1,134 @@
+//! Whether a device computes the CPU's train step: the same initial weights, batch and
+//! slot noise on the CPU (fused kernels, f32) and on the device (candle's ops, the job's
+//! precision), compared as relative errors of the loss and of the flat gradient, and of
+//! the weights after one AdamW step from the same gradient.
+//!
+//! `osrt check-device` prints it; `tests/device.rs` asserts the tolerances below.
+
+use crate::bench::bench_batch;
+use crate::config::JobConfig;
+use crate::device::DeviceSpec;
+use crate::error::Result;
+use crate::step::Trainer;
+use candle_core::Device;
+use osrt_model::Precision;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+/// Largest relative L2 error of the whole gradient accepted with f32 products: the CPU
+/// kernels and cuBLAS sum in different orders, nothing more.
+pub const GRADIENT_TOLERANCE_F32: f64 = 1e-3;
+/// The same with bf16 products (8 bits of mantissa: ~0.4 % per rounded operand).
+pub const GRADIENT_TOLERANCE_BF16: f64 = 5e-2;
+/// Largest relative difference of the weights after one AdamW step from the same
+/// gradient (the update is the same f64 arithmetic on both sides).
+pub const STEP_TOLERANCE: f64 = 1e-6;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct DeviceCheck {
+    pub preset: String,
+    pub device: String,
+    pub precision: String,
+    pub parameters: usize,
+    pub loss_cpu: f64,
+    pub loss_device: f64,
+    /// `‖g_device − g_cpu‖ / ‖g_cpu‖` over the flat gradient.
+    pub gradient_rel_l2: f64,
+    /// The parameter tensor with the largest relative L2 error, and that error:
+    /// `‖Δ_p‖ / max(‖g_p‖, 1e-3·‖g‖)`. The floor keeps a tensor whose gradient is
+    /// nearly zero on both sides from reporting its rounding noise as a large ratio.
+    pub worst_parameter: String,
+    pub worst_parameter_rel_l2: f64,
+    /// `max |w_device − w_cpu| / max |w_cpu|` after one AdamW step from the CPU's gradient.
+    pub step_rel_max: f64,
+    /// Whether the figures are within the tolerances above.
+    pub pass: bool,
+}
+
+/// `(‖a − b‖, ‖a‖)`.
+fn diff_and_norm(a: &[f32], b: &[f32]) -> (f64, f64) {
+    let (mut d, mut n) = (0f64, 0f64);
+    for (&x, &y) in a.iter().zip(b) {
+        d += (x as f64 - y as f64).powi(2);
+        n += (x as f64).powi(2);
+    }
+    (d.sqrt(), n.sqrt())
+}
+
+/// `‖a − b‖ / max(‖a‖, floor)` (0 when both are 0).
+fn rel_l2(a: &[f32], b: &[f32], floor: f64) -> f64 {
+    let (d, n) = diff_and_norm(a, b);
+    if d == 0.0 { 0.0 } else { d / n.max(floor) }
+}
+
+/// Runs the comparison for `job` (its model, batch size and rays; `train.precision` for
+/// the device side) at `image_size`.
+pub fn compare_with_cpu(
+    preset: &str,
+    job: &JobConfig,
+    device: &Device,
+    image_size: u32,
+) -> Result<DeviceCheck> {
+    let mut on_cpu = job.clone();
+    on_cpu.train.device = DeviceSpec::Cpu;
+    on_cpu.train.precision = Precision::F32;
+    let mut on_dev = job.clone();
+    on_dev.train.device = DeviceSpec::from_device(device);
+    let mut cpu = Trainer::new(on_cpu, Device::Cpu)?;
+    let mut dev = Trainer::new(on_dev, device.clone())?;
+    let batch = bench_batch(job, image_size, &mut ChaCha8Rng::seed_from_u64(7))?;
+    let g_cpu = cpu.gradients(&batch, &mut ChaCha8Rng::seed_from_u64(8))?;
+    let g_dev = dev.gradients(&batch, &mut ChaCha8Rng::seed_from_u64(8))?;
+
+    let gradient_rel_l2 = rel_l2(&g_cpu.grads, &g_dev.grads, 0.0);
+    let floor = 1e-3 * crate::optim::global_norm(&g_cpu.grads);
+    let mut worst = (String::new(), 0f64);
+    let mut off = 0;
+    for (name, var) in cpu.params.vars() {
+        let n = var.elem_count();
+        let e = rel_l2(
+            &g_cpu.grads[off..off + n],
+            &g_dev.grads[off..off + n],
+            floor,
+        );
+        if e > worst.1 || worst.0.is_empty() {
+            worst = (name, e);
+        }
+        off += n;
+    }
+
+    cpu.apply(g_cpu.loss, g_cpu.grads.clone())?;
+    dev.apply(g_cpu.loss, g_cpu.grads)?;
+    let (w_cpu, w_dev) = (cpu.params.flatten()?, dev.params.flatten()?);
+    let scale = w_cpu
+        .iter()
+        .fold(0f32, |m, x| m.max(x.abs()))
+        .max(f32::MIN_POSITIVE);
+    let step_rel_max = w_cpu
+        .iter()
+        .zip(&w_dev)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()))
+        / scale;
+
+    let tolerance = match job.train.precision {
+        Precision::F32 => GRADIENT_TOLERANCE_F32,
+        Precision::Bf16 => GRADIENT_TOLERANCE_BF16,
+    };
+    let step_rel_max = step_rel_max as f64;
+    Ok(DeviceCheck {
+        preset: preset.to_string(),
+        device: DeviceSpec::from_device(device).to_string(),
+        precision: job.train.precision.to_string(),
+        parameters: cpu.num_parameters(),
+        loss_cpu: g_cpu.loss,
+        loss_device: g_dev.loss,
+        gradient_rel_l2,
+        worst_parameter: worst.0,
+        worst_parameter_rel_l2: worst.1,
+        step_rel_max,
+        pass: gradient_rel_l2 <= tolerance
+            && step_rel_max <= STEP_TOLERANCE
+            && g_dev.loss.is_finite(),
+    })
+}
