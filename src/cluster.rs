@@ -5,7 +5,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use osrt_coordinator::{Coordinator, JobSpec};
+use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
@@ -125,6 +125,7 @@ pub fn spec(
         run: run.to_string(),
         max_steps,
         deadline_unix_s: max_minutes.map(|m| unix_now() + m * 60.0),
+        cluster_overrides: ClusterOverrides::default(),
     })
 }
 
@@ -134,19 +135,17 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
         Some(p) => JobConfig::load(p)?,
         None => JobConfig::preset(&a.preset)?,
     };
-    if let Some(v) = a.min_workers {
-        job.cluster.min_workers = v;
-    }
-    if let Some(v) = a.max_workers {
-        job.cluster.max_workers = v;
-    }
-    if let Some(v) = a.max_restarts {
-        job.cluster.max_restarts = v;
-    }
+    let overrides = ClusterOverrides {
+        min_workers: a.min_workers,
+        max_workers: a.max_workers,
+        max_restarts: a.max_restarts,
+    };
+    overrides.apply(&mut job.cluster);
     if a.max_steps.is_none() && a.max_minutes.is_none() && !a.resume {
         bail!("give the job a limit: --max-steps N and/or --max-minutes M");
     }
-    let spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes)?;
+    let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes)?;
+    spec.cluster_overrides = overrides;
     let coord = Coordinator::open(spec, a.resume).await?;
     let listener = tokio::net::TcpListener::bind(a.listen)
         .await
@@ -168,7 +167,24 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     report_end(&status)
 }
 
+/// SIGINT (Ctrl-C) or SIGTERM (what Kubernetes sends a pod it stops).
 async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = tokio::signal::ctrl_c() => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
     let _ = tokio::signal::ctrl_c().await;
 }
 

@@ -238,8 +238,12 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     } else {
         2
     });
-    job.cluster.min_workers = workers;
-    job.cluster.max_workers = job.cluster.max_workers.max(workers);
+    // The launcher starts exactly `workers`: the job (a resumed one too) waits for them.
+    let overrides = osrt_coordinator::ClusterOverrides {
+        min_workers: Some(workers),
+        ..Default::default()
+    };
+    overrides.apply(&mut job.cluster);
     ensure_default_data(&a.data).await?;
     let run = a.run.clone().unwrap_or_else(|| {
         let now = std::time::SystemTime::now()
@@ -274,7 +278,8 @@ pub async fn train(a: TrainArgs) -> Result<()> {
             ""
         },
     );
-    let spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes)?;
+    let mut spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes)?;
+    spec.cluster_overrides = overrides;
     let status = crate::cluster::run_local(crate::cluster::LocalJob {
         spec,
         workers,

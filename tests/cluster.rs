@@ -223,6 +223,73 @@ fn a_restarted_coordinator_resumes_the_job() {
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
 }
 
+fn signal(p: &Proc, sig: &str) {
+    let pid = p.0.id().to_string();
+    let s = std::process::Command::new("kill")
+        .args([&format!("-{sig}"), &pid])
+        .status()
+        .unwrap();
+    assert!(s.success(), "kill -{sig} {pid}");
+}
+
+/// A worker paused while the coordinator is killed and restarted holds an id of the
+/// old coordinator; the other worker registers with the new one first. The new
+/// coordinator must not hand out the paused worker's id again (it once did: the paused
+/// worker's calls were taken for the other's, it never registered again, and the job
+/// waited forever for its second member).
+#[test]
+fn a_worker_paused_across_a_coordinator_restart_registers_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let args = ["--max-minutes", "0.3", "--min-workers", "2"];
+    let mut coord = coordinator(port, &data, &run, &args);
+    let mut a = worker(port);
+    // `a` registers first: it holds the first id the coordinator issues.
+    std::thread::sleep(Duration::from_millis(1500));
+    let mut b = worker(port);
+    wait_job(&run, Duration::from_secs(60), |j| {
+        j["last_checkpoint"].as_u64().is_some_and(|s| s >= 10)
+    });
+    signal(&a, "STOP");
+    coord.0.kill().unwrap();
+    let _ = coord.0.wait();
+    std::thread::sleep(Duration::from_millis(500));
+    let mut coord = coordinator(port, &data, &run, &args);
+    // `b` finds the new coordinator and registers while `a` sleeps.
+    std::thread::sleep(Duration::from_secs(4));
+    signal(&a, "CONT");
+    let status = coord.wait_for_exit(Duration::from_secs(120));
+    assert!(status.success(), "restarted coordinator: {status}");
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    assert!(a.wait_for_exit(Duration::from_secs(30)).success());
+    assert!(b.wait_for_exit(Duration::from_secs(30)).success());
+}
+
+/// A resumed job that no worker joins fails after `cluster.wait_timeout_s` with a
+/// message that says so, instead of waiting forever.
+#[test]
+fn a_job_no_worker_joins_fails_after_the_wait_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 16);
+    let run = dir.path().join("run");
+    let config = dir.path().join("job.toml");
+    let mut job = osrt_trainer::JobConfig::preset("tiny").unwrap();
+    job.cluster.wait_timeout_s = 2.0;
+    std::fs::write(&config, job.to_toml()).unwrap();
+    let port = free_port();
+    let config = config.to_str().unwrap();
+    let mut coord = coordinator(port, &data, &run, &["--config", config, "--max-steps", "3"]);
+    let status = coord.wait_for_exit(Duration::from_secs(60));
+    assert!(!status.success());
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "failed", "{job}");
+    let m = job["message"].as_str().unwrap();
+    assert!(m.contains("cluster.wait_timeout_s"), "{m}");
+}
+
 #[test]
 fn calls_without_the_job_token_are_refused_and_health_answers() {
     use osrt_proto::v1::coordinator_client::CoordinatorClient;

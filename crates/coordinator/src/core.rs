@@ -4,7 +4,8 @@
 //!   Waiting ──(≥ min_workers for join_grace, or max_workers)──▶ Running(generation g)
 //!   Running ──(member lost / joined / failed round)──▶ Waiting ──▶ Running(g + 1)
 //!   Running ──(final checkpoint committed)──▶ Done
-//!   any ──(max_restarts exceeded / fatal fault / replicas diverged)──▶ Failed
+//!   Running ──(replicas diverged)──▶ Waiting (counts as a restart)
+//!   any ──(max_restarts exceeded / fatal fault)──▶ Failed
 //! ```
 //!
 //! A new generation restarts every member from the newest committed checkpoint; metrics
@@ -30,6 +31,35 @@ pub struct JobSpec {
     pub run: String,
     pub max_steps: Option<u64>,
     pub deadline_unix_s: Option<f64>,
+    /// Membership limits from the command line: they win over the run folder's
+    /// `config.toml` when a job is resumed (that file's text, whose hash checkpoints
+    /// carry, stays as it is).
+    pub cluster_overrides: ClusterOverrides,
+}
+
+/// `--min-workers`, `--max-workers`, `--max-restarts`.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ClusterOverrides {
+    pub min_workers: Option<usize>,
+    pub max_workers: Option<usize>,
+    pub max_restarts: Option<u32>,
+}
+
+impl ClusterOverrides {
+    /// Applies the limits given; without an explicit `max_workers`, the config's is
+    /// raised to `min_workers` where it is lower.
+    pub fn apply(&self, c: &mut osrt_trainer::ClusterConfig) {
+        if let Some(v) = self.min_workers {
+            c.min_workers = v;
+        }
+        match self.max_workers {
+            Some(v) => c.max_workers = v,
+            None => c.max_workers = c.max_workers.max(c.min_workers),
+        }
+        if let Some(v) = self.max_restarts {
+            c.max_restarts = v;
+        }
+    }
 }
 
 /// The part of the state kept in `RUN/job.json`.
@@ -86,8 +116,18 @@ pub struct Core {
     /// Worker ids in ring order (rank = index) of the current generation.
     pub ring: Vec<u64>,
     pub members: BTreeMap<u64, Member>,
-    next_id: u64,
+    /// This coordinator process's incarnation, the high 32 bits of every id it issues:
+    /// a worker id from an earlier incarnation (a coordinator restarted while the
+    /// worker was paused) is unknown here, so its holder registers again instead of
+    /// acting as another member.
+    incarnation: u32,
+    /// The low 32 bits of the next id.
+    next_id: u32,
     pub restarts: u32,
+    /// `restarts` when this invocation began: `cluster.max_restarts` bounds the restarts
+    /// of one invocation (a `--resume` gets a fresh budget; a coordinator restarted
+    /// after a crash does not).
+    restarts_before: u32,
     pub last_checkpoint: Option<u64>,
     /// The checkpoint the current generation started from (fixed at formation: a late
     /// report of an abandoned generation's checkpoint must not split the ring).
@@ -111,15 +151,22 @@ fn record_step(line: &str) -> Option<u64> {
 }
 
 impl Core {
+    /// A coordinator of `spec` with a random incarnation.
     pub fn new(spec: JobSpec, now: Instant) -> Self {
+        Self::with_incarnation(spec, rand::random(), now)
+    }
+
+    pub fn with_incarnation(spec: JobSpec, incarnation: u32, now: Instant) -> Self {
         Self {
             spec,
             phase: Phase::Waiting { since: now },
             generation: 0,
             ring: Vec::new(),
             members: BTreeMap::new(),
+            incarnation,
             next_id: 1,
             restarts: 0,
+            restarts_before: 0,
             last_checkpoint: None,
             resume_step: None,
             hash_checks: 0,
@@ -132,16 +179,19 @@ impl Core {
     }
 
     /// Continues a job from its persisted state and records (a restarted coordinator, or
-    /// `--resume`); `checkpoint` is the newest committed checkpoint found in the store.
+    /// `resume`: a new invocation, with a fresh restart budget); `checkpoint` is the
+    /// newest committed checkpoint found in the store.
     pub fn restore(
         &mut self,
         p: &Persisted,
         records: Vec<String>,
         checkpoint: Option<u64>,
+        resume: bool,
         now: Instant,
     ) {
         self.generation = p.generation;
         self.restarts = p.restarts;
+        self.restarts_before = if resume { p.restarts } else { 0 };
         self.hash_checks = p.hash_checks;
         self.last_checkpoint = checkpoint;
         // Without a checkpoint the job starts over, and so does its record.
@@ -201,7 +251,7 @@ impl Core {
         if counts_as_restart {
             self.restarts += 1;
             let max = self.spec.job.cluster.max_restarts;
-            if self.restarts > max {
+            if self.restarts - self.restarts_before > max {
                 self.fail(format!(
                     "{reason}; gave up after {max} restarts (cluster.max_restarts)"
                 ));
@@ -236,8 +286,11 @@ impl Core {
                 "the job already has {max} workers (cluster.max_workers)"
             )));
         }
-        let id = self.next_id;
-        self.next_id += 1;
+        let id = (u64::from(self.incarnation) << 32) | u64::from(self.next_id);
+        // 2^32 registrations in one incarnation would wrap onto a live id; refuse instead.
+        self.next_id = self.next_id.checked_add(1).ok_or_else(|| {
+            Status::resource_exhausted("this coordinator has issued 2^32 worker ids")
+        })?;
         tracing::info!(worker_id = id, %name, %addr, threads, "worker registered");
         self.members.insert(
             id,
@@ -356,8 +409,17 @@ impl Core {
             let c = &self.spec.job.cluster;
             let n = eligible.len();
             let grace = Duration::from_secs_f64(c.join_grace_s);
-            if n >= c.max_workers || (n >= c.min_workers && now.duration_since(since) >= grace) {
+            let waited = now.duration_since(since);
+            if n >= c.max_workers || (n >= c.min_workers && waited >= grace) {
                 self.form(eligible);
+            } else if waited.as_secs_f64() > c.wait_timeout_s {
+                let names: Vec<&str> = self.members.values().map(|m| m.name.as_str()).collect();
+                let (min, limit) = (c.min_workers, c.wait_timeout_s);
+                self.fail(format!(
+                    "waited {limit} s (cluster.wait_timeout_s) for {min} workers \
+                     (cluster.min_workers); {n} took part: [{}]",
+                    names.join(", ")
+                ));
             }
         }
     }
@@ -413,6 +475,16 @@ impl Core {
                         "metrics record is not a JSON object with a `step`",
                     ));
                 };
+                // A report resent after a lost answer repeats records already held.
+                let held = self
+                    .records
+                    .iter()
+                    .rev()
+                    .take_while(|(k, _)| *k >= s)
+                    .any(|(_, l)| *l == line);
+                if held {
+                    continue;
+                }
                 self.last_record = line.clone();
                 self.records.push((s, line));
                 self.dirty_metrics = true;
@@ -434,10 +506,19 @@ impl Core {
                         "replicas diverged at step {step}: parameter hashes {}",
                         listing.join(", ")
                     );
-                    tracing::error!(%reason, "job failed");
-                    self.phase = Phase::Failed(reason);
-                    self.dirty_job = true;
-                    return Ok(Directive::Stop);
+                    if self.phase == Phase::Done {
+                        // The final checkpoint holds one replica's weights: they cannot
+                        // be trusted, and there is no generation left to restart.
+                        tracing::error!(%reason, "job failed");
+                        self.phase = Phase::Failed(reason);
+                        self.dirty_job = true;
+                        return Ok(Directive::Stop);
+                    }
+                    // A replica that computed differently (a flipped bit, a faulty
+                    // device) is not the job's fault: everyone restarts from the last
+                    // checkpoint, within the restart budget.
+                    self.regenerate(&reason, true, now);
+                    return Ok(self.directive_for(id, generation));
                 }
                 self.dirty_job = true;
             }
@@ -514,6 +595,7 @@ mod tests {
             run: "run".into(),
             max_steps: Some(10),
             deadline_unix_s: None,
+            cluster_overrides: ClusterOverrides::default(),
         }
     }
 
@@ -587,6 +669,11 @@ mod tests {
         assert_eq!((p.generation, p.world(), p.resume_step), (2, 1, Some(5)));
         let steps: Vec<u64> = c.records.iter().map(|(s, _)| *s).collect();
         assert_eq!(steps, vec![0, 5], "records past the checkpoint are dropped");
+        // A resent report (its answer was lost) does not repeat records.
+        let resent = vec!["{\"step\":5}".to_string(), "{\"step\":7}".to_string()];
+        c.progress(prog(a, 2, 0, 7, None, resent), later).unwrap();
+        let steps: Vec<u64> = c.records.iter().map(|(s, _)| *s).collect();
+        assert_eq!(steps, vec![0, 5, 7]);
         // The unknown (timed-out) worker is told to register again.
         assert_eq!(
             c.heartbeat(b, 1, 6, later).unwrap_err().code(),
@@ -621,21 +708,129 @@ mod tests {
         let _ = b;
     }
 
+    /// A coordinator restarted while a worker was paused issues new ids: the paused
+    /// worker's old id is unknown to it (so that worker registers again) even after
+    /// another worker registered with the new coordinator.
     #[test]
-    fn diverged_hashes_fail_the_job_and_equal_ones_count() {
+    fn a_restarted_coordinator_never_reissues_an_earlier_incarnations_ids() {
+        let t = Instant::now();
+        let mut first = Core::with_incarnation(spec(2, 2, 3), 7, t);
+        let paused = reg(&mut first, t);
+        let other = reg(&mut first, t);
+        let mut second = Core::with_incarnation(spec(2, 2, 3), 8, t);
+        let again = reg(&mut second, t);
+        assert_ne!(again, paused);
+        assert_ne!(again, other);
+        for id in [paused, other] {
+            let e = second.heartbeat(id, 1, 3, t).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::NotFound);
+            let e = second.plan(id, 1, t).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::NotFound);
+        }
+        // Two coordinators started independently draw different incarnations.
+        let ids: std::collections::BTreeSet<u64> = (0..2)
+            .map(|_| reg(&mut Core::new(spec(1, 9, 0), t), t))
+            .collect();
+        assert_eq!(ids.len(), 2, "random incarnations: {ids:?}");
+    }
+
+    /// Too few workers: the waiting phase ends in a clear failure, not a wait forever.
+    #[test]
+    fn waiting_for_too_few_workers_fails_after_the_wait_timeout() {
         let t = Instant::now();
         let mut c = Core::new(spec(2, 2, 3), t);
+        let limit = c.spec.job.cluster.wait_timeout_s;
+        let a = reg(&mut c, t);
+        let before = t + Duration::from_secs_f64(limit * 0.9);
+        c.heartbeat(a, 0, 0, before).unwrap();
+        c.tick(before);
+        assert!(matches!(c.phase, Phase::Waiting { .. }));
+        let after = t + Duration::from_secs_f64(limit + 1.0);
+        c.heartbeat(a, 0, 0, after).unwrap();
+        c.tick(after);
+        let Phase::Failed(m) = &c.phase else {
+            panic!("{:?}", c.phase)
+        };
+        assert!(
+            m.contains("cluster.wait_timeout_s") && m.contains("1 took part"),
+            "{m}"
+        );
+        assert_eq!(c.heartbeat(a, 0, 0, after).unwrap().0, Directive::Stop);
+        // With nobody at all (a finished job resumed with no workers) as well.
+        let mut c = Core::new(spec(1, 2, 3), t);
+        c.tick(after);
+        assert!(matches!(c.phase, Phase::Failed(_)), "{:?}", c.phase);
+    }
+
+    /// `--resume` is a new invocation: the restarts of earlier ones do not count against
+    /// its budget; a coordinator restarted after a crash keeps counting.
+    #[test]
+    fn a_resumed_job_gets_a_fresh_restart_budget() {
+        let t = Instant::now();
+        for (resume, fails) in [(true, false), (false, true)] {
+            let mut c = Core::new(spec(1, 1, 1), t);
+            let mut p = c.persisted();
+            p.restarts = 1;
+            c.restore(&p, vec![], Some(5), resume, t);
+            let a = reg(&mut c, t);
+            c.tick(t);
+            c.fault(a, c.generation, "boom", false, t).unwrap();
+            assert_eq!(c.restarts, 2);
+            assert_eq!(
+                matches!(c.phase, Phase::Failed(_)),
+                fails,
+                "resume {resume}"
+            );
+        }
+    }
+
+    #[test]
+    fn cluster_overrides_apply_and_keep_max_at_least_min() {
+        let mut c = JobConfig::preset("tiny").unwrap().cluster;
+        c.max_workers = 2;
+        let o = ClusterOverrides {
+            min_workers: Some(3),
+            max_workers: None,
+            max_restarts: Some(9),
+        };
+        o.apply(&mut c);
+        assert_eq!((c.min_workers, c.max_workers, c.max_restarts), (3, 3, 9));
+        ClusterOverrides {
+            max_workers: Some(5),
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!((c.min_workers, c.max_workers, c.max_restarts), (3, 5, 9));
+    }
+
+    /// Diverged replicas restart from the last checkpoint (a restart); once the budget
+    /// is spent, the job fails and says why.
+    #[test]
+    fn diverged_hashes_restart_from_the_checkpoint_and_equal_ones_count() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(2, 2, 1), t);
         let a = reg(&mut c, t);
         let b = reg(&mut c, t);
         c.tick(t);
+        c.checkpoint(a, 1, 1, false, t).unwrap();
         c.progress(prog(a, 1, 0, 1, Some("aa"), vec![]), t).unwrap();
         c.progress(prog(b, 1, 1, 1, Some("aa"), vec![]), t).unwrap();
         assert_eq!(c.hash_checks, 1);
         c.progress(prog(a, 1, 0, 2, Some("aa"), vec![]), t).unwrap();
         let d = c.progress(prog(b, 1, 1, 2, Some("bb"), vec![]), t).unwrap();
+        assert_eq!(d, Directive::Restart);
+        assert_eq!(c.restarts, 1);
+        c.tick(t);
+        let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
+            panic!("{:?}", c.phase)
+        };
+        assert_eq!((p.generation, p.resume_step), (2, Some(1)));
+        c.progress(prog(a, 2, 0, 2, Some("aa"), vec![]), t).unwrap();
+        let d = c.progress(prog(b, 2, 1, 2, Some("cc"), vec![]), t).unwrap();
         assert_eq!(d, Directive::Stop);
         let Phase::Failed(m) = &c.phase else { panic!() };
         assert!(m.contains("replicas diverged at step 2"), "{m}");
+        assert!(m.contains("gave up after 1 restarts"), "{m}");
     }
 
     #[test]

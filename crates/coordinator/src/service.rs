@@ -57,8 +57,17 @@ impl Coordinator {
     /// Opens the job in `spec.run`. A run folder with an unfinished `job.json` is a
     /// restarted coordinator: the job continues from its newest committed checkpoint (its
     /// own `config.toml` wins). `resume` continues a finished job with the new limits.
-    pub async fn open(mut spec: JobSpec, resume: bool) -> Result<Self, TrainError> {
+    pub async fn open(spec: JobSpec, resume: bool) -> Result<Self, TrainError> {
         let run = Location::parse(&spec.run)?;
+        Self::open_at(spec, run, resume).await
+    }
+
+    /// [`Coordinator::open`] on an already opened run location (`spec.run` names it).
+    pub async fn open_at(
+        mut spec: JobSpec,
+        run: Location,
+        resume: bool,
+    ) -> Result<Self, TrainError> {
         let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
             Some(b) => Some(
                 serde_json::from_slice(&b)
@@ -118,6 +127,10 @@ impl Coordinator {
                     .ok_or_else(|| run_err(&run, CONFIG_FILE, "missing"))?;
                 let text = String::from_utf8_lossy(&text).into_owned();
                 spec.job = JobConfig::from_toml(&run.describe(&run.path(CONFIG_FILE)), &text)?;
+                // The command line's membership limits win over the stored ones; the
+                // stored text (hashed into checkpoints) is what workers get.
+                spec.cluster_overrides.apply(&mut spec.job.cluster);
+                spec.job.validate()?;
                 spec.job_toml = text;
                 spec.job_id = p.job_id.clone();
                 spec.data = p.data.clone();
@@ -143,7 +156,7 @@ impl Coordinator {
                     "continuing the job in the run folder"
                 );
                 let mut core = Core::new(spec, now);
-                core.restore(&p, records, checkpoint, now);
+                core.restore(&p, records, checkpoint, resume, now);
                 core
             }
         };
@@ -191,6 +204,8 @@ impl Coordinator {
         }
         let server = tokio::spawn(
             builder
+                .http2_keepalive_interval(Some(osrt_trainer::collective::KEEP_ALIVE_INTERVAL))
+                .http2_keepalive_timeout(Some(osrt_trainer::collective::KEEP_ALIVE_TIMEOUT))
                 .tcp_nodelay(true)
                 .add_service(health_service)
                 .add_service(service)
@@ -216,48 +231,124 @@ impl Coordinator {
         tokio::pin!(shutdown);
         let mut last_flush = Instant::now();
         let mut over_since: Option<Instant> = None;
+        let mut store = StoreRetry::default();
         loop {
             tokio::select! {
                 _ = &mut shutdown => break,
                 _ = tokio::time::sleep(Duration::from_millis(100)) => {}
             }
+            let write_now = store.due();
             let (job, metrics, over) = self.shared.with(|c, now| {
                 c.tick(now);
-                let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
-                let flush = c.dirty_metrics
+                let job = (write_now && std::mem::take(&mut c.dirty_job)).then(|| c.persisted());
+                let flush = write_now
+                    && c.dirty_metrics
                     && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
                 let metrics = flush.then(|| {
                     c.dirty_metrics = false;
-                    let mut text = String::new();
-                    for (_, l) in &c.records {
-                        text.push_str(l);
-                        text.push('\n');
-                    }
-                    text
+                    metrics_text(c)
                 });
                 (job, metrics, c.is_over())
             });
             let run = &self.shared.run;
+            let (had_job, had_metrics) = (job.is_some(), metrics.is_some());
+            let mut written = Ok(());
             if let Some(p) = job {
-                write_file(
-                    run,
-                    JOB_FILE,
-                    serde_json::to_vec_pretty(&p).expect("serialises"),
-                )
-                .await?;
+                let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
+                written = write_file(run, JOB_FILE, bytes).await;
             }
-            if let Some(text) = metrics {
-                write_file(run, METRICS_FILE, text.into_bytes()).await?;
+            if let Some(text) = metrics
+                && written.is_ok()
+            {
+                written = write_file(run, METRICS_FILE, text.into_bytes()).await;
                 last_flush = Instant::now();
             }
+            if let Err(e) = written {
+                // Whatever was not written is written again at the next try.
+                self.shared.with(|c, _| {
+                    c.dirty_job |= had_job;
+                    c.dirty_metrics |= had_metrics;
+                });
+                store.failed(e)?;
+                continue;
+            }
+            if had_job || had_metrics {
+                store.succeeded();
+            }
+            let pending = {
+                let c = self.shared.core.lock().expect("state");
+                c.dirty_job || c.dirty_metrics
+            };
             if over {
                 let since = *over_since.get_or_insert_with(Instant::now);
-                if since.elapsed() >= linger {
+                if since.elapsed() >= linger && !pending {
                     break;
                 }
             }
         }
+        // Stopped by a signal: what the run folder lacks is written once more.
+        let (job, metrics) = self.shared.with(|c, _| {
+            let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
+            let metrics = std::mem::take(&mut c.dirty_metrics).then(|| metrics_text(c));
+            (job, metrics)
+        });
+        if let Some(p) = job {
+            let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
+            write_file(&self.shared.run, JOB_FILE, bytes).await?;
+        }
+        if let Some(text) = metrics {
+            write_file(&self.shared.run, METRICS_FILE, text.into_bytes()).await?;
+        }
         Ok(self.status())
+    }
+}
+
+/// `metrics.jsonl`: one record per line.
+fn metrics_text(c: &Core) -> String {
+    let mut text = String::new();
+    for (_, l) in &c.records {
+        text.push_str(l);
+        text.push('\n');
+    }
+    text
+}
+
+/// How long writes of `job.json` and `metrics.jsonl` may keep failing before the
+/// coordinator gives up (the job's state stays in memory meanwhile, and workers train on).
+pub const STORE_RETRY_BUDGET: Duration = Duration::from_secs(120);
+
+/// Backoff between failed writes of the run folder: 0.2 s doubling to 5 s, within
+/// [`STORE_RETRY_BUDGET`].
+#[derive(Default)]
+struct StoreRetry {
+    failing_since: Option<Instant>,
+    next_try: Option<Instant>,
+    backoff: Duration,
+}
+
+impl StoreRetry {
+    fn due(&self) -> bool {
+        self.next_try.is_none_or(|t| Instant::now() >= t)
+    }
+
+    fn failed(&mut self, e: TrainError) -> Result<(), TrainError> {
+        let since = *self.failing_since.get_or_insert_with(Instant::now);
+        if since.elapsed() >= STORE_RETRY_BUDGET {
+            tracing::error!(error = %e, "the run folder could not be written for {STORE_RETRY_BUDGET:?}");
+            return Err(e);
+        }
+        self.backoff = (self.backoff * 2).clamp(Duration::from_millis(200), Duration::from_secs(5));
+        self.next_try = Some(Instant::now() + self.backoff);
+        tracing::warn!(error = %e, retry_in = ?self.backoff, "writing the run folder failed; retrying");
+        Ok(())
+    }
+
+    fn succeeded(&mut self) {
+        if let Some(since) = self.failing_since.take() {
+            tracing::info!(after = ?since.elapsed(), "the run folder is written again");
+        }
+        self.next_try = None;
+        self.backoff = Duration::ZERO;
     }
 }
 

@@ -30,6 +30,9 @@ pub struct RowGroupRef {
     pub num_rows: u64,
 }
 
+/// Rows decoded per Arrow batch: a row group's declared size never sizes an allocation.
+const MAX_BATCH_ROWS: u64 = 1024;
+
 /// A Parquet file of a split, with its size.
 #[derive(Debug, Clone)]
 pub struct SplitFile {
@@ -199,10 +202,25 @@ impl SplitReader {
         for f in &self.files {
             let b = self.builder(f, Arc::default()).await?;
             for (index, rg) in b.metadata().row_groups().iter().enumerate() {
+                // A footer is data like any other: a negative count, or more rows than the
+                // file has bytes, is a damaged or crafted file, never an allocation size.
+                let num_rows = u64::try_from(rg.num_rows())
+                    .ok()
+                    .filter(|&n| n <= f.size)
+                    .ok_or_else(|| {
+                        DatasetError::schema(
+                            self.split.describe(&self.split.path(&f.name)),
+                            format!(
+                                "row group {index} declares {} rows in a file of {} bytes",
+                                rg.num_rows(),
+                                f.size
+                            ),
+                        )
+                    })?;
                 out.push(RowGroupRef {
                     file: f.name.clone(),
                     index,
-                    num_rows: rg.num_rows() as u64,
+                    num_rows,
                 });
             }
         }
@@ -235,16 +253,29 @@ impl SplitReader {
         let stream = builder
             .with_row_groups(vec![rg.index])
             .with_projection(mask)
-            .with_batch_size(rg.num_rows.max(1) as usize)
+            .with_batch_size(rg.num_rows.clamp(1, MAX_BATCH_ROWS) as usize)
             .build()
             .map_err(|e| DatasetError::parquet(&shown, e))?;
         let batches: Vec<_> = stream
             .try_collect()
             .await
             .map_err(|e| DatasetError::parquet(&shown, e))?;
-        let mut scenes = Vec::with_capacity(rg.num_rows as usize);
+        let mut scenes = Vec::with_capacity(rg.num_rows.min(MAX_BATCH_ROWS) as usize);
         for b in &batches {
             scenes.extend(batch_to_scenes(b, &shown)?);
+        }
+        if scenes.len() as u64 != rg.num_rows {
+            // The listing and the file disagree (a file replaced since it was listed, or
+            // a footer that lies): every rank's plan counted on the listed rows.
+            return Err(DatasetError::schema(
+                &shown,
+                format!(
+                    "row group {} was listed with {} scenes, {} decoded",
+                    rg.index,
+                    rg.num_rows,
+                    scenes.len()
+                ),
+            ));
         }
         Ok(scenes)
     }

@@ -169,25 +169,22 @@ impl Snapshot {
         ])
     }
 
-    /// Writes the files, then the manifest with `PutMode::Create`. A checkpoint whose
-    /// manifest already exists and verifies is left alone (a replayed step after a
-    /// restart produces the same bytes).
+    /// Writes the files, then the manifest with `PutMode::Create`. A committed checkpoint
+    /// at the same step is adopted only if it is this one (a replayed step after a
+    /// restart produces the same weights and optimizer bytes under the same config);
+    /// anything else there is an error, never overwritten.
     pub async fn commit(self, run: &Location) -> Result<u64> {
         let step = self.state.step;
         let dir = step_dir(step);
         let manifest_path = format!("{dir}/{MANIFEST}");
-        if run.store.head(&run.path(&manifest_path)).await.is_ok() {
-            if verify(run, step).await.is_ok() {
-                tracing::info!(step, "checkpoint already committed");
-                return Ok(step);
-            }
-            return Err(store_err(
-                run,
-                &manifest_path,
-                "a manifest exists but does not verify; delete the folder to re-save",
-            ));
-        }
         let files = self.serialise()?;
+        match run.store.head(&run.path(&manifest_path)).await {
+            Ok(_) => return self.adopt(run, &files).await,
+            Err(object_store::Error::NotFound { .. }) => {}
+            // Not knowing whether a committed checkpoint is there must not lead to
+            // writing over its files.
+            Err(e) => return Err(store_err(run, &manifest_path, e)),
+        }
         let mut entries = Vec::new();
         for (name, bytes) in files {
             let path = format!("{dir}/{name}");
@@ -218,6 +215,60 @@ impl Snapshot {
             .await
             .map_err(|e| store_err(run, &manifest_path, e))?;
         tracing::info!(step, dir = %run.describe(&run.path(&dir)), "checkpoint committed");
+        Ok(step)
+    }
+
+    /// Accepts the checkpoint already committed at this step if it verifies and holds
+    /// these weights and optimizer state under this config and world size.
+    async fn adopt(&self, run: &Location, files: &[(&str, Bytes)]) -> Result<u64> {
+        let step = self.state.step;
+        let dir = step_dir(step);
+        let there = verify(run, step).await.map_err(|e| {
+            store_err(
+                run,
+                &dir,
+                format!(
+                    "a manifest exists but does not verify ({e}); delete the folder to re-save"
+                ),
+            )
+        })?;
+        let theirs: CheckpointState = there
+            .get(STATE)
+            .and_then(|b| serde_json::from_slice(b).ok())
+            .ok_or_else(|| {
+                store_err(
+                    run,
+                    &dir,
+                    "the committed checkpoint has no readable state.json",
+                )
+            })?;
+        let mut differs = Vec::new();
+        if theirs.config_hash != self.state.config_hash {
+            differs.push("job config".to_string());
+        }
+        if theirs.world_size != self.state.world_size {
+            differs.push(format!(
+                "world size ({} there, {} here)",
+                theirs.world_size, self.state.world_size
+            ));
+        }
+        for (name, bytes) in files.iter().filter(|(n, _)| *n != STATE) {
+            if there.get(*name).is_none_or(|b| b != bytes) {
+                differs.push((*name).to_string());
+            }
+        }
+        if !differs.is_empty() {
+            return Err(store_err(
+                run,
+                &dir,
+                format!(
+                    "another checkpoint is committed at step {step}: its {} differ from this job's; \
+                     choose a new run folder or delete that checkpoint",
+                    differs.join(", ")
+                ),
+            ));
+        }
+        tracing::info!(step, "checkpoint already committed");
         Ok(step)
     }
 }
@@ -361,10 +412,48 @@ pub async fn load(run: &Location, step: u64, trainer: &mut Trainer) -> Result<Ch
     Ok(state)
 }
 
-/// Deletes checkpoints beyond the newest `keep_last` and the best by validation FG-ARI
-/// (then PSNR). The manifest goes first, so a half-deleted folder is simply torn.
+/// Deletes every checkpoint folder (committed or torn) past `step` (`None`: all), the
+/// manifest first; returns their steps.
+pub async fn discard_after(run: &Location, step: Option<u64>) -> Result<Vec<u64>> {
+    let mut discarded = Vec::new();
+    for s in list_steps(run).await? {
+        if step.is_some_and(|k| s <= k) {
+            continue;
+        }
+        delete_checkpoint(run, s).await?;
+        discarded.push(s);
+    }
+    Ok(discarded)
+}
+
+/// Deletes one checkpoint folder, the manifest first (a half-deleted folder is torn).
+async fn delete_checkpoint(run: &Location, step: u64) -> Result<()> {
+    let dir = step_dir(step);
+    for name in [MANIFEST, MODEL, OPTIMIZER, STATE] {
+        let path = format!("{dir}/{name}");
+        match run.store.delete(&run.path(&path)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => return Err(store_err(run, &path, e)),
+        }
+    }
+    Ok(())
+}
+
+/// Deletes committed checkpoints beyond the newest `keep_last` (at least 1) and the best
+/// by validation FG-ARI (then PSNR). Folders without a manifest are neither counted nor
+/// deleted (one may be a checkpoint being written). The manifest goes first, so a
+/// half-deleted folder is simply torn.
 pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64>> {
-    let steps = list_steps(run).await?;
+    let keep_last = keep_last.max(1);
+    let mut steps = Vec::new();
+    for s in list_steps(run).await? {
+        let manifest = format!("{}/{MANIFEST}", step_dir(s));
+        match run.store.head(&run.path(&manifest)).await {
+            Ok(_) => steps.push(s),
+            Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => return Err(store_err(run, &manifest, e)),
+        }
+    }
     if steps.len() <= keep_last {
         return Ok(Vec::new());
     }
@@ -391,14 +480,7 @@ pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64
         if best.is_some_and(|(b, _)| b == s) {
             continue;
         }
-        let dir = step_dir(s);
-        for name in [MANIFEST, MODEL, OPTIMIZER, STATE] {
-            let path = format!("{dir}/{name}");
-            match run.store.delete(&run.path(&path)).await {
-                Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
-                Err(e) => return Err(store_err(run, &path, e)),
-            }
-        }
+        delete_checkpoint(run, s).await?;
         deleted.push(s);
     }
     Ok(deleted)

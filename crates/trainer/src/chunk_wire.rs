@@ -495,12 +495,18 @@ impl ChunkCall {
             })
     }
 
-    /// Ends the call after the chunks queued in `sender` and waits for its status.
-    pub async fn finish(mut self, sender: ChunkSender) -> Result<(), Status> {
+    /// Ends the call after the chunks queued in `sender` and waits at most `timeout` for
+    /// its status: what is left to send is at most the queue (a few MiB), so a live
+    /// successor answers well within one per-chunk timeout, and one that never answers
+    /// fails the round after that wait, not at the call's whole-all-reduce deadline.
+    pub async fn finish(mut self, sender: ChunkSender, timeout: Duration) -> Result<(), Status> {
         drop(sender);
-        match (&mut self.0).await {
-            Ok(result) => result,
-            Err(e) => Err(Status::internal(format!("PushChunks task: {e}"))),
+        match tokio::time::timeout(timeout, &mut self.0).await {
+            Ok(Ok(result)) => result,
+            Ok(Err(e)) => Err(Status::internal(format!("PushChunks task: {e}"))),
+            Err(_) => Err(Status::deadline_exceeded(format!(
+                "the successor did not end the PushChunks call within {timeout:?} of its last chunk"
+            ))),
         }
     }
 }

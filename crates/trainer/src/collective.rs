@@ -46,6 +46,11 @@ const WINDOW_BYTES: u32 = 16 << 20;
 /// frames of the default 16 KiB, each with its own header, poll and flow-control update.
 const FRAME_BYTES: u32 = (MAX_CHUNK_FLOATS * 4 + 4096) as u32;
 
+/// HTTP/2 pings on every ring connection, both ways: a peer that answers none within
+/// the timeout is gone (a half-open TCP connection otherwise looks alive forever).
+pub const KEEP_ALIVE_INTERVAL: Duration = Duration::from_secs(5);
+pub const KEEP_ALIVE_TIMEOUT: Duration = Duration::from_secs(10);
+
 #[derive(Debug, Error)]
 pub enum CollectiveError {
     #[error("rank {rank}: sending to rank {to} failed: {status}")]
@@ -191,7 +196,9 @@ fn validate(
             tag.from_rank
         ));
     }
-    if tag.bucket as usize >= layout.buckets.len() || tag.round as usize + 1 >= w.max(2) {
+    if tag.round as usize + 1 >= w.max(2)
+        || (tag.step == min_step && tag.bucket as usize >= layout.buckets.len())
+    {
         return Some(format!(
             "unknown bucket {} or round {}",
             tag.bucket, tag.round
@@ -231,6 +238,44 @@ struct MailboxState {
     /// Set by the worker when the coordinator moved on: every wait of this generation
     /// fails at once instead of running into its deadline.
     aborted: Option<String>,
+    /// Chunks kept before they could be checked (a peer already in the next generation,
+    /// or in this one before this rank's first step): their `(generation, step)` — one
+    /// pair only, for a peer cannot get past a step without this rank — and their bytes.
+    early: Option<(u64, u64)>,
+    early_bytes: usize,
+    /// Bytes of the last gradient this mailbox saw reduced (bounds `early_bytes`).
+    gradient_bytes: usize,
+}
+
+/// Bound of unchecked early chunks before any gradient size is known: the round-0 share
+/// of a 2-worker ring at 67 M parameters (the `paper` preset's is 41 M floats).
+const EARLY_BYTES_DEFAULT: usize = 256 << 20;
+
+impl MailboxState {
+    fn early_limit(&self) -> usize {
+        if self.gradient_bytes == 0 {
+            EARLY_BYTES_DEFAULT
+        } else {
+            // A peer sends at most its share of one step before it needs this rank's.
+            self.gradient_bytes + (MAX_CHUNK_FLOATS * 4)
+        }
+    }
+
+    /// Whether a kept chunk could not be checked on arrival.
+    fn is_early(&self, k: &Key) -> bool {
+        k.0 > self.generation || self.layout.is_none() || k.1 > self.min_step
+    }
+
+    /// Recounts the early chunks after the generation or step moved.
+    fn recount_early(&mut self) {
+        let early: Vec<(&Key, &Bytes)> = self
+            .chunks
+            .iter()
+            .filter(|(k, _)| self.is_early(k))
+            .collect();
+        self.early_bytes = early.iter().map(|(_, b)| b.len()).sum();
+        self.early = early.iter().map(|(k, _)| (k.0, k.1)).max();
+    }
 }
 
 /// Chunks received by this rank's server, waiting for the local all-reduce.
@@ -265,6 +310,7 @@ impl Mailbox {
         // last generation's, so nothing about them is stale yet.
         s.min_step = 0;
         s.layout = None;
+        s.recount_early();
     }
 
     /// Fails the current and every later wait of this generation with `reason`.
@@ -276,10 +322,46 @@ impl Mailbox {
     fn begin_step(&self, step: u64, layout: Layout) {
         let mut s = self.state.lock().expect("mailbox");
         s.min_step = step;
+        s.gradient_bytes = layout.buckets.iter().map(|b| b.len() * 4).sum();
         s.layout = Some(layout);
         let generation = s.generation;
         s.chunks.retain(|k, _| k.0 > generation || k.1 >= step);
         s.failure = None;
+        s.recount_early();
+    }
+
+    /// Keeps a chunk that cannot be checked yet, within the bounds of what a live peer
+    /// sends ahead of this rank.
+    fn keep_early(s: &mut MailboxState, key: Key, data: Bytes) -> Result<(), Status> {
+        let pair = (key.0, key.1);
+        if let Some((g, st)) = s.early
+            && (g, st) != pair
+        {
+            if pair < (g, st) {
+                return Err(Status::failed_precondition(format!(
+                    "stale early chunk of generation {}, step {}: chunks of generation {g}, \
+                     step {st} are waiting",
+                    pair.0, pair.1
+                )));
+            }
+            // The peer moved on: what it sent ahead for an older step or generation will
+            // never be used (a live peer cannot pass a step without this rank's chunks).
+            s.chunks.retain(|k, _| (k.0, k.1) != (g, st));
+            s.recount_early();
+        }
+        let limit = s.early_limit();
+        if s.early_bytes + data.len() > limit {
+            return Err(Status::resource_exhausted(format!(
+                "{} bytes of early chunks would exceed {limit}",
+                s.early_bytes + data.len()
+            )));
+        }
+        s.early = Some(pair);
+        s.early_bytes += data.len();
+        if let Some(old) = s.chunks.insert(key, data) {
+            s.early_bytes -= old.len();
+        }
+        Ok(())
     }
 
     fn accept(&self, chunk: Chunk) -> Result<(), Status> {
@@ -307,10 +389,16 @@ impl Mailbox {
             tag.round,
             tag.chunk,
         );
+        if tag.generation > s.generation + 1 {
+            return Err(Status::failed_precondition(format!(
+                "chunk of generation {}, this rank is in generation {}: a peer is at most one ahead",
+                tag.generation, s.generation
+            )));
+        }
         if tag.generation > s.generation {
-            // A peer that joined the new generation first: keep it; the length is checked
-            // when the chunk is used.
-            s.chunks.insert(key, chunk.data);
+            // A peer that joined the next generation first: keep it, bounded; the length
+            // is checked when the chunk is used.
+            Self::keep_early(&mut s, key, chunk.data)?;
             self.notify.notify_waiters();
             return Ok(());
         }
@@ -326,19 +414,33 @@ impl Mailbox {
             return Err(Status::invalid_argument("chunk phase unspecified"));
         }
         let Some(layout) = s.layout.clone() else {
-            // The local worker has not reached this step yet: keep it, validate on use.
-            s.chunks.insert(key, chunk.data);
+            // The local worker has not reached its first step of the generation: keep
+            // it, bounded; validate on use.
+            Self::keep_early(&mut s, key, chunk.data)?;
             self.notify.notify_waiters();
             return Ok(());
         };
         let (rank, min_step) = (s.rank, s.min_step);
-        let problem = validate(&layout, rank, min_step, &tag, phase, chunk.data.len());
+        let problem = if tag.step > min_step + 1 {
+            Some(format!(
+                "chunk of step {}, this rank is at step {min_step}: a peer is at most one step ahead",
+                tag.step
+            ))
+        } else {
+            validate(&layout, rank, min_step, &tag, phase, chunk.data.len())
+        };
         if let Some(msg) = problem {
             s.failure = Some(msg.clone());
             self.notify.notify_waiters();
             return Err(Status::invalid_argument(msg));
         }
-        s.chunks.insert(key, chunk.data);
+        if tag.step > min_step {
+            // The next all-reduce may have another length (the weights' broadcast comes
+            // before the first gradient's): its chunks are checked when used, and bounded.
+            Self::keep_early(&mut s, key, chunk.data)?;
+        } else {
+            s.chunks.insert(key, chunk.data);
+        }
         self.notify.notify_waiters();
         Ok(())
     }
@@ -446,6 +548,11 @@ impl Ring {
             .initial_stream_window_size(WINDOW_BYTES)
             .initial_connection_window_size(WINDOW_BYTES)
             .max_frame_size(FRAME_BYTES)
+            // A successor whose host vanished without closing the connection (half-open)
+            // stops answering pings: the call ends with an error instead of waiting.
+            .http2_keep_alive_interval(KEEP_ALIVE_INTERVAL)
+            .keep_alive_timeout(KEEP_ALIVE_TIMEOUT)
+            .keep_alive_while_idle(true)
             .tcp_nodelay(true);
         mailbox.set_generation(cfg.generation, cfg.rank);
         Ok(Self {
@@ -648,7 +755,9 @@ impl Ring {
         }
         // Every chunk is queued and every expected one received; the successor
         // acknowledges the call once it has taken the last one.
-        call.finish(sender).await.map_err(send_error)
+        call.finish(sender, self.cfg.timeout)
+            .await
+            .map_err(send_error)
     }
 
     /// Chunks one rank queues for its successor beyond what HTTP/2 flow control lets
@@ -793,6 +902,8 @@ pub async fn serve(
         .initial_stream_window_size(WINDOW_BYTES)
         .initial_connection_window_size(WINDOW_BYTES)
         .max_frame_size(FRAME_BYTES)
+        .http2_keepalive_interval(Some(KEEP_ALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(KEEP_ALIVE_TIMEOUT))
         .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(InterceptedService::new(

@@ -113,6 +113,8 @@ pub struct ClusterConfig {
     pub heartbeat_timeout_s: f64,
     /// Once `min_workers` are present, wait this long for more (up to `max_workers`).
     pub join_grace_s: f64,
+    /// The job fails if no generation forms for this long (too few workers ever came).
+    pub wait_timeout_s: f64,
     /// Deadline of every collective RPC and wait: a dead peer fails the round this fast.
     pub rpc_timeout_s: f64,
     /// All-reduce bucket size (floats) and chunk size (floats, at most 1 MiB of f32).
@@ -134,6 +136,7 @@ impl Default for ClusterConfig {
             max_restarts: 5,
             heartbeat_timeout_s: 5.0,
             join_grace_s: 1.0,
+            wait_timeout_s: 600.0,
             rpc_timeout_s: 10.0,
             bucket_floats: 1 << 22,
             chunk_floats: crate::collective::MAX_CHUNK_FLOATS,
@@ -263,13 +266,48 @@ impl JobConfig {
                 reason,
             })
         };
-        if t.batch_size == 0 || t.rays_per_scene == 0 || t.input_views == 0 {
-            return bad("batch_size, rays_per_scene and input_views must be positive".into());
+        for (name, v) in [
+            ("batch_size", t.batch_size as u64),
+            ("rays_per_scene", t.rays_per_scene as u64),
+            ("input_views", t.input_views as u64),
+            ("log_every", t.log_every),
+            ("max_consecutive_skips", t.max_consecutive_skips),
+            ("eval_scenes", t.eval_scenes as u64),
+        ] {
+            if v == 0 {
+                return bad(format!("train.{name} must be positive"));
+            }
         }
-        if !(t.lr.is_finite() && t.lr > 0.0) {
+        for (name, v, positive) in [
+            ("lr", t.lr, true),
+            ("decay_steps", t.decay_steps, true),
+            ("decay_rate", t.decay_rate, true),
+            ("adam_eps", t.adam_eps, true),
+            ("eval_every_s", t.eval_every_s, true),
+            ("weight_decay", t.weight_decay, false),
+            ("salient_fraction", f64::from(t.salient_fraction), false),
+        ] {
+            if !v.is_finite() || v < 0.0 || (positive && v == 0.0) {
+                let want = if positive { "positive" } else { "non-negative" };
+                return bad(format!("train.{name} must be {want} and finite, got {v}"));
+            }
+        }
+        for (name, v) in [("beta1", t.beta1), ("beta2", t.beta2)] {
+            if !(0.0..1.0).contains(&v) {
+                return bad(format!("train.{name} must be in [0, 1), got {v}"));
+            }
+        }
+        if t.salient_fraction > 1.0 {
             return bad(format!(
-                "learning rate {} must be positive and finite",
-                t.lr
+                "train.salient_fraction must be at most 1, got {}",
+                t.salient_fraction
+            ));
+        }
+        if let Some(c) = t.clip_norm
+            && !(c.is_finite() && c > 0.0)
+        {
+            return bad(format!(
+                "train.clip_norm must be positive and finite, got {c}"
             ));
         }
         if t.precision == Precision::Bf16 && !t.device.is_cuda() {
@@ -289,10 +327,17 @@ impl JobConfig {
                 c.min_workers, c.max_workers
             ));
         }
-        if c.bucket_floats == 0 || c.chunk_floats == 0 || c.hash_every == 0 {
-            return bad(
-                "cluster: bucket_floats, chunk_floats and hash_every must be positive".into(),
-            );
+        for (name, v) in [
+            ("bucket_floats", c.bucket_floats as u64),
+            ("chunk_floats", c.chunk_floats as u64),
+            ("hash_every", c.hash_every),
+            ("checkpoint_every", c.checkpoint_every),
+            ("keep_last", c.keep_last as u64),
+        ] {
+            if v == 0 {
+                // keep_last = 0 would let retention delete the newest committed checkpoint.
+                return bad(format!("cluster.{name} must be positive"));
+            }
         }
         if c.chunk_floats > crate::collective::MAX_CHUNK_FLOATS {
             return bad(format!(
@@ -304,11 +349,65 @@ impl JobConfig {
         for (name, v) in [
             ("heartbeat_timeout_s", c.heartbeat_timeout_s),
             ("rpc_timeout_s", c.rpc_timeout_s),
+            ("wait_timeout_s", c.wait_timeout_s),
         ] {
             if !(v.is_finite() && v > 0.0) {
-                return bad(format!("cluster: {name} must be positive, got {v}"));
+                return bad(format!(
+                    "cluster.{name} must be positive and finite, got {v}"
+                ));
             }
         }
+        if !(c.join_grace_s.is_finite() && c.join_grace_s >= 0.0) {
+            return bad(format!(
+                "cluster.join_grace_s must be non-negative and finite, got {}",
+                c.join_grace_s
+            ));
+        }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_validate() {
+        for name in ["clevr-lite-cpu", "clevr-lite-gpu", "paper", "tiny"] {
+            JobConfig::preset(name).unwrap().validate().unwrap();
+        }
+    }
+
+    /// Settings that would divide by zero, never log, never checkpoint, or let retention
+    /// delete the newest checkpoint are refused by name, before any worker starts.
+    #[test]
+    fn settings_that_cannot_run_are_refused_by_name() {
+        type Edit = fn(&mut JobConfig);
+        let cases: [(&str, Edit); 14] = [
+            ("train.log_every", |j| j.train.log_every = 0),
+            ("train.decay_steps", |j| j.train.decay_steps = 0.0),
+            ("train.decay_steps", |j| j.train.decay_steps = f64::NAN),
+            ("train.eval_every_s", |j| j.train.eval_every_s = -1.0),
+            ("train.eval_scenes", |j| j.train.eval_scenes = 0),
+            ("train.beta2", |j| j.train.beta2 = 1.0),
+            ("train.weight_decay", |j| j.train.weight_decay = -0.1),
+            ("train.clip_norm", |j| j.train.clip_norm = Some(0.0)),
+            ("train.salient_fraction", |j| j.train.salient_fraction = 1.5),
+            ("cluster.checkpoint_every", |j| {
+                j.cluster.checkpoint_every = 0
+            }),
+            ("cluster.keep_last", |j| j.cluster.keep_last = 0),
+            ("cluster.join_grace_s", |j| j.cluster.join_grace_s = -1.0),
+            ("cluster.wait_timeout_s", |j| j.cluster.wait_timeout_s = 0.0),
+            ("cluster.rpc_timeout_s", |j| {
+                j.cluster.rpc_timeout_s = f64::INFINITY
+            }),
+        ];
+        for (name, edit) in cases {
+            let mut j = JobConfig::preset("tiny").unwrap();
+            edit(&mut j);
+            let e = j.validate().unwrap_err().to_string();
+            assert!(e.contains(name), "{name}: {e}");
+        }
     }
 }

@@ -123,9 +123,9 @@ impl DeviceAdamW {
             m.to_dtype(DType::F32)?,
             v.to_dtype(DType::F32)?,
         );
-        // x − x is 0 for every finite x and NaN otherwise: one reduction (and one
+        // 0·x is 0 for every finite x and NaN otherwise: one reduction (and one
         // synchronisation) tells whether anything overflowed.
-        let probe = |x: &Tensor| -> candle_core::Result<Tensor> { (x - x)?.sum_all() };
+        let probe = |x: &Tensor| -> candle_core::Result<Tensor> { (x * 0.0)?.sum_all() };
         let total = ((probe(&new)? + probe(&m)?)? + probe(&v)?)?;
         let finite = total.to_scalar::<f32>()? == 0.0;
         Ok(DeviceProposal {

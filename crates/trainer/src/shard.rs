@@ -6,13 +6,16 @@
 //! `(seed, epoch)` and dealt round-robin to the ranks; each rank reads only its row
 //! groups, shuffles their scenes by `(seed, epoch, rank, world)`, and takes `B/W` scenes
 //! per step (the remainder of `B` goes to the first ranks). An epoch has as many steps as
-//! the rank with the fewest batches allows, so every rank takes every step.
+//! the rank with the fewest batches allows, so every rank takes every step. A split with
+//! fewer row groups than ranks is dealt in pieces: each row group cut into
+//! `⌈world / groups⌉` contiguous scene ranges.
 
 use crate::error::{Result, TrainError};
 use osrt_dataset::RowGroupRef;
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
+use std::ops::Range;
 
 /// What the RNG of a purpose is for; part of the derivation so streams never overlap.
 #[derive(Debug, Clone, Copy)]
@@ -49,14 +52,46 @@ pub fn local_batch_sizes(batch: usize, world: usize) -> Vec<usize> {
         .collect()
 }
 
+/// Scenes `rows` (indices within the group) of one row group.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Piece {
+    pub group: RowGroupRef,
+    pub rows: Range<u64>,
+}
+
+impl Piece {
+    fn len(&self) -> u64 {
+        self.rows.end - self.rows.start
+    }
+}
+
+/// The units dealt to ranks: whole row groups, or — with fewer groups than ranks — each
+/// group cut into `⌈world / groups⌉` contiguous ranges of near-equal size.
+fn pieces(all: &[RowGroupRef], world: usize) -> Vec<Piece> {
+    let cuts = if all.is_empty() {
+        1
+    } else {
+        world.div_ceil(all.len()) as u64
+    };
+    all.iter()
+        .flat_map(|g| {
+            let n = g.num_rows;
+            (0..cuts).map(move |j| Piece {
+                group: g.clone(),
+                rows: j * n / cuts..(j + 1) * n / cuts,
+            })
+        })
+        .collect()
+}
+
 /// One rank's share of one epoch.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpochPlan {
     pub epoch: u64,
     pub rank: usize,
     pub world: usize,
-    /// This rank's row groups, in the order they are read.
-    pub row_groups: Vec<RowGroupRef>,
+    /// This rank's pieces of row groups, in the order they are read.
+    pub pieces: Vec<Piece>,
     /// Scenes this rank contributes to each step.
     pub local_batch: usize,
     /// Steps in the epoch (the same on every rank).
@@ -85,22 +120,23 @@ impl EpochPlan {
                 "batch size {batch} is smaller than the {world} workers: every worker needs at least one scene per step"
             )));
         }
-        let mut order: Vec<usize> = (0..all.len()).collect();
+        let units = pieces(all, world);
+        let mut order: Vec<usize> = (0..units.len()).collect();
         order.shuffle(&mut derive_rng(seed, Stream::RowGroups, &[epoch]));
         let sizes = local_batch_sizes(batch, world);
         let mut steps = u64::MAX;
         let mut mine = Vec::new();
         for (r, &size) in sizes.iter().enumerate() {
-            let groups: Vec<&RowGroupRef> = order
+            let dealt: Vec<&Piece> = order
                 .iter()
                 .skip(r)
                 .step_by(world)
-                .map(|&i| &all[i])
+                .map(|&i| &units[i])
                 .collect();
-            let rows: u64 = groups.iter().map(|g| g.num_rows).sum();
+            let rows: u64 = dealt.iter().map(|p| p.len()).sum();
             steps = steps.min(rows / size as u64);
             if r == rank {
-                mine = groups.into_iter().cloned().collect();
+                mine = dealt.into_iter().cloned().collect();
             }
         }
         if steps == 0 {
@@ -114,7 +150,7 @@ impl EpochPlan {
             epoch,
             rank,
             world,
-            row_groups: mine,
+            pieces: mine,
             local_batch: sizes[rank],
             steps,
         })
@@ -153,8 +189,10 @@ mod tests {
             let plans: Vec<EpochPlan> = (0..world)
                 .map(|r| EpochPlan::new(&all, 7, 3, world, r, 6).unwrap())
                 .collect();
-            let mut seen: Vec<RowGroupRef> =
-                plans.iter().flat_map(|p| p.row_groups.clone()).collect();
+            let mut seen: Vec<RowGroupRef> = plans
+                .iter()
+                .flat_map(|p| p.pieces.iter().map(|x| x.group.clone()))
+                .collect();
             seen.sort_by(|a, b| (&a.file, a.index).cmp(&(&b.file, b.index)));
             let mut want = all.clone();
             want.sort_by(|a, b| (&a.file, a.index).cmp(&(&b.file, b.index)));
@@ -166,7 +204,33 @@ mod tests {
         }
         let a = EpochPlan::new(&all, 7, 3, 2, 0, 6).unwrap();
         let b = EpochPlan::new(&all, 7, 4, 2, 0, 6).unwrap();
-        assert_ne!(a.row_groups, b.row_groups, "epochs reshuffle");
+        assert_ne!(a.pieces, b.pieces, "epochs reshuffle");
+        assert!(a.pieces.iter().all(|p| p.rows == (0..32)), "whole groups");
+    }
+
+    /// 32 scenes in one row group train on 2 workers: each gets its own half.
+    #[test]
+    fn fewer_row_groups_than_workers_are_split_by_scene_ranges() {
+        for (n, world, batch) in [(1, 2, 16), (1, 3, 6), (2, 3, 6)] {
+            let all = groups(n, 32);
+            let plans: Vec<EpochPlan> = (0..world)
+                .map(|r| EpochPlan::new(&all, 0, 0, world, r, batch).unwrap())
+                .collect();
+            let mut covered: Vec<(usize, u64)> = plans
+                .iter()
+                .flat_map(|p| p.pieces.iter())
+                .flat_map(|p| p.rows.clone().map(|r| (p.group.index, r)))
+                .collect();
+            covered.sort();
+            let want: Vec<(usize, u64)> =
+                (0..n).flat_map(|g| (0..32).map(move |r| (g, r))).collect();
+            assert_eq!(
+                covered, want,
+                "{n} groups, {world} workers: every scene once"
+            );
+            assert!(plans.iter().all(|p| !p.pieces.is_empty()));
+            assert!(plans[0].steps >= 1);
+        }
     }
 
     #[test]

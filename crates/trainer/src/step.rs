@@ -207,7 +207,7 @@ impl Trainer {
     }
 
     /// Clips (if configured) and applies a flat gradient with AdamW, or skips the step if
-    /// the loss, the gradient or the resulting weights are not finite. Counts the step
+    /// the loss, the gradient, the resulting weights or the moments are not finite. Counts the step
     /// either way.
     pub fn apply(&mut self, loss: f64, mut grads: Vec<f32>) -> Result<ApplyOutcome> {
         let step = self.step;
@@ -240,6 +240,11 @@ impl Trainer {
                 let (new, m, v) = opt.propose(&params, &grads, lr);
                 if new.iter().any(|p| !p.is_finite()) {
                     return skip(self, "non-finite updated weight");
+                }
+                // A huge finite gradient squares to ∞ in the second moment while the
+                // weights stay finite (m / √∞ = 0): the state must not keep it either.
+                if m.iter().chain(&v).any(|x| !x.is_finite()) {
+                    return skip(self, "non-finite optimizer moment");
                 }
                 self.params.load_flat(&new)?;
                 opt.commit(m, v);

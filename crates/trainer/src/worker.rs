@@ -68,6 +68,9 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
     let endpoint = endpoint
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(30))
+        .http2_keep_alive_interval(crate::collective::KEEP_ALIVE_INTERVAL)
+        .keep_alive_timeout(crate::collective::KEEP_ALIVE_TIMEOUT)
+        .keep_alive_while_idle(true)
         .tcp_nodelay(true);
     Ok(CoordinatorClient::with_interceptor(
         endpoint.connect_lazy(),
@@ -395,8 +398,10 @@ async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
 async fn load_shard(data: &Location, plan: &EpochPlan) -> Result<Vec<Scene>> {
     let reader = SplitReader::open(data.join("train")).await?;
     let mut scenes = Vec::new();
-    for rg in &plan.row_groups {
-        scenes.extend(reader.read_row_group(rg, Columns::TRAIN).await?);
+    for piece in &plan.pieces {
+        let group = reader.read_row_group(&piece.group, Columns::TRAIN).await?;
+        let (start, end) = (piece.rows.start as usize, piece.rows.end as usize);
+        scenes.extend(group.into_iter().take(end).skip(start));
     }
     Ok(scenes)
 }
@@ -496,6 +501,16 @@ async fn run_generation(
         }
     };
 
+    if rank == 0 {
+        // Checkpoints past the generation's starting point belong to an abandoned
+        // timeline (committed just before a generation ended, too late to count): this
+        // generation replays those steps, maybe with another world size, and its
+        // checkpoints take their place.
+        let discarded = checkpoint::discard_after(&run, plan.resume_step).await?;
+        if !discarded.is_empty() {
+            tracing::info!(?discarded, resume_step = ?plan.resume_step, "checkpoints of an abandoned timeline discarded");
+        }
+    }
     let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
     let mut state = match plan.resume_step {
         Some(step) => {
@@ -582,11 +597,19 @@ async fn run_generation(
     let wall = |gen_start: Instant| wall0 + gen_start.elapsed().as_secs_f64();
     // A fresh job evaluates its initial weights: the curve starts at step 0. Every rank
     // evaluates, so none waits for rank 0 in the first all-reduce.
+    // Records a report could not deliver go again with the next one (the coordinator
+    // drops a record it already holds).
+    let mut unsent: Vec<serde_json::Value> = Vec::new();
     if trainer.step == 0 {
         let r = tokio::task::block_in_place(|| evaluate(&trainer.model, &val, &eval_opts))?;
         if rank == 0 {
-            let record = eval_record(0, 0.0, 0.0, &r);
-            send_records(client, plan, worker_id, 0, None, vec![record]).await;
+            unsent.push(eval_record(0, 0.0, 0.0, &r));
+            if send_records(client, plan, worker_id, 0, None, &unsent)
+                .await
+                .is_some()
+            {
+                unsent.clear();
+            }
         }
     }
 
@@ -692,8 +715,20 @@ async fn run_generation(
         let hash = (step % c.hash_every == 0 || last)
             .then(|| trainer.params.flatten().map(|f| checkpoint::param_hash(&f)))
             .transpose()?;
-        if hash.is_some() || !records.is_empty() {
-            let directive = send_records(client, plan, worker_id, step, hash, records).await;
+        if hash.is_some() || !records.is_empty() || !unsent.is_empty() {
+            unsent.extend(records);
+            if unsent.len() > MAX_UNSENT_RECORDS {
+                let dropped = unsent.len() - MAX_UNSENT_RECORDS;
+                tracing::warn!(
+                    dropped,
+                    "the coordinator took no records for long: oldest dropped"
+                );
+                unsent.drain(..dropped);
+            }
+            let directive = send_records(client, plan, worker_id, step, hash, &unsent).await;
+            if directive.is_some() {
+                unsent.clear();
+            }
             if directive == Some(Directive::Stop) {
                 return Ok(Ended::Aborted {
                     reason: "the coordinator stopped the job".into(),
@@ -771,14 +806,19 @@ async fn commit_and_report(
     Ok(step)
 }
 
-/// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer.
+/// Records a worker holds for a coordinator that does not answer, before dropping the
+/// oldest.
+const MAX_UNSENT_RECORDS: usize = 10_000;
+
+/// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer
+/// (`None`: not delivered).
 async fn send_records(
     client: &mut Client,
     plan: &WorkerPlan,
     worker_id: u64,
     step: u64,
     param_hash: Option<String>,
-    records: Vec<serde_json::Value>,
+    records: &[serde_json::Value],
 ) -> Option<Directive> {
     let r = client
         .report_progress(v1::ProgressReport {

@@ -112,6 +112,123 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
     assert!(e.contains("does not verify"), "{e}");
 }
 
+/// A replayed step adopts the committed checkpoint only if it holds the same weights
+/// under the same config and world size; another job's checkpoint at that step is an
+/// error, and its files are left as they were.
+#[tokio::test]
+async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
+    let run = Location::parse("memory://ckpt-adopt/run").unwrap();
+    let t = trainer();
+    Snapshot::take(&t, state(5, None))
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap();
+    let model = run.path("checkpoints/step-000000005/model.safetensors");
+    let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
+    // The same step replayed: adopted.
+    let mut again = state(5, None);
+    again.wall_s = 99.0;
+    Snapshot::take(&t, again)
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap();
+    // Other weights, another config, another world size: refused.
+    let other = Trainer::new(
+        JobConfig {
+            train: osrt_trainer::TrainConfig {
+                seed: 99,
+                ..JobConfig::preset("tiny").unwrap().train
+            },
+            ..JobConfig::preset("tiny").unwrap()
+        },
+        Device::Cpu,
+    )
+    .unwrap();
+    let e = Snapshot::take(&other, state(5, None))
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("another checkpoint is committed at step 5"),
+        "{e}"
+    );
+    assert!(e.contains("model.safetensors"), "{e}");
+    let mut hashed = state(5, None);
+    hashed.config_hash = "other".into();
+    hashed.world_size = 2;
+    let e = Snapshot::take(&t, hashed)
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("job config") && e.contains("world size (1 there, 2 here)"),
+        "{e}"
+    );
+    let after = run.store.get(&model).await.unwrap().bytes().await.unwrap();
+    assert_eq!(before, after, "the committed files were not touched");
+}
+
+/// A generation that starts from step 10 discards what an abandoned timeline left past
+/// it, committed or torn.
+#[tokio::test]
+async fn checkpoints_past_the_starting_point_are_discarded() {
+    let run = Location::parse("memory://ckpt-discard/run").unwrap();
+    let t = trainer();
+    for s in [10, 20, 30] {
+        Snapshot::take(&t, state(s, None))
+            .unwrap()
+            .commit(&run)
+            .await
+            .unwrap();
+    }
+    let m = run.path("checkpoints/step-000000030/MANIFEST.json");
+    run.store.delete(&m).await.unwrap();
+    assert_eq!(
+        checkpoint::discard_after(&run, Some(10)).await.unwrap(),
+        vec![30, 20]
+    );
+    assert_eq!(list_steps(&run).await.unwrap(), vec![10]);
+    assert_eq!(
+        checkpoint::discard_after(&run, None).await.unwrap(),
+        vec![10]
+    );
+    assert!(list_steps(&run).await.unwrap().is_empty());
+}
+
+/// Torn folders (no manifest) do not count towards `keep_last`, so they can never push
+/// the newest committed checkpoint out; `keep_last = 0` keeps one.
+#[tokio::test]
+async fn retention_never_counts_torn_folders() {
+    let run = Location::parse("memory://ckpt-retention-torn/run").unwrap();
+    let t = trainer();
+    for s in [10, 20, 30, 40, 50] {
+        Snapshot::take(&t, state(s, None))
+            .unwrap()
+            .commit(&run)
+            .await
+            .unwrap();
+    }
+    for s in [40, 50] {
+        let m = run.path(&format!("checkpoints/step-{s:09}/MANIFEST.json"));
+        run.store.delete(&m).await.unwrap();
+    }
+    assert_eq!(apply_retention(&run, 2).await.unwrap(), vec![10]);
+    assert_eq!(latest_verified(&run, None).await.unwrap(), Some(30));
+    assert_eq!(apply_retention(&run, 0).await.unwrap(), vec![20]);
+    assert_eq!(latest_verified(&run, None).await.unwrap(), Some(30));
+    assert_eq!(
+        list_steps(&run).await.unwrap(),
+        vec![50, 40, 30],
+        "torn left alone"
+    );
+}
+
 #[tokio::test]
 async fn retention_keeps_the_newest_and_the_best() {
     let run = Location::parse("memory://ckpt-retention/run").unwrap();

@@ -273,6 +273,85 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
     the_round_fails_at_once_on_the_malformed_chunk(waiting, t).await;
 }
 
+/// What a rank keeps for later is bounded: chunks at most one step ahead (checked like
+/// the current step's), early chunks of one `(generation, step)` only, at most one
+/// generation ahead, and no more bytes of them than a gradient.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn chunks_kept_for_later_are_bounded() {
+    let (nodes, waiting) = rank_1_waiting(1000).await;
+    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
+    // Rank 1 is in step 3: step 4 is kept (from the ring predecessor only), step 5
+    // refused.
+    client
+        .push_chunk(chunk("test-job", 1, 4, 0, vec![0.0; 4]))
+        .await
+        .unwrap();
+    let e = client
+        .push_chunk(chunk("test-job", 1, 4, 1, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert!(
+        e.message().contains("expected the ring predecessor 0"),
+        "{e}"
+    );
+    let e = client
+        .push_chunk(chunk("test-job", 1, 5, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert!(e.message().contains("at most one step ahead"), "{e}");
+    let e = client
+        .push_chunk(chunk("test-job", 3, 0, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::FailedPrecondition);
+    assert!(e.message().contains("at most one ahead"), "{e}");
+    // Generation 2, step 1 is kept early; step 0 of it is then stale (one step of a
+    // generation waits at a time: a newer one replaces it).
+    client
+        .push_chunk(chunk("test-job", 2, 1, 0, vec![0.0; 4]))
+        .await
+        .unwrap();
+    let e = client
+        .push_chunk(chunk("test-job", 2, 0, 0, vec![0.0; 4]))
+        .await
+        .unwrap_err();
+    assert!(e.message().contains("stale early chunk"), "{e}");
+    drop(waiting);
+    // After a gradient of 8 floats was reduced, early chunks may total 32 bytes + 1 MiB.
+    let nodes = start(2, "test-job").await;
+    let rings: Vec<Ring> = (0..2)
+        .map(|r| {
+            let cfg = config(&nodes, r, 1000, 1000, Duration::from_secs(5));
+            Ring::new(cfg, nodes[r].mailbox.clone()).unwrap()
+        })
+        .collect();
+    let tasks: Vec<Waiting> = rings
+        .into_iter()
+        .map(|r| all_reduce_in_background(r, 0))
+        .collect();
+    for t in tasks {
+        t.await.unwrap().0.unwrap();
+    }
+    nodes[1].mailbox.set_generation(2, 1);
+    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()))
+        .max_encoding_message_size(8 << 20);
+    let mut big = chunk("test-job", 2, 0, 0, vec![0.0; 1 << 18]);
+    client.push_chunk(big.clone()).await.unwrap();
+    big.tag.as_mut().unwrap().chunk = 1;
+    let e = client.push_chunk(big).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dead_peer_fails_the_round_within_the_deadline() {
     let nodes = start(2, "test-job").await;
@@ -360,7 +439,64 @@ async fn stream_chunks(
             Err(_) => return Err(call.status_within(Duration::from_secs(5)).await),
         }
     }
-    call.finish(sender).await
+    call.finish(sender, Duration::from_secs(5)).await
+}
+
+/// A successor that takes every chunk but never answers the call.
+struct Silent;
+
+#[tonic::async_trait]
+impl Collective for Silent {
+    async fn push_chunk(
+        &self,
+        _request: tonic::Request<Chunk>,
+    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
+        std::future::pending().await
+    }
+
+    async fn push_chunks(
+        &self,
+        request: tonic::Request<tonic::Streaming<Chunk>>,
+    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
+        let mut chunks = request.into_inner();
+        while chunks.message().await?.is_some() {}
+        std::future::pending().await
+    }
+}
+
+/// The end of a call waits one per-chunk timeout for the successor's answer, not the
+/// call's deadline (which allows every chunk of an all-reduce its timeout).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_end_of_a_call_is_bounded_by_one_wait() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(CollectiveServer::new(Silent))
+            .serve_with_incoming(tonic::transport::server::TcpIncoming::from(listener)),
+    );
+    let channel = tonic::transport::Endpoint::from_shared(addr)
+        .unwrap()
+        .connect_lazy();
+    let (sender, call) =
+        chunk_wire::open_stream(channel, &token().header(), Duration::from_secs(60), 2).unwrap();
+    let c = chunk("test-job", 1, 0, 0, vec![1.0; 8]);
+    sender
+        .reserve()
+        .await
+        .unwrap()
+        .send(c.tag.as_ref().unwrap(), c.data.clone());
+    let t = Instant::now();
+    let e = call
+        .finish(sender, Duration::from_millis(500))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::DeadlineExceeded, "{e}");
+    assert!(
+        t.elapsed() < Duration::from_secs(5),
+        "took {:?}",
+        t.elapsed()
+    );
 }
 
 /// The ring's hand-framed `PushChunks` (chunk_wire) is ordinary gRPC: tonic's generated

@@ -127,6 +127,28 @@ fn non_finite_steps_are_skipped_and_counted() {
     assert_eq!(t.skipped_in_a_row, 0);
 }
 
+/// A finite gradient of 1e30 squares past f32's range: the second moment would be ∞
+/// while every weight stays finite. The step is skipped; the moments stay finite.
+#[test]
+fn a_gradient_that_overflows_the_second_moment_is_skipped() {
+    let data = scenes(2);
+    let mut t = Trainer::new(tiny(), Device::Cpu).unwrap();
+    let g = t
+        .gradients(&batch(&data, 0), &mut ChaCha8Rng::seed_from_u64(0))
+        .unwrap();
+    let mut huge = g.grads.clone();
+    huge[0] = 1e30;
+    assert_eq!(
+        t.apply(g.loss, huge).unwrap(),
+        ApplyOutcome::Skipped {
+            reason: "non-finite optimizer moment"
+        }
+    );
+    let (m, v) = t.opt.moments().unwrap();
+    assert!(m.iter().chain(&v).all(|x| x.is_finite()));
+    assert_eq!(t.opt.t(), 0);
+}
+
 #[test]
 fn an_absurd_learning_rate_never_writes_a_non_finite_weight() {
     let data = scenes(2);

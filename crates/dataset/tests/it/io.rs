@@ -90,6 +90,17 @@ async fn row_groups_are_listed_and_read_one_at_a_time() {
             .contains("row group 5 requested, the file has 2"),
         "{err}"
     );
+    // A listing that no longer matches the file (replaced since it was listed) is an
+    // error naming the file, not a short shard.
+    let err = r
+        .read_row_group(&rg("part-00001.parquet", 1, 4), Columns::ALL)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("part-00001.parquet") && err.contains("listed with 4 scenes, 1 decoded"),
+        "{err}"
+    );
 }
 
 #[tokio::test]
