@@ -143,7 +143,8 @@ pub struct Core {
     pub dirty_metrics: bool,
 }
 
-fn record_step(line: &str) -> Option<u64> {
+/// The `step` of a metrics record line.
+pub fn record_step(line: &str) -> Option<u64> {
     serde_json::from_str::<serde_json::Value>(line)
         .ok()?
         .get("step")?

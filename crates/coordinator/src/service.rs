@@ -1,7 +1,7 @@
 //! The Coordinator gRPC service over a shared [`Core`], the monitor loop (heartbeat
 //! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
 
-use crate::core::{Core, JobSpec, Persisted, Phase, Progress};
+use crate::core::{Core, JobSpec, Persisted, Phase, Progress, record_step};
 use osrt_dataset::Location;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
@@ -139,8 +139,7 @@ impl Coordinator {
                     spec.max_steps = p.max_steps;
                     spec.deadline_unix_s = p.deadline_unix_s;
                 }
-                let checkpoint = checkpoint::latest_verified(&run, None).await?;
-                let records = read_file(&run, METRICS_FILE)
+                let records: Vec<String> = read_file(&run, METRICS_FILE)
                     .await?
                     .map(|b| {
                         String::from_utf8_lossy(&b)
@@ -149,6 +148,16 @@ impl Coordinator {
                             .collect()
                     })
                     .unwrap_or_default();
+                // The job continues from the checkpoint `job.json` recorded (or the newest
+                // older one that verifies), and never from past the last step whose records
+                // reached `metrics.jsonl` (they are flushed once a second): the steps after
+                // it are replayed and their records sent again, so none is missing.
+                // No record at all: the job starts over.
+                let last_record = records.iter().filter_map(|l| record_step(l)).max();
+                let at_most = last_record
+                    .unwrap_or(0)
+                    .min(p.last_checkpoint.unwrap_or(u64::MAX));
+                let checkpoint = checkpoint::latest_verified(&run, Some(at_most)).await?;
                 tracing::info!(
                     job = %p.job_id,
                     generation = p.generation,
