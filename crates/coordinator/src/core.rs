@@ -143,6 +143,9 @@ pub struct Core {
     pub dirty_metrics: bool,
 }
 
+/// Records one progress report may carry (a worker holds at most as many unsent).
+pub const MAX_RECORDS_PER_CALL: usize = 10_000;
+
 /// The `step` of a metrics record line.
 pub fn record_step(line: &str) -> Option<u64> {
     serde_json::from_str::<serde_json::Value>(line)
@@ -469,6 +472,12 @@ impl Core {
                 self.ring.iter().position(|&m| m == id)
             )));
         }
+        if records.len() > MAX_RECORDS_PER_CALL {
+            return Err(Status::invalid_argument(format!(
+                "{} records in one report, at most {MAX_RECORDS_PER_CALL}",
+                records.len()
+            )));
+        }
         if rank == 0 {
             for line in records {
                 let Some(s) = record_step(&line) else {
@@ -783,6 +792,18 @@ mod tests {
                 "resume {resume}"
             );
         }
+    }
+
+    #[test]
+    fn a_report_may_carry_a_bounded_number_of_records() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(1, 1, 1), t);
+        let a = reg(&mut c, t);
+        c.tick(t);
+        let many = vec!["{\"step\":1}".to_string(); MAX_RECORDS_PER_CALL + 1];
+        let e = c.progress(prog(a, 1, 0, 1, None, many), t).unwrap_err();
+        assert_eq!(e.code(), tonic::Code::InvalidArgument);
+        assert!(c.records.is_empty());
     }
 
     #[test]

@@ -17,6 +17,9 @@ use tonic::{Request, Response, Status};
 
 pub const JOB_FILE: &str = "job.json";
 
+/// Largest message the coordinator takes or sends.
+const MAX_MESSAGE_BYTES: usize = 16 << 20;
+
 /// How long a plan request waits for a change before answering `Waiting`.
 const PLAN_POLL: Duration = Duration::from_secs(2);
 
@@ -201,7 +204,10 @@ impl Coordinator {
         let service = InterceptedService::new(
             CoordinatorServer::new(Service {
                 shared: self.shared.clone(),
-            }),
+            })
+            // Reports carry at most MAX_RECORDS_PER_CALL records of a few hundred bytes.
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES),
             CheckToken::new(token, "coordinator"),
         );
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();

@@ -36,11 +36,18 @@ impl View {
             ));
         }
         let px = self.num_pixels();
-        if self.image.len() != px * 3 {
+        // 2^32 × 2^32 × 3 overflows even 64 bits: a crafted size is an error, not a panic.
+        let Some(rgb) = px.checked_mul(3) else {
+            return Err(format!(
+                "image size {}x{} is too large",
+                self.width, self.height
+            ));
+        };
+        if self.image.len() != rgb {
             return Err(format!(
                 "image has {} bytes, expected {} for {}x{} RGB8",
                 self.image.len(),
-                px * 3,
+                rgb,
                 self.width,
                 self.height
             ));

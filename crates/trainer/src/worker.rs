@@ -807,7 +807,7 @@ async fn commit_and_report(
 }
 
 /// Records a worker holds for a coordinator that does not answer, before dropping the
-/// oldest.
+/// oldest (the coordinator's limit per report).
 const MAX_UNSENT_RECORDS: usize = 10_000;
 
 /// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer

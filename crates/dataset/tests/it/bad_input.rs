@@ -275,3 +275,13 @@ async fn bad_manifest() {
         "{e}"
     );
 }
+
+/// Image dimensions whose byte count overflows 64 bits are an error, not a panic.
+#[test]
+fn image_dimensions_that_overflow() {
+    let mut v = tiny_scenes(1, 8)[0].views[0].clone();
+    v.width = u32::MAX;
+    v.height = u32::MAX;
+    let e = v.validate().unwrap_err();
+    assert!(e.contains("too large"), "{e}");
+}
