@@ -81,6 +81,23 @@ impl DatasetError {
         }
     }
 
+    /// Whether a read that failed with this error may succeed if made again: a store
+    /// error that is not a definite answer (missing, refused, unsupported), also when it
+    /// reached us through the Parquet reader.
+    pub fn is_transient(&self) -> bool {
+        fn store(e: &object_store::Error) -> bool {
+            matches!(e, object_store::Error::Generic { .. })
+        }
+        match self {
+            Self::Store { source, .. } => store(source),
+            Self::Parquet {
+                source: parquet::errors::ParquetError::External(e),
+                ..
+            } => e.downcast_ref::<object_store::Error>().is_some_and(store),
+            _ => false,
+        }
+    }
+
     pub(crate) fn parquet(path: impl ToString, source: parquet::errors::ParquetError) -> Self {
         Self::Parquet {
             path: path.to_string(),

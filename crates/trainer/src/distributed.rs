@@ -12,7 +12,7 @@ use crate::error::Result;
 use crate::step::StepGradients;
 
 /// Floats appended after the gradient.
-pub const CONTROL_FLOATS: usize = 4;
+pub const CONTROL_FLOATS: usize = 6;
 
 /// Decisions rank 0 contributes to a step (ignored on other ranks).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -31,6 +31,26 @@ pub struct Reduced {
     /// Scenes in the global batch.
     pub samples: f64,
     pub signals: Signals,
+    /// Ranks whose own loss or gradient was not finite this step.
+    pub nonfinite: NonFiniteRanks,
+}
+
+/// Which ranks computed a non-finite loss or gradient: their number, and the rank when
+/// it is one (sums of small integers are exact in f32, so both survive the all-reduce).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct NonFiniteRanks {
+    pub count: u32,
+    pub only: Option<usize>,
+}
+
+impl std::fmt::Display for NonFiniteRanks {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.count, self.only) {
+            (0, _) => write!(f, "none"),
+            (_, Some(r)) => write!(f, "rank {r}"),
+            (n, None) => write!(f, "{n} ranks"),
+        }
+    }
 }
 
 /// Sums `g` over the ring (`None` = a single worker) as all-reduce number `seq`.
@@ -42,6 +62,7 @@ pub async fn reduce(
     signals: Signals,
 ) -> Result<Reduced> {
     let n = g.samples as f32;
+    let bad = !g.loss.is_finite() || g.grads.iter().any(|x| !x.is_finite());
     let mut buf = g.grads;
     buf.iter_mut().for_each(|x| *x *= n);
     let mine = if rank == 0 {
@@ -54,12 +75,19 @@ pub async fn reduce(
         g.loss as f32 * n,
         f32::from(u8::from(mine.evaluate)),
         f32::from(u8::from(mine.stop)),
+        f32::from(u8::from(bad)),
+        if bad { (rank + 1) as f32 } else { 0.0 },
     ]);
     if let Some(ring) = ring {
         ring.all_reduce(seq, &mut buf).await?;
     }
     let p = buf.len() - CONTROL_FLOATS;
     let (total, loss_sum, evaluate, stop) = (buf[p], buf[p + 1], buf[p + 2], buf[p + 3]);
+    let (bad_count, bad_rank_sum) = (buf[p + 4] as u32, buf[p + 5] as usize);
+    let nonfinite = NonFiniteRanks {
+        count: bad_count,
+        only: (bad_count == 1).then(|| bad_rank_sum.saturating_sub(1)),
+    };
     buf.truncate(p);
     buf.iter_mut().for_each(|x| *x /= total);
     Ok(Reduced {
@@ -70,6 +98,7 @@ pub async fn reduce(
             evaluate: evaluate > 0.5,
             stop: stop > 0.5,
         },
+        nonfinite,
     })
 }
 

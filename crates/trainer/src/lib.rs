@@ -18,6 +18,7 @@ mod loan;
 pub mod memory;
 pub mod optim;
 pub mod render;
+pub mod retry;
 pub mod run;
 pub mod shard;
 pub mod step;

@@ -19,6 +19,7 @@ use crate::data::load_split;
 use crate::distributed::{Signals, broadcast_from_rank0, reduce};
 use crate::error::{Result, TrainError};
 use crate::eval::evaluate;
+use crate::retry::{READ_RETRY_BUDGET, retry_transient};
 use crate::shard::{EpochPlan, step_rng};
 use crate::step::{ApplyOutcome, Trainer};
 use osrt_dataset::{BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch};
@@ -423,7 +424,10 @@ async fn open_epoch(
 ) -> Result<Epoch> {
     let t = &job.train;
     let ep = EpochPlan::new(groups, t.seed, epoch, plan.world(), plan.rank, t.batch_size)?;
-    let scenes = load_shard(data, &ep).await?;
+    let scenes = retry_transient("reading this rank's shard", READ_RETRY_BUDGET, || {
+        load_shard(data, &ep)
+    })
+    .await?;
     let order = ep.scene_order(t.seed, scenes.len());
     Ok(Epoch {
         plan: ep,
@@ -556,16 +560,17 @@ async fn run_generation(
         t.seed
     );
 
-    let groups = list_row_groups(&data).await?;
-    let val = load_split(
-        &data,
-        "val",
-        Columns {
+    let groups = retry_transient("listing the train split", READ_RETRY_BUDGET, || {
+        list_row_groups(&data)
+    })
+    .await?;
+    let val = retry_transient("reading the validation scenes", READ_RETRY_BUDGET, || {
+        let columns = Columns {
             masks: true,
             objects: false,
-        },
-        Some(t.eval_scenes),
-    )
+        };
+        load_split(&data, "val", columns, Some(t.eval_scenes))
+    })
     .await?;
     let mut epoch = open_epoch(
         &data,
@@ -667,8 +672,12 @@ async fn run_generation(
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
+        let nonfinite = reduced.nonfinite;
         let outcome = tokio::task::block_in_place(|| trainer.apply(reduced.loss, reduced.grads))?;
         train_s += step_start.elapsed().as_secs_f64();
+        if let ApplyOutcome::Skipped { reason } = &outcome {
+            tracing::warn!(step = trainer.step - 1, reason, from = %nonfinite, "step skipped on every rank");
+        }
         if let ApplyOutcome::Skipped { .. } = outcome
             && trainer.skipped_in_a_row >= t.max_consecutive_skips
         {

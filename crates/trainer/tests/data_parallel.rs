@@ -101,6 +101,27 @@ async fn two_half_batches_step_like_one_full_batch() {
         r0.apply(a.loss, a.grads).unwrap();
         r1.apply(b.loss, b.grads).unwrap();
     }
+    // Rank 1 computes a NaN: the reduced gradient is not finite on both ranks, and both
+    // learn that rank 1 produced it.
+    let refs: Vec<&Scene> = data[..4].iter().collect();
+    let full = build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(9)).unwrap();
+    let g0 = r0
+        .gradients(&full.slice(0..2), &mut ChaCha8Rng::seed_from_u64(9))
+        .unwrap();
+    let mut g1 = r1
+        .gradients(&full.slice(2..4), &mut ChaCha8Rng::seed_from_u64(9))
+        .unwrap();
+    g1.grads[5] = f32::NAN;
+    let (ring0, ring1) = rings.split_at_mut(1);
+    let (a, b) = tokio::join!(
+        reduce(Some(&mut ring0[0]), 5, 0, g0, Signals::default()),
+        reduce(Some(&mut ring1[0]), 5, 1, g1, Signals::default()),
+    );
+    for r in [a.unwrap(), b.unwrap()] {
+        assert!(r.grads[5].is_nan());
+        assert_eq!(r.nonfinite.only, Some(1));
+        assert_eq!(r.nonfinite.to_string(), "rank 1");
+    }
     let (p, p0, p1) = (
         single.params.flatten().unwrap(),
         r0.params.flatten().unwrap(),
