@@ -99,9 +99,13 @@ impl Location {
         std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create directory: {e}")))?;
         // Deleting a folder's last file removes the folder (checkpoint retention), as on
         // object stores where folders are only prefixes.
+        // Every write is synced (file and folder) before the put returns: a checkpoint's
+        // manifest, written last, can then never reach the disk before its files, and a
+        // crash loses no acknowledged write.
         let fs = LocalFileSystem::new_with_prefix(dir)
             .map_err(|e| err(e.to_string()))?
-            .with_automatic_cleanup(true);
+            .with_automatic_cleanup(true)
+            .with_fsync(true);
         Ok(Self {
             store: Arc::new(fs),
             prefix: Path::default(),
