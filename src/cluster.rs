@@ -9,7 +9,8 @@ use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
-use osrt_trainer::{DeviceSpec, JobConfig, WorkerOptions, run_worker};
+use osrt_trainer::worker::run_worker_until;
+use osrt_trainer::{DeviceSpec, JobConfig, WorkerOptions};
 use std::io::IsTerminal;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -269,17 +270,20 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
                 .unwrap_or(1)
         });
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "localhost".into());
-    run_worker(WorkerOptions {
-        coordinator: a.coordinator,
-        listen: a.listen,
-        advertise: a.advertise,
-        threads,
-        device: a.device,
-        token,
-        tls: Tls::from_env()?,
-        name: format!("{host}:{}", std::process::id()),
-        coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
-    })
+    run_worker_until(
+        WorkerOptions {
+            coordinator: a.coordinator,
+            listen: a.listen,
+            advertise: a.advertise,
+            threads,
+            device: a.device,
+            token,
+            tls: Tls::from_env()?,
+            name: format!("{host}:{}", std::process::id()),
+            coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
+        },
+        shutdown_signal(),
+    )
     .await?;
     Ok(())
 }

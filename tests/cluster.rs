@@ -78,6 +78,17 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done");
     assert_eq!(job["restarts"], 0);
+    // Rank 0 recorded the parameter count (the coordinator builds no model).
+    let info = read_json(&run.join("run.json")).unwrap();
+    let tiny = osrt_trainer::Trainer::new(
+        osrt_trainer::JobConfig::preset("tiny").unwrap(),
+        osrt_trainer::DeviceSpec::Cpu.open().unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        info["parameters"].as_u64(),
+        Some(tiny.num_parameters() as u64)
+    );
     // hash_every = 1 in the tiny preset: both replicas' hashes agreed after every step.
     assert_eq!(job["hash_checks"], 30, "{job}");
     assert_eq!(job["last_checkpoint"], 30);
@@ -266,6 +277,34 @@ fn a_worker_paused_across_a_coordinator_restart_registers_again() {
     assert_eq!(job["state"], "done", "{job}");
     assert!(a.wait_for_exit(Duration::from_secs(30)).success());
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
+}
+
+/// SIGTERM stops a worker gracefully: it tells the coordinator and exits with an error
+/// of its own (not killed by the signal); the job goes on once a replacement joins.
+#[test]
+fn a_worker_stopped_by_sigterm_tells_the_coordinator_and_exits() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let args = ["--max-steps", "300", "--min-workers", "2"];
+    let mut coord = coordinator(port, &data, &run, &args);
+    let mut a = worker(port);
+    let mut b = worker(port);
+    wait_job(&run, Duration::from_secs(60), |j| {
+        j["last_checkpoint"].as_u64().is_some_and(|s| s >= 10)
+    });
+    signal(&b, "TERM");
+    let status = b.wait_for_exit(Duration::from_secs(10));
+    assert_eq!(status.signal(), None, "handled, not killed: {status}");
+    assert!(!status.success());
+    let _b = worker(port);
+    assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
+    assert!(a.wait_for_exit(Duration::from_secs(30)).success());
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    assert!(job["restarts"].as_u64().unwrap() >= 1, "{job}");
 }
 
 /// A resumed job that no worker joins fails after `cluster.wait_timeout_s` with a

@@ -97,12 +97,11 @@ impl Coordinator {
                     ));
                 }
                 write_file(&run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
-                let parameters =
-                    osrt_trainer::Trainer::new(spec.job.clone(), candle_core::Device::Cpu)?
-                        .num_parameters();
+                // The parameter count comes from rank 0: the coordinator never builds the
+                // model (the `paper` preset's weights and optimizer state are a gigabyte).
                 let info = RunInfo {
                     data: spec.data.clone(),
-                    parameters,
+                    parameters: None,
                     workers: spec.job.cluster.min_workers,
                 };
                 write_file(

@@ -27,8 +27,29 @@ pub const METRICS_FILE: &str = "metrics.jsonl";
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunInfo {
     pub data: String,
-    pub parameters: usize,
+    /// The model's parameter count, written by rank 0 when it first builds the model (the
+    /// coordinator never builds one).
+    #[serde(default)]
+    pub parameters: Option<usize>,
     pub workers: usize,
+}
+
+/// Records the model's parameter count in `RUN/run.json` (rank 0, at a generation's
+/// start); a no-op when it is there already.
+pub async fn record_parameters(run: &Location, parameters: usize) -> Result<()> {
+    let Some(bytes) = read_file(run, INFO_FILE).await? else {
+        return Ok(());
+    };
+    let mut info: RunInfo = serde_json::from_slice(&bytes).map_err(|e| TrainError::Run {
+        path: run.describe(&run.path(INFO_FILE)),
+        reason: format!("unreadable: {e}"),
+    })?;
+    if info.parameters == Some(parameters) {
+        return Ok(());
+    }
+    info.parameters = Some(parameters);
+    let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
+    write_file(run, INFO_FILE, bytes).await
 }
 
 pub fn eval_options(job: &JobConfig) -> EvalOptions {

@@ -131,6 +131,17 @@ enum Ended {
 
 /// Runs a worker until the job is done (Ok) or failed (Err).
 pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
+    run_worker_until(opts, std::future::pending()).await
+}
+
+/// [`run_worker`] until `stop` resolves (SIGTERM, SIGINT): the generation in progress is
+/// abandoned (a checkpoint being written stays torn, without a manifest), the coordinator
+/// is told at once instead of noticing after the heartbeat timeout, and the worker ends
+/// with an error.
+pub async fn run_worker_until(
+    opts: WorkerOptions,
+    stop: impl std::future::Future<Output = ()>,
+) -> Result<()> {
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await
         .map_err(|e| TrainError::Cluster(format!("cannot listen on {}: {e}", opts.listen)))?;
@@ -156,7 +167,19 @@ pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
         },
     ));
     let mut client = coordinator_client(&opts.coordinator, opts.token.clone(), opts.tls.as_ref())?;
-    let result = worker_loop(&opts, &mut client, &mailbox, &collective_addr).await;
+    let current: std::sync::Mutex<Option<(WorkerPlan, u64)>> = Default::default();
+    let mut reporter = client.clone();
+    let result = tokio::select! {
+        r = worker_loop(&opts, &mut client, &mailbox, &collective_addr, &current) => r,
+        _ = stop => {
+            let running = current.lock().expect("current generation").take();
+            if let Some((plan, worker_id)) = running {
+                let reason = "the worker was stopped by a signal";
+                report_fault(&mut reporter, &plan, worker_id, reason, false).await;
+            }
+            Err(TrainError::Cluster("stopped by a signal".into()))
+        }
+    };
     let _ = stop_tx.send(());
     let _ = server.await;
     result
@@ -188,6 +211,7 @@ async fn worker_loop(
     client: &mut Client,
     mailbox: &Arc<Mailbox>,
     collective_addr: &str,
+    current: &std::sync::Mutex<Option<(WorkerPlan, u64)>>,
 ) -> Result<()> {
     let (mut job, mut worker_id) = register(opts, client, collective_addr).await?;
     mailbox.set_job(&job);
@@ -237,7 +261,9 @@ async fn worker_loop(
             resume_step = ?plan.resume_step,
             "starting generation"
         );
+        *current.lock().expect("current generation") = Some((plan.clone(), worker_id));
         let ended = run_generation(opts, client, mailbox, worker_id, &plan).await;
+        *current.lock().expect("current generation") = None;
         match ended {
             Ok(Ended::Finished) => {}
             Ok(Ended::Unknown) => {
@@ -516,6 +542,11 @@ async fn run_generation(
         }
     }
     let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
+    if rank == 0
+        && let Err(e) = crate::run::record_parameters(&run, trainer.num_parameters()).await
+    {
+        tracing::warn!(error = %e, "could not record the parameter count in run.json");
+    }
     let mut state = match plan.resume_step {
         Some(step) => {
             let st = checkpoint::load(&run, step, &mut trainer).await?;
