@@ -9,12 +9,12 @@ use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
-use osrt_trainer::worker::run_worker_until;
+use osrt_trainer::worker::{run_worker_until, unix_now};
 use osrt_trainer::{DeviceSpec, JobConfig, WorkerOptions};
 use std::io::IsTerminal;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 /// glibc allocator settings for workers: keep freed tensors' pages instead of returning
 /// them to the kernel after every step (page faults were 5–10 % of a step).
@@ -83,13 +83,6 @@ pub struct WorkerArgs {
     /// Give up after the coordinator has been unreachable this long.
     #[arg(long, default_value_t = 60.0)]
     pub coordinator_timeout_s: f64,
-}
-
-fn unix_now() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0)
 }
 
 fn job_id() -> String {

@@ -21,7 +21,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Generate, inspect and convert scene datasets.
+    /// Generate and inspect scene datasets.
     Data {
         #[command(subcommand)]
         command: data::DataCommand,

@@ -186,14 +186,6 @@ impl Params {
         Ok(())
     }
 
-    /// Named tensors (for safetensors).
-    pub fn tensors(&self) -> BTreeMap<String, Tensor> {
-        self.vars()
-            .into_iter()
-            .map(|(k, v)| (k, v.as_tensor().clone()))
-            .collect()
-    }
-
     /// Loads named tensors; every parameter must be present with its shape.
     pub fn load_tensors(&self, tensors: &std::collections::HashMap<String, Tensor>) -> Result<()> {
         for (name, v) in self.vars() {

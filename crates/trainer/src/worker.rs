@@ -79,7 +79,8 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
     ))
 }
 
-fn unix_now() -> f64 {
+/// Seconds since the Unix epoch (0 if the clock is before it).
+pub fn unix_now() -> f64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_secs_f64())
