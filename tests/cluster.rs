@@ -307,6 +307,39 @@ fn a_worker_stopped_by_sigterm_tells_the_coordinator_and_exits() {
     assert!(job["restarts"].as_u64().unwrap() >= 1, "{job}");
 }
 
+/// On a local run folder `metrics.jsonl` grows by appends: the file is never replaced
+/// (a rewrite through the store is a new file under the same name) while no record is
+/// dropped.
+#[test]
+fn metrics_jsonl_grows_in_place() {
+    use std::os::unix::fs::MetadataExt;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let mut coord = coordinator(port, &data, &run, &["--max-minutes", "0.1"]);
+    let mut w = worker(port);
+    let path = run.join("metrics.jsonl");
+    let t = Instant::now();
+    let inode = loop {
+        if let Ok(m) = std::fs::metadata(&path) {
+            break m.ino();
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no metrics.jsonl");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
+    assert!(w.wait_for_exit(Duration::from_secs(30)).success());
+    assert_eq!(
+        std::fs::metadata(&path).unwrap().ino(),
+        inode,
+        "replaced, not appended"
+    );
+    let steps: Vec<u64> = losses(&run).iter().map(|(s, _)| *s).collect();
+    assert!(steps.len() > 10, "{} steps", steps.len());
+    assert_eq!(steps, (1..=steps.len() as u64).collect::<Vec<_>>());
+}
+
 /// A resumed job that no worker joins fails after `cluster.wait_timeout_s` with a
 /// message that says so, instead of waiting forever.
 #[test]

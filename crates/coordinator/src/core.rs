@@ -141,6 +141,19 @@ pub struct Core {
     /// Something persisted changed since the last save.
     pub dirty_job: bool,
     pub dirty_metrics: bool,
+    /// Records `metrics.jsonl` holds (a prefix of `records`), and whether the file must be
+    /// written whole (records were dropped, or an append may have failed half-way).
+    flushed: usize,
+    rewrite: bool,
+}
+
+/// How to bring `metrics.jsonl` up to date.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MetricsWrite {
+    /// Append these lines (the file holds the ones before).
+    Append(String),
+    /// Write the file whole.
+    Whole(String),
 }
 
 /// Records one progress report may carry (a worker holds at most as many unsent).
@@ -179,7 +192,39 @@ impl Core {
             last_record: String::new(),
             dirty_job: true,
             dirty_metrics: false,
+            flushed: 0,
+            rewrite: false,
         }
+    }
+
+    /// The write that brings `metrics.jsonl` up to date; `can_append`: the store appends
+    /// in place (a local folder). Counts the records as written: call
+    /// [`Core::metrics_write_failed`] if the write fails.
+    pub fn metrics_write(&mut self, can_append: bool) -> MetricsWrite {
+        let lines = |records: &[(u64, String)]| {
+            let mut text = String::new();
+            for (_, l) in records {
+                text.push_str(l);
+                text.push('\n');
+            }
+            text
+        };
+        let append = can_append && !self.rewrite && self.flushed <= self.records.len();
+        let write = if append {
+            MetricsWrite::Append(lines(&self.records[self.flushed..]))
+        } else {
+            MetricsWrite::Whole(lines(&self.records))
+        };
+        self.flushed = self.records.len();
+        self.rewrite = false;
+        self.dirty_metrics = false;
+        write
+    }
+
+    /// A metrics write failed: the next one writes the file whole.
+    pub fn metrics_write_failed(&mut self) {
+        self.rewrite = true;
+        self.dirty_metrics = true;
     }
 
     /// Continues a job from its persisted state and records (a restarted coordinator, or
@@ -207,6 +252,8 @@ impl Core {
         self.phase = Phase::Waiting { since: now };
         self.dirty_job = true;
         self.dirty_metrics = true;
+        // The file may hold records past the checkpoint: written whole once.
+        self.rewrite = true;
     }
 
     pub fn persisted(&self) -> Persisted {
@@ -439,6 +486,9 @@ impl Core {
         self.records.retain(|(s, _)| keep.is_some_and(|k| *s <= k));
         if self.records.len() != before {
             self.dirty_metrics = true;
+            if self.records.len() < self.flushed {
+                self.rewrite = true;
+            }
         }
         self.dirty_job = true;
         tracing::info!(
@@ -792,6 +842,39 @@ mod tests {
                 "resume {resume}"
             );
         }
+    }
+
+    /// metrics.jsonl grows by appends while records only grow; dropped records (a new
+    /// generation from an older checkpoint) or a failed write make the next write whole.
+    #[test]
+    fn metrics_are_appended_until_records_are_dropped() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(1, 2, 3), t);
+        let a = reg(&mut c, t);
+        c.tick(t);
+        let line = |s: u64| format!("{{\"step\":{s}}}");
+        let report = |c: &mut Core, g: u64, steps: std::ops::RangeInclusive<u64>| {
+            let lines = steps.clone().map(line).collect();
+            c.progress(prog(a, g, 0, *steps.end(), None, lines), t)
+                .unwrap();
+        };
+        report(&mut c, 1, 1..=2);
+        let both = format!("{}\n{}\n", line(1), line(2));
+        assert_eq!(c.metrics_write(true), MetricsWrite::Append(both.clone()));
+        report(&mut c, 1, 3..=3);
+        let third = format!("{}\n", line(3));
+        assert_eq!(c.metrics_write(true), MetricsWrite::Append(third));
+        // An object store rewrites whole.
+        report(&mut c, 1, 4..=4);
+        assert!(matches!(c.metrics_write(false), MetricsWrite::Whole(_)));
+        // A failed write: whole next time.
+        c.metrics_write_failed();
+        assert!(matches!(c.metrics_write(true), MetricsWrite::Whole(_)));
+        // A new generation from checkpoint 2 drops records 3 and 4: whole.
+        c.checkpoint(a, 1, 2, false, t).unwrap();
+        c.fault(a, 1, "boom", false, t).unwrap();
+        c.tick(t);
+        assert_eq!(c.metrics_write(true), MetricsWrite::Whole(both));
     }
 
     #[test]

@@ -8,5 +8,5 @@
 pub mod core;
 pub mod service;
 
-pub use crate::core::{ClusterOverrides, Core, JobSpec, Persisted};
+pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
 pub use service::{Coordinator, JOB_FILE, StatusSnapshot};

@@ -1,7 +1,7 @@
 //! The Coordinator gRPC service over a shared [`Core`], the monitor loop (heartbeat
 //! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
 
-use crate::core::{Core, JobSpec, Persisted, Phase, Progress, record_step};
+use crate::core::{Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, record_step};
 use osrt_dataset::Location;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
@@ -246,6 +246,7 @@ impl Coordinator {
         let mut last_flush = Instant::now();
         let mut over_since: Option<Instant> = None;
         let mut store = StoreRetry::default();
+        let can_append = self.local_metrics().is_some();
         loop {
             tokio::select! {
                 _ = &mut shutdown => break,
@@ -258,10 +259,7 @@ impl Coordinator {
                 let flush = write_now
                     && c.dirty_metrics
                     && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
-                let metrics = flush.then(|| {
-                    c.dirty_metrics = false;
-                    metrics_text(c)
-                });
+                let metrics = flush.then(|| c.metrics_write(can_append));
                 (job, metrics, c.is_over())
             });
             let run = &self.shared.run;
@@ -271,17 +269,21 @@ impl Coordinator {
                 let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
                 written = write_file(run, JOB_FILE, bytes).await;
             }
-            if let Some(text) = metrics
-                && written.is_ok()
-            {
-                written = write_file(run, METRICS_FILE, text.into_bytes()).await;
-                last_flush = Instant::now();
+            if let Some(w) = metrics {
+                if written.is_ok() {
+                    written = self.write_metrics(w).await;
+                    last_flush = Instant::now();
+                } else {
+                    self.shared.with(|c, _| c.metrics_write_failed());
+                }
             }
             if let Err(e) = written {
                 // Whatever was not written is written again at the next try.
                 self.shared.with(|c, _| {
                     c.dirty_job |= had_job;
-                    c.dirty_metrics |= had_metrics;
+                    if had_metrics {
+                        c.metrics_write_failed();
+                    }
                 });
                 store.failed(e)?;
                 continue;
@@ -303,28 +305,60 @@ impl Coordinator {
         // Stopped by a signal: what the run folder lacks is written once more.
         let (job, metrics) = self.shared.with(|c, _| {
             let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
-            let metrics = std::mem::take(&mut c.dirty_metrics).then(|| metrics_text(c));
+            let metrics = c.dirty_metrics.then(|| c.metrics_write(can_append));
             (job, metrics)
         });
         if let Some(p) = job {
             let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
             write_file(&self.shared.run, JOB_FILE, bytes).await?;
         }
-        if let Some(text) = metrics {
-            write_file(&self.shared.run, METRICS_FILE, text.into_bytes()).await?;
+        if let Some(w) = metrics {
+            self.write_metrics(w).await?;
         }
         Ok(self.status())
     }
-}
 
-/// `metrics.jsonl`: one record per line.
-fn metrics_text(c: &Core) -> String {
-    let mut text = String::new();
-    for (_, l) in &c.records {
-        text.push_str(l);
-        text.push('\n');
+    /// `RUN/metrics.jsonl` as a local file, where the run folder is one.
+    fn local_metrics(&self) -> Option<std::path::PathBuf> {
+        let run = &self.shared.run;
+        run.local_file(&run.path(METRICS_FILE))
     }
-    text
+
+    /// Appends to `metrics.jsonl` in place (a local run folder: synced before it counts),
+    /// or writes it whole (object stores cannot append).
+    async fn write_metrics(&self, w: MetricsWrite) -> Result<(), TrainError> {
+        let run = &self.shared.run;
+        match (w, self.local_metrics()) {
+            (MetricsWrite::Append(text), Some(file)) => {
+                let shown = run.describe(&run.path(METRICS_FILE));
+                tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+                    use std::io::Write;
+                    let mut f = std::fs::OpenOptions::new()
+                        .create(true)
+                        .append(true)
+                        .open(&file)?;
+                    f.write_all(text.as_bytes())?;
+                    f.sync_data()
+                })
+                .await
+                .map_err(|e| run_err(run, METRICS_FILE, e))?
+                .map_err(|e| TrainError::Run {
+                    path: shown,
+                    reason: format!("appending: {e}"),
+                })
+            }
+            (MetricsWrite::Whole(text), _) => {
+                write_file(run, METRICS_FILE, text.into_bytes()).await
+            }
+            // Not asked of an object store (`can_append` is false there); were it, the
+            // failure makes the next write whole.
+            (MetricsWrite::Append(_), None) => Err(run_err(
+                run,
+                METRICS_FILE,
+                "an append was asked of a store that cannot append",
+            )),
+        }
+    }
 }
 
 /// How long writes of `job.json` and `metrics.jsonl` may keep failing before the

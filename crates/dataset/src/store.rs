@@ -26,6 +26,8 @@ pub struct Location {
     pub prefix: Path,
     /// The string the user gave, for messages.
     pub display: String,
+    /// The folder a local store is rooted at (`None` for object stores).
+    local_root: Option<std::path::PathBuf>,
 }
 
 static MEMORY_STORES: LazyLock<Mutex<HashMap<String, Arc<InMemory>>>> =
@@ -39,6 +41,7 @@ impl Location {
             display: format!("{store}/{prefix}"),
             store,
             prefix,
+            local_root: None,
         }
     }
 
@@ -72,6 +75,7 @@ impl Location {
                     store,
                     prefix: url_prefix(&url).map_err(err)?,
                     display: location.to_string(),
+                    local_root: None,
                 })
             }
             "s3" | "s3a" => {
@@ -83,6 +87,7 @@ impl Location {
                     store: Arc::new(store),
                     prefix: url_prefix(&url).map_err(err)?,
                     display: location.to_string(),
+                    local_root: None,
                 })
             }
             other => Err(err(format!(
@@ -110,7 +115,18 @@ impl Location {
             store: Arc::new(fs),
             prefix: Path::default(),
             display: display.to_string(),
+            local_root: Some(dir.to_path_buf()),
         })
+    }
+
+    /// The file behind `path` when this is a local folder (for what object stores cannot
+    /// do, such as appending in place).
+    pub fn local_file(&self, path: &Path) -> Option<std::path::PathBuf> {
+        let root = self.local_root.as_ref()?;
+        Some(
+            path.parts()
+                .fold(root.clone(), |p, part| p.join(part.as_ref())),
+        )
     }
 
     /// The location of `child` (a relative path such as `train` or `manifest.json`).
@@ -119,6 +135,7 @@ impl Location {
             store: self.store.clone(),
             prefix: self.path(child),
             display: format!("{}/{}", self.display.trim_end_matches('/'), child),
+            local_root: self.local_root.clone(),
         }
     }
 
@@ -189,5 +206,21 @@ mod tests {
         let url = format!("file://{}", dir.path().display());
         let b = Location::parse(&url).unwrap();
         assert_eq!(a.prefix, b.prefix);
+    }
+
+    /// `local_file` names the file a put through the store writes.
+    #[tokio::test]
+    async fn local_file_is_where_the_store_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = Location::parse(dir.path().to_str().unwrap())
+            .unwrap()
+            .join("run");
+        let path = run.path("checkpoints/step-1/state.json");
+        run.store.put(&path, b"{}".to_vec().into()).await.unwrap();
+        let file = run.local_file(&path).unwrap();
+        assert_eq!(std::fs::read(&file).unwrap(), b"{}");
+        assert!(file.starts_with(dir.path()));
+        let mem = Location::parse("memory://local-file-test/run").unwrap();
+        assert!(mem.local_file(&mem.path("x")).is_none());
     }
 }
