@@ -307,6 +307,31 @@ fn a_worker_stopped_by_sigterm_tells_the_coordinator_and_exits() {
     assert!(job["restarts"].as_u64().unwrap() >= 1, "{job}");
 }
 
+/// SIGTERM stops the coordinator gracefully: it writes what it holds (job state and every
+/// record it received) and exits on its own, not killed by the signal.
+#[test]
+fn a_coordinator_stopped_by_sigterm_writes_what_it_holds() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let mut coord = coordinator(port, &data, &run, &["--max-minutes", "1"]);
+    let _w = worker(port);
+    wait_job(&run, Duration::from_secs(60), |j| {
+        j["last_checkpoint"].as_u64().is_some_and(|s| s >= 20)
+    });
+    signal(&coord, "TERM");
+    let status = coord.wait_for_exit(Duration::from_secs(10));
+    assert_eq!(status.signal(), None, "handled, not killed: {status}");
+    let job = read_json(&run.join("job.json")).unwrap();
+    let last = losses(&run).last().unwrap().0;
+    assert!(
+        last >= job["last_checkpoint"].as_u64().unwrap(),
+        "records up to step {last}, checkpoint {job}"
+    );
+}
+
 /// On a local run folder `metrics.jsonl` grows by appends: the file is never replaced
 /// (a rewrite through the store is a new file under the same name) while no record is
 /// dropped.
