@@ -13,6 +13,8 @@ pub mod batch;
 pub mod bench;
 pub mod camera;
 pub mod error;
+#[cfg(feature = "test-support")]
+pub mod faulty;
 pub mod generator;
 pub mod inspect;
 pub mod manifest;

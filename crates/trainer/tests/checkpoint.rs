@@ -201,6 +201,47 @@ async fn checkpoints_past_the_starting_point_are_discarded() {
     assert!(list_steps(&run).await.unwrap().is_empty());
 }
 
+/// A transient error while checking whether a checkpoint is already committed fails the
+/// commit: it never leads to writing over a committed checkpoint's files.
+#[tokio::test]
+async fn a_transient_error_before_a_commit_never_overwrites() {
+    use osrt_dataset::faulty::FaultyStore;
+    use std::sync::atomic::Ordering;
+    let store = std::sync::Arc::new(FaultyStore::default());
+    let run = Location::new(store.clone(), "run");
+    let t = trainer();
+    Snapshot::take(&t, state(5, None))
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap();
+    let model = run.path("checkpoints/step-000000005/model.safetensors");
+    let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
+    store.fail_heads.store(1, Ordering::SeqCst);
+    let other = Trainer::new(
+        JobConfig {
+            train: osrt_trainer::TrainConfig {
+                seed: 7,
+                ..JobConfig::preset("tiny").unwrap().train
+            },
+            ..JobConfig::preset("tiny").unwrap()
+        },
+        Device::Cpu,
+    )
+    .unwrap();
+    let e = Snapshot::take(&other, state(5, None))
+        .unwrap()
+        .commit(&run)
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("connection reset"), "{e}");
+    assert_eq!(store.failed.load(Ordering::SeqCst), 1);
+    let after = run.store.get(&model).await.unwrap().bytes().await.unwrap();
+    assert_eq!(before, after);
+    checkpoint::verify(&run, 5).await.unwrap();
+}
+
 /// Torn folders (no manifest) do not count towards `keep_last`, so they can never push
 /// the newest committed checkpoint out; `keep_last = 0` keeps one.
 #[tokio::test]
