@@ -449,6 +449,18 @@ fn calls_without_the_job_token_are_refused_and_health_answers() {
             .await
             .unwrap_err();
         assert_eq!(e.code(), tonic::Code::FailedPrecondition, "{e}");
+        // Messages up to 16 MiB are taken (a report of 10,000 records is several MiB,
+        // past tonic's default of 4 MiB); larger ones are refused before they are decoded.
+        let sized = |bytes: usize| osrt_proto::v1::RegisterRequest {
+            protocol_version: 99,
+            name: "x".repeat(bytes),
+            collective_addr: "http://127.0.0.1:1".into(),
+            threads: 1,
+        };
+        let e = ok.register(sized(6 << 20)).await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::FailedPrecondition, "decoded: {e}");
+        let e = ok.register(sized(17 << 20)).await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::OutOfRange, "{e}");
     });
     // An independent gRPC implementation (Python grpcio) asks the standard health
     // service, which needs no token.

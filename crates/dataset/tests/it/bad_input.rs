@@ -285,3 +285,46 @@ fn image_dimensions_that_overflow() {
     let e = v.validate().unwrap_err();
     assert!(e.contains("too large"), "{e}");
 }
+
+/// A footer whose row counts cannot be true (negative, or more rows than the file has
+/// bytes) is an error naming the file, never an allocation of that size.
+#[tokio::test]
+async fn footers_that_lie_about_their_row_count() {
+    use parquet::file::metadata::{ParquetMetaDataReader, ParquetMetaDataWriter};
+    let good = good_bytes(&tiny_scenes(2, 4));
+    let footer_len = u32::from_le_bytes(good[good.len() - 8..good.len() - 4].try_into().unwrap());
+    let data_end = good.len() - 8 - footer_len as usize;
+    for (name, rows) in [("negative-rows", -1i64), ("huge-rows", i64::MAX / 2)] {
+        let md = ParquetMetaDataReader::new()
+            .parse_and_finish(&bytes::Bytes::from(good.clone()))
+            .unwrap();
+        let mut b = md.into_builder();
+        let groups = b
+            .take_row_groups()
+            .into_iter()
+            .map(|g| g.into_builder().set_num_rows(rows).build().unwrap())
+            .collect();
+        let md = b.set_row_groups(groups).build();
+        let mut crafted = good[..data_end].to_vec();
+        ParquetMetaDataWriter::new(&mut crafted, &md)
+            .finish()
+            .unwrap();
+        let loc = Location::parse(&format!("memory://bad-{name}/train")).unwrap();
+        loc.store
+            .put(&loc.path("part-00000.parquet"), crafted.into())
+            .await
+            .unwrap();
+        let e = SplitReader::open(loc)
+            .await
+            .unwrap()
+            .row_groups()
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&format!("memory://bad-{name}/train/part-00000.parquet"))
+                && e.contains(&format!("declares {rows} rows")),
+            "{e}"
+        );
+    }
+}
