@@ -385,6 +385,34 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
     assert!(t.elapsed() < Duration::from_secs(3));
 }
 
+/// A peer that opens an HTTP/2 connection and then answers nothing (a host gone without
+/// closing its sockets) is dropped by the ring's server: its pings go unanswered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_peer_that_answers_no_ping_is_dropped() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let nodes = start(1, "test-job").await;
+    let addr = nodes[0].addr.trim_start_matches("http://").to_string();
+    let mut tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    // The client preface and an empty SETTINGS frame; then silence.
+    tcp.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n")
+        .await
+        .unwrap();
+    tcp.write_all(&[0, 0, 0, 4, 0, 0, 0, 0, 0]).await.unwrap();
+    let t = Instant::now();
+    let mut buf = [0u8; 4096];
+    let limit = osrt_trainer::collective::KEEP_ALIVE_INTERVAL
+        + osrt_trainer::collective::KEEP_ALIVE_TIMEOUT
+        + Duration::from_secs(5);
+    loop {
+        match tokio::time::timeout_at((t + limit).into(), tcp.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => break,
+            Ok(Ok(_)) => continue,
+            Err(_) => panic!("the silent peer was still connected after {limit:?}"),
+        }
+    }
+    assert!(t.elapsed() >= osrt_trainer::collective::KEEP_ALIVE_TIMEOUT);
+}
+
 /// tonic's generated `Collective` server, recording what it is sent.
 #[derive(Default, Clone)]
 struct Recorder(Arc<std::sync::Mutex<Vec<Chunk>>>);
