@@ -3,9 +3,9 @@
 
 mod common;
 
-use common::{osrt, read_jsonl};
+use common::{bin, osrt, read_jsonl};
 use std::path::Path;
-use std::process::Command;
+use std::process::{Command, Stdio};
 
 fn generate(dir: &Path) {
     osrt(&[
@@ -344,4 +344,48 @@ fn bench_model_render_only_times_renders_alone() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot be used with"), "{err}");
+}
+
+/// Writes to a local folder are synced before they count: `strace` sees an fsync for
+/// every file `osrt data generate` writes (three splits and the manifest), and for their
+/// folders. Where strace is missing the test says SKIPPED (.ci/run installs it).
+#[test]
+fn local_writes_are_synced() {
+    if Command::new("strace").arg("-V").output().is_err() {
+        eprintln!("SKIPPED: strace is not installed");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("strace.log");
+    let out = dir.path().join("data");
+    let status = Command::new("strace")
+        .args(["-f", "-e", "trace=fsync,fdatasync", "-o"])
+        .arg(&log)
+        .arg(bin())
+        .args(["data", "generate", "--preset", "clevr-lite", "--out"])
+        .arg(&out)
+        .args([
+            "--train",
+            "4",
+            "--val",
+            "1",
+            "--test",
+            "1",
+            "--image-size",
+            "8",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let text = std::fs::read_to_string(&log).unwrap();
+    let syncs = text
+        .lines()
+        .filter(|l| (l.contains("fsync(") || l.contains("fdatasync(")) && l.ends_with("= 0"))
+        .count();
+    assert!(
+        syncs >= 8,
+        "{syncs} syncs for 4 files and their folders:\n{text}"
+    );
 }
