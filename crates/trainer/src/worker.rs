@@ -655,18 +655,7 @@ async fn run_generation(
     // job's last one, and rank 0 reports it as final so the job ends instead of waiting.
     if plan.max_steps.is_some_and(|m| trainer.step >= m) {
         if rank == 0 {
-            client
-                .report_checkpoint(v1::CheckpointReport {
-                    job: plan.job.clone(),
-                    worker_id,
-                    generation: plan.generation,
-                    step: trainer.step,
-                    r#final: true,
-                })
-                .await
-                .map_err(|s| {
-                    TrainError::Cluster(format!("reporting checkpoint {}: {s}", trainer.step))
-                })?;
+            report_checkpoint(client, plan, worker_id, trainer.step, true).await?;
         }
         return Ok(Ended::Finished);
     }
@@ -829,22 +818,42 @@ async fn commit_and_report(
     keep_last: usize,
 ) -> Result<u64> {
     let step = snap.commit(&run).await?;
-    client
-        .report_checkpoint(v1::CheckpointReport {
-            job: plan.job.clone(),
-            worker_id,
-            generation: plan.generation,
-            step,
-            r#final: last,
-        })
-        .await
-        .map_err(|s| TrainError::Cluster(format!("reporting checkpoint {step}: {s}")))?;
+    report_checkpoint(&mut client, &plan, worker_id, step, last).await?;
     match checkpoint::apply_retention(&run, keep_last).await {
         Ok(deleted) if !deleted.is_empty() => tracing::debug!(?deleted, "old checkpoints deleted"),
         Ok(_) => {}
         Err(e) => tracing::warn!(error = %e, "retention failed"),
     }
     Ok(step)
+}
+
+/// How long a checkpoint report is retried while the coordinator is unreachable: a
+/// dropped connection passes within it; a coordinator gone for longer fails the
+/// generation (a restarted one does not know this worker anyway).
+const CHECKPOINT_REPORT_RETRY: Duration = Duration::from_secs(10);
+
+/// Tells the coordinator that checkpoint `step` is committed.
+async fn report_checkpoint(
+    client: &mut Client,
+    plan: &WorkerPlan,
+    worker_id: u64,
+    step: u64,
+    last: bool,
+) -> Result<()> {
+    let report = v1::CheckpointReport {
+        job: plan.job.clone(),
+        worker_id,
+        generation: plan.generation,
+        step,
+        r#final: last,
+    };
+    let what = format!("reporting checkpoint {step}");
+    with_retry(CHECKPOINT_REPORT_RETRY, &what, || {
+        let mut c = client.clone();
+        let r = report.clone();
+        async move { c.report_checkpoint(r).await.map(|_| ()) }
+    })
+    .await
 }
 
 /// Records a worker holds for a coordinator that does not answer, before dropping the
