@@ -279,8 +279,9 @@ fn a_worker_paused_across_a_coordinator_restart_registers_again() {
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
 }
 
-/// SIGTERM stops a worker gracefully: it tells the coordinator and exits with an error
-/// of its own (not killed by the signal); the job goes on once a replacement joins.
+/// SIGTERM stops a worker gracefully: it tells the coordinator it leaves and exits with
+/// an error of its own (not killed by the signal); the job goes on once a replacement
+/// joins.
 #[test]
 fn a_worker_stopped_by_sigterm_tells_the_coordinator_and_exits() {
     use std::os::unix::process::ExitStatusExt;
@@ -304,7 +305,9 @@ fn a_worker_stopped_by_sigterm_tells_the_coordinator_and_exits() {
     assert!(a.wait_for_exit(Duration::from_secs(30)).success());
     let job = read_json(&run.join("job.json")).unwrap();
     assert_eq!(job["state"], "done", "{job}");
-    assert!(job["restarts"].as_u64().unwrap() >= 1, "{job}");
+    // One restart: the stopped worker left at once, so the next generation did not count
+    // it (a dead member would have failed that generation too).
+    assert_eq!(job["restarts"], 1, "{job}");
 }
 
 /// SIGTERM stops the coordinator gracefully: it writes what it holds (job state and every

@@ -618,19 +618,27 @@ impl Core {
         Ok(self.directive_for(id, generation))
     }
 
+    /// A worker's fault; `leaving`: the worker is stopping and leaves the membership now
+    /// (a generation it is part of ends, as it would after the heartbeat timeout).
     pub fn fault(
         &mut self,
         id: u64,
         generation: u64,
         reason: &str,
         fatal: bool,
+        leaving: bool,
         now: Instant,
     ) -> Result<Directive, Status> {
         self.member(id, now)?;
         let msg = format!("worker {id}: {reason}");
+        let in_ring = self.phase == Phase::Running && self.ring.contains(&id);
+        if leaving {
+            self.members.remove(&id);
+            tracing::info!(worker_id = id, "worker left");
+        }
         if fatal {
             self.fail(msg);
-        } else if generation == self.generation && self.phase == Phase::Running {
+        } else if in_ring && (leaving || generation == self.generation) {
             self.regenerate(&msg, true, now);
         }
         Ok(self.directive_for(id, generation))
@@ -751,7 +759,7 @@ mod tests {
         c.checkpoint(a, 1, 5, false, t).unwrap();
         // b died; a's round fails and a reports it at once, long before b times out.
         let t1 = t + Duration::from_millis(500);
-        c.fault(a, 1, "sending to rank 1 failed", false, t1)
+        c.fault(a, 1, "sending to rank 1 failed", false, false, t1)
             .unwrap();
         let t2 = t1 + Duration::from_millis(1100);
         c.plan(a, 1, t2).unwrap();
@@ -834,7 +842,7 @@ mod tests {
             c.restore(&p, vec![], Some(5), resume, t);
             let a = reg(&mut c, t);
             c.tick(t);
-            c.fault(a, c.generation, "boom", false, t).unwrap();
+            c.fault(a, c.generation, "boom", false, false, t).unwrap();
             assert_eq!(c.restarts, 2);
             assert_eq!(
                 matches!(c.phase, Phase::Failed(_)),
@@ -872,9 +880,32 @@ mod tests {
         assert!(matches!(c.metrics_write(true), MetricsWrite::Whole(_)));
         // A new generation from checkpoint 2 drops records 3 and 4: whole.
         c.checkpoint(a, 1, 2, false, t).unwrap();
-        c.fault(a, 1, "boom", false, t).unwrap();
+        c.fault(a, 1, "boom", false, false, t).unwrap();
         c.tick(t);
         assert_eq!(c.metrics_write(true), MetricsWrite::Whole(both));
+    }
+
+    /// A worker that leaves is dropped at once: the next generation forms without it,
+    /// not with a dead member that fails its first round.
+    #[test]
+    fn a_leaving_worker_is_dropped_at_once() {
+        let t = Instant::now();
+        let mut c = Core::new(spec(2, 3, 5), t);
+        let a = reg(&mut c, t);
+        let b = reg(&mut c, t);
+        c.tick(t);
+        assert_eq!(c.phase, Phase::Running);
+        c.fault(b, 1, "stopped by a signal", false, true, t)
+            .unwrap();
+        assert!(!c.members.contains_key(&b));
+        assert_eq!(c.restarts, 1);
+        let d = reg(&mut c, t);
+        c.tick(t);
+        let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
+            panic!("{:?}", c.phase)
+        };
+        assert_eq!((p.generation, p.world()), (2, 2));
+        assert!(c.ring.contains(&d) && !c.ring.contains(&b));
     }
 
     #[test]
@@ -952,10 +983,10 @@ mod tests {
             .unwrap_err();
         assert_eq!(e.code(), tonic::Code::ResourceExhausted);
         c.tick(t);
-        c.fault(a, 1, "boom", false, t).unwrap();
+        c.fault(a, 1, "boom", false, false, t).unwrap();
         assert_eq!(c.restarts, 1);
         c.tick(t);
-        c.fault(a, 2, "boom again", false, t).unwrap();
+        c.fault(a, 2, "boom again", false, false, t).unwrap();
         let Phase::Failed(m) = &c.phase else { panic!() };
         assert!(m.contains("gave up after 1 restarts"), "{m}");
         assert_eq!(c.heartbeat(a, 2, 0, t).unwrap().0, Directive::Stop);

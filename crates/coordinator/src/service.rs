@@ -560,9 +560,16 @@ impl coordinator_server::Coordinator for Service {
         let r = request.into_inner();
         self.check_job(&r.job)?;
         tracing::warn!(worker_id = r.worker_id, generation = r.generation, fatal = r.fatal, reason = %r.reason, "fault reported");
-        let d = self
-            .shared
-            .with(|c, now| c.fault(r.worker_id, r.generation, &r.reason, r.fatal, now))?;
+        let d = self.shared.with(|c, now| {
+            c.fault(
+                r.worker_id,
+                r.generation,
+                &r.reason,
+                r.fatal,
+                r.leaving,
+                now,
+            )
+        })?;
         Ok(ack(d))
     }
 

@@ -168,15 +168,28 @@ pub async fn run_worker_until(
         },
     ));
     let mut client = coordinator_client(&opts.coordinator, opts.token.clone(), opts.tls.as_ref())?;
-    let current: std::sync::Mutex<Option<(WorkerPlan, u64)>> = Default::default();
+    let member: Mutex<Option<Membership>> = Mutex::new(None);
     let mut reporter = client.clone();
     let result = tokio::select! {
-        r = worker_loop(&opts, &mut client, &mailbox, &collective_addr, &current) => r,
+        r = worker_loop(&opts, &mut client, &mailbox, &collective_addr, &member) => r,
         _ = stop => {
-            let running = current.lock().expect("current generation").take();
-            if let Some((plan, worker_id)) = running {
-                let reason = "the worker was stopped by a signal";
-                report_fault(&mut reporter, &plan, worker_id, reason, false).await;
+            let known = member.lock().expect("membership").take();
+            if let Some(m) = known {
+                // Leaving: the coordinator drops this member at once (a generation in
+                // progress ends) instead of after the heartbeat timeout.
+                let r = reporter
+                    .report_fault(v1::FaultReport {
+                        job: m.job,
+                        worker_id: m.worker_id,
+                        generation: m.generation,
+                        reason: "the worker was stopped by a signal".into(),
+                        fatal: false,
+                        leaving: true,
+                    })
+                    .await;
+                if let Err(s) = r {
+                    tracing::warn!(status = %s, "could not tell the coordinator this worker leaves");
+                }
             }
             Err(TrainError::Cluster("stopped by a signal".into()))
         }
@@ -207,14 +220,30 @@ async fn register(
     Ok((reply.job, reply.worker_id))
 }
 
+/// Who this worker is to the coordinator, and in which generation.
+#[derive(Debug, Clone)]
+struct Membership {
+    job: String,
+    worker_id: u64,
+    generation: u64,
+}
+
 async fn worker_loop(
     opts: &WorkerOptions,
     client: &mut Client,
     mailbox: &Arc<Mailbox>,
     collective_addr: &str,
-    current: &std::sync::Mutex<Option<(WorkerPlan, u64)>>,
+    member: &Mutex<Option<Membership>>,
 ) -> Result<()> {
+    let note = |job: &str, worker_id: u64, generation: u64| {
+        *member.lock().expect("membership") = Some(Membership {
+            job: job.to_string(),
+            worker_id,
+            generation,
+        });
+    };
     let (mut job, mut worker_id) = register(opts, client, collective_addr).await?;
+    note(&job, worker_id, 0);
     mailbox.set_job(&job);
     let mut last_generation = 0;
     loop {
@@ -236,6 +265,7 @@ async fn worker_loop(
                 ..
             }) => {
                 (job, worker_id) = register(opts, client, collective_addr).await?;
+                note(&job, worker_id, 0);
                 mailbox.set_job(&job);
                 continue;
             }
@@ -262,13 +292,13 @@ async fn worker_loop(
             resume_step = ?plan.resume_step,
             "starting generation"
         );
-        *current.lock().expect("current generation") = Some((plan.clone(), worker_id));
+        note(&job, worker_id, plan.generation);
         let ended = run_generation(opts, client, mailbox, worker_id, &plan).await;
-        *current.lock().expect("current generation") = None;
         match ended {
             Ok(Ended::Finished) => {}
             Ok(Ended::Unknown) => {
                 (job, worker_id) = register(opts, client, collective_addr).await?;
+                note(&job, worker_id, 0);
                 mailbox.set_job(&job);
                 last_generation = 0;
             }
@@ -312,6 +342,7 @@ async fn report_fault(
             generation: plan.generation,
             reason: reason.to_string(),
             fatal,
+            leaving: false,
         })
         .await;
     if let Err(s) = r {
