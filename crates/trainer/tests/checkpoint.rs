@@ -30,6 +30,13 @@ fn trainer() -> Trainer {
     Trainer::new(JobConfig::preset("tiny").unwrap(), Device::Cpu).unwrap()
 }
 
+/// The tiny preset's model initialised from another seed: other weights.
+fn trainer_with_seed(seed: u64) -> Trainer {
+    let mut job = JobConfig::preset("tiny").unwrap();
+    job.train.seed = seed;
+    Trainer::new(job, Device::Cpu).unwrap()
+}
+
 #[tokio::test]
 async fn a_checkpoint_round_trips_exactly() {
     let run = Location::parse("memory://ckpt-roundtrip/run").unwrap();
@@ -41,17 +48,7 @@ async fn a_checkpoint_round_trips_exactly() {
     t.opt.restore(m.clone(), v.clone(), 7).unwrap();
     let snap = Snapshot::take(&t, state(7, Some(0.5))).unwrap();
     snap.commit(&run).await.unwrap();
-    let mut u = Trainer::new(
-        JobConfig {
-            train: osrt_trainer::TrainConfig {
-                seed: 99,
-                ..JobConfig::preset("tiny").unwrap().train
-            },
-            ..JobConfig::preset("tiny").unwrap()
-        },
-        Device::Cpu,
-    )
-    .unwrap();
+    let mut u = trainer_with_seed(99);
     assert_ne!(u.params.flatten().unwrap(), t.params.flatten().unwrap());
     let st = checkpoint::load(&run, 7, &mut u).await.unwrap();
     assert_eq!(st, state(7, Some(0.5)));
@@ -135,17 +132,7 @@ async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
         .await
         .unwrap();
     // Other weights, another config, another world size: refused.
-    let other = Trainer::new(
-        JobConfig {
-            train: osrt_trainer::TrainConfig {
-                seed: 99,
-                ..JobConfig::preset("tiny").unwrap().train
-            },
-            ..JobConfig::preset("tiny").unwrap()
-        },
-        Device::Cpu,
-    )
-    .unwrap();
+    let other = trainer_with_seed(99);
     let e = Snapshot::take(&other, state(5, None))
         .unwrap()
         .commit(&run)
@@ -218,17 +205,7 @@ async fn a_transient_error_before_a_commit_never_overwrites() {
     let model = run.path("checkpoints/step-000000005/model.safetensors");
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     store.fail_heads.store(1, Ordering::SeqCst);
-    let other = Trainer::new(
-        JobConfig {
-            train: osrt_trainer::TrainConfig {
-                seed: 7,
-                ..JobConfig::preset("tiny").unwrap().train
-            },
-            ..JobConfig::preset("tiny").unwrap()
-        },
-        Device::Cpu,
-    )
-    .unwrap();
+    let other = trainer_with_seed(7);
     let e = Snapshot::take(&other, state(5, None))
         .unwrap()
         .commit(&run)

@@ -68,6 +68,20 @@ fn config(
     }
 }
 
+/// tonic's generated client of `node`'s collective server, with the job's token.
+async fn client_of(
+    node: &Node,
+) -> CollectiveClient<
+    tonic::service::interceptor::InterceptedService<tonic::transport::Channel, AttachToken>,
+> {
+    let channel = tonic::transport::Endpoint::from_shared(node.addr.clone())
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    CollectiveClient::with_interceptor(channel, AttachToken(token()))
+}
+
 /// One token for every node of a test process.
 fn token() -> Token {
     static T: std::sync::OnceLock<Token> = std::sync::OnceLock::new();
@@ -279,12 +293,7 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn chunks_kept_for_later_are_bounded() {
     let (nodes, waiting) = rank_1_waiting(1000).await;
-    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
-    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
+    let mut client = client_of(&nodes[1]).await;
     // Rank 1 is in step 3: step 4 is kept (from the ring predecessor only), step 5
     // refused.
     client
@@ -584,12 +593,7 @@ async fn the_hand_framed_stream_talks_to_tonics_generated_server() {
 async fn tonics_generated_stream_client_talks_to_the_ring_server() {
     // Chunks of 2: rank 1 receives 2 reduce-scatter and 2 all-gather chunks from rank 0.
     let (nodes, waiting) = rank_1_waiting(2).await;
-    let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
-    let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
+    let mut client = client_of(&nodes[1]).await;
     let tagged = |phase: Phase, c: u32, v: f32| {
         let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
         let t = ch.tag.as_mut().unwrap();
