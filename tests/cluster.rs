@@ -368,6 +368,77 @@ fn metrics_jsonl_grows_in_place() {
     assert_eq!(steps, (1..=steps.len() as u64).collect::<Vec<_>>());
 }
 
+/// A TCP proxy in front of the coordinator whose connections can be cut.
+struct CutProxy {
+    port: u16,
+    conns: std::sync::Arc<std::sync::Mutex<Vec<std::net::TcpStream>>>,
+}
+
+impl CutProxy {
+    fn to(target: u16) -> Self {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let conns = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let held = conns.clone();
+        std::thread::spawn(move || {
+            for client in listener.incoming().flatten() {
+                let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", target)) else {
+                    continue;
+                };
+                let pipe = |mut from: std::net::TcpStream, mut to: std::net::TcpStream| {
+                    std::thread::spawn(move || {
+                        let _ = std::io::copy(&mut from, &mut to);
+                        let _ = to.shutdown(std::net::Shutdown::Both);
+                    });
+                };
+                let mut h = held.lock().unwrap();
+                h.push(client.try_clone().unwrap());
+                h.push(server.try_clone().unwrap());
+                pipe(client.try_clone().unwrap(), server.try_clone().unwrap());
+                pipe(server, client);
+            }
+        });
+        Self { port, conns }
+    }
+
+    /// Resets every open connection (calls in flight fail; clients reconnect).
+    fn cut(&self) {
+        for s in self.conns.lock().unwrap().drain(..) {
+            let _ = s.shutdown(std::net::Shutdown::Both);
+        }
+    }
+}
+
+/// A worker whose connection to the coordinator is cut every 300 ms: reports that fail
+/// are delivered later (and before any checkpoint after them), so `metrics.jsonl` still
+/// has one training record per step.
+#[test]
+fn records_of_failed_reports_are_delivered_later() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let proxy = CutProxy::to(port);
+    let mut coord = coordinator(port, &data, &run, &["--max-steps", "600"]);
+    let mut w = worker_env(&format!("http://127.0.0.1:{}", proxy.port), &[]);
+    let t = Instant::now();
+    let status = loop {
+        if let Some(s) = coord.0.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the job did not end"
+        );
+        std::thread::sleep(Duration::from_millis(300));
+        proxy.cut();
+    };
+    assert!(status.success(), "coordinator: {status}");
+    assert!(w.wait_for_exit(Duration::from_secs(30)).success());
+    let steps: Vec<u64> = losses(&run).iter().map(|(s, _)| *s).collect();
+    assert_eq!(steps, (1..=600).collect::<Vec<_>>());
+}
+
 /// A resumed job that no worker joins fails after `cluster.wait_timeout_s` with a
 /// message that says so, instead of waiting forever.
 #[test]

@@ -87,6 +87,22 @@ pub fn unix_now() -> f64 {
         .unwrap_or(0.0)
 }
 
+/// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
+/// or the connection lost during the call (tonic then answers `Unknown` with the
+/// transport error as the source).
+fn passing(s: &tonic::Status) -> bool {
+    use std::error::Error;
+    match s.code() {
+        tonic::Code::Unavailable
+        | tonic::Code::DeadlineExceeded
+        | tonic::Code::ResourceExhausted => true,
+        tonic::Code::Unknown => s
+            .source()
+            .is_some_and(|e| e.downcast_ref::<tonic::transport::Error>().is_some()),
+        _ => false,
+    }
+}
+
 /// Retries `f` while the coordinator is unreachable, up to `limit`.
 async fn with_retry<T, F, Fut>(limit: Duration, what: &str, mut f: F) -> Result<T>
 where
@@ -97,15 +113,9 @@ where
     loop {
         match f().await {
             Ok(v) => return Ok(v),
-            // Unreachable, or full until a lost member times out: both pass.
-            Err(s)
-                if matches!(
-                    s.code(),
-                    tonic::Code::Unavailable
-                        | tonic::Code::DeadlineExceeded
-                        | tonic::Code::ResourceExhausted
-                ) && start.elapsed() < limit =>
-            {
+            // Unreachable, cut off mid-call, or full until a lost member times out: all
+            // pass. (Every call retried here is idempotent on the coordinator.)
+            Err(s) if passing(&s) && start.elapsed() < limit => {
                 tracing::debug!(what, status = %s, "coordinator unreachable, retrying");
                 tokio::time::sleep(Duration::from_millis(250)).await;
             }
@@ -821,6 +831,7 @@ async fn run_generation(
                 worker_id,
                 last,
                 c.keep_last,
+                unsent.clone(),
             ));
             let task = AbortOnDrop(Some(task));
             if last {
@@ -839,6 +850,11 @@ async fn run_generation(
     Ok(Ended::Finished)
 }
 
+/// Commits a checkpoint, delivers the records up to its step that earlier reports could
+/// not (`unsent`), then reports the checkpoint: a checkpoint the coordinator accepts never
+/// leaves a gap before it in `metrics.jsonl` (later steps are replayed if the generation
+/// ends).
+#[allow(clippy::too_many_arguments)]
 async fn commit_and_report(
     snap: Snapshot,
     run: Location,
@@ -847,8 +863,22 @@ async fn commit_and_report(
     worker_id: u64,
     last: bool,
     keep_last: usize,
+    unsent: Vec<serde_json::Value>,
 ) -> Result<u64> {
     let step = snap.commit(&run).await?;
+    if !unsent.is_empty() {
+        let sent = with_retry(CHECKPOINT_REPORT_RETRY, "sending held records", || {
+            let mut c = client.clone();
+            let r = progress_report(&plan, worker_id, step, None, &unsent);
+            async move { c.report_progress(r).await }
+        })
+        .await?;
+        if Directive::try_from(sent.into_inner().action) != Ok(Directive::Continue) {
+            return Err(TrainError::Cluster(format!(
+                "the coordinator took no records before checkpoint {step}: generation over"
+            )));
+        }
+    }
     report_checkpoint(&mut client, &plan, worker_id, step, last).await?;
     match checkpoint::apply_retention(&run, keep_last).await {
         Ok(deleted) if !deleted.is_empty() => tracing::debug!(?deleted, "old checkpoints deleted"),
@@ -887,6 +917,24 @@ async fn report_checkpoint(
     .await
 }
 
+fn progress_report(
+    plan: &WorkerPlan,
+    worker_id: u64,
+    step: u64,
+    param_hash: Option<String>,
+    records: &[serde_json::Value],
+) -> v1::ProgressReport {
+    v1::ProgressReport {
+        job: plan.job.clone(),
+        worker_id,
+        generation: plan.generation,
+        rank: plan.rank as u32,
+        step,
+        param_hash,
+        records: records.iter().map(|r| r.to_string()).collect(),
+    }
+}
+
 /// Records a worker holds for a coordinator that does not answer, before dropping the
 /// oldest (the coordinator's limit per report).
 const MAX_UNSENT_RECORDS: usize = 10_000;
@@ -902,15 +950,7 @@ async fn send_records(
     records: &[serde_json::Value],
 ) -> Option<Directive> {
     let r = client
-        .report_progress(v1::ProgressReport {
-            job: plan.job.clone(),
-            worker_id,
-            generation: plan.generation,
-            rank: plan.rank as u32,
-            step,
-            param_hash,
-            records: records.iter().map(|r| r.to_string()).collect(),
-        })
+        .report_progress(progress_report(plan, worker_id, step, param_hash, records))
         .await;
     match r {
         Ok(a) => Directive::try_from(a.into_inner().action).ok(),
