@@ -13,7 +13,7 @@
 //!   protocol and the reduction keep.
 //! - the same ring **discarding** what it receives (every read into one reused 1 MiB
 //!   buffer that stays in cache): the sockets' own speed, a bound no real receiver
-//!   reaches; reported for comparison with the figures of 2026-11-25 (session 9).
+//!   reaches; reported for comparison with the figures of 2026-11-25.
 //! - a **one-way** copy (one socket copying `N·4` bytes), for older figures.
 
 use crate::collective::{Mailbox, Ring, RingConfig, serve};

@@ -7,8 +7,8 @@
 //! gradient, on the calling thread. In the Slot Mixer's allocation transformer six of
 //! those tensors are `[8192, 96–128]` (all of a step's target rays), and such
 //! accumulations were the largest serial share of a 2-thread step (docs/performance.md,
-//! session 14). As one node only the block's own input and output are accumulated, and the
-//! residual adds run inside the op's parallel passes.
+//! profile of 2026-11-25). As one node only the block's own input and output are
+//! accumulated, and the residual adds run inside the op's parallel passes.
 //!
 //! The parameters enter packed (`Tensor::cat` of the flattened tensors, as in `mlp.rs`),
 //! so the variables, their names and checkpoints stay as they are. The arithmetic is the

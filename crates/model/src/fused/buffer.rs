@@ -3,9 +3,9 @@
 //! Why: `vec![0f32; n]` zeroes the whole buffer on the calling thread before the parallel
 //! kernel overwrites it. For the decoder's `[8192, 96–192]` activations that is a pass
 //! over cold memory on one thread while the other waits, and `memset` was the largest
-//! serial item of the 2-thread step (docs/performance.md, session 14). Here each parallel
-//! task zeroes its own chunk (cache-resident, on every thread) right before its kernel
-//! writes it.
+//! serial item of the 2-thread step (docs/performance.md, profile of 2026-11-25). Here
+//! each parallel task zeroes its own chunk (cache-resident, on every thread) right
+//! before its kernel writes it.
 //!
 //! `unsafe` (one of the workspace's few such modules): the chunks of the vector's spare
 //! capacity are handed to the kernels as `&mut [f32]` only after their task has
