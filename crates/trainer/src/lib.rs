@@ -4,17 +4,17 @@
 
 pub mod bench;
 pub mod bench_allreduce;
+/// The ring all-reduce (crate `osrt-collective`), under its former path.
+pub use osrt_collective as collective;
+pub use osrt_collective::chunk_wire;
 pub mod check;
 pub mod checkpoint;
-pub mod chunk_wire;
-pub mod collective;
 pub mod config;
 pub mod data;
 pub mod device;
 pub mod distributed;
 pub mod error;
 pub mod eval;
-mod loan;
 pub mod memory;
 pub mod optim;
 pub mod render;

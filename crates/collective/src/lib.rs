@@ -18,7 +18,10 @@
 //! sender that is not its ring predecessor, an unknown bucket and a wrong length. Every RPC
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
-use crate::chunk_wire::{self, PushChunkServer};
+pub mod chunk_wire;
+mod loan;
+
+use crate::chunk_wire::PushChunkServer;
 use crate::loan::LentBuffer;
 use bytes::Bytes;
 use osrt_proto::auth::{CheckToken, Token};
