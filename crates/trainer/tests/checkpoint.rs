@@ -30,6 +30,11 @@ fn trainer() -> Trainer {
     Trainer::new(JobConfig::preset("tiny").unwrap(), Device::Cpu).unwrap()
 }
 
+/// Commits `t`'s weights as a checkpoint with `state` to `run`.
+async fn commit(t: &Trainer, run: &Location, state: CheckpointState) {
+    Snapshot::take(t, state).unwrap().commit(run).await.unwrap();
+}
+
 /// The tiny preset's model initialised from another seed: other weights.
 fn trainer_with_seed(seed: u64) -> Trainer {
     let mut job = JobConfig::preset("tiny").unwrap();
@@ -62,11 +67,7 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
     let run = Location::parse("memory://ckpt-torn/run").unwrap();
     let t = trainer();
     for s in [1, 2, 3] {
-        Snapshot::take(&t, state(s, None))
-            .unwrap()
-            .commit(&run)
-            .await
-            .unwrap();
+        commit(&t, &run, state(s, None)).await;
     }
     assert_eq!(latest_verified(&run, None).await.unwrap(), Some(3));
     // Corrupt step 3's optimiser file; tear step 2 (manifest gone).
@@ -116,11 +117,7 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
 async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
     let run = Location::parse("memory://ckpt-adopt/run").unwrap();
     let t = trainer();
-    Snapshot::take(&t, state(5, None))
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap();
+    commit(&t, &run, state(5, None)).await;
     let model = run.path("checkpoints/step-000000005/model.safetensors");
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     // The same step replayed: adopted.
@@ -168,11 +165,7 @@ async fn checkpoints_past_the_starting_point_are_discarded() {
     let run = Location::parse("memory://ckpt-discard/run").unwrap();
     let t = trainer();
     for s in [10, 20, 30] {
-        Snapshot::take(&t, state(s, None))
-            .unwrap()
-            .commit(&run)
-            .await
-            .unwrap();
+        commit(&t, &run, state(s, None)).await;
     }
     let m = run.path("checkpoints/step-000000030/MANIFEST.json");
     run.store.delete(&m).await.unwrap();
@@ -197,11 +190,7 @@ async fn a_transient_error_before_a_commit_never_overwrites() {
     let store = std::sync::Arc::new(FaultyStore::default());
     let run = Location::new(store.clone(), "run");
     let t = trainer();
-    Snapshot::take(&t, state(5, None))
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap();
+    commit(&t, &run, state(5, None)).await;
     let model = run.path("checkpoints/step-000000005/model.safetensors");
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     store.fail_heads.store(1, Ordering::SeqCst);
@@ -226,11 +215,7 @@ async fn retention_never_counts_torn_folders() {
     let run = Location::parse("memory://ckpt-retention-torn/run").unwrap();
     let t = trainer();
     for s in [10, 20, 30, 40, 50] {
-        Snapshot::take(&t, state(s, None))
-            .unwrap()
-            .commit(&run)
-            .await
-            .unwrap();
+        commit(&t, &run, state(s, None)).await;
     }
     for s in [40, 50] {
         let m = run.path(&format!("checkpoints/step-{s:09}/MANIFEST.json"));
@@ -253,11 +238,7 @@ async fn retention_keeps_the_newest_and_the_best() {
     let t = trainer();
     let scores = [(10, 0.2), (20, 0.9), (30, 0.4), (40, 0.5), (50, 0.1)];
     for (s, f) in scores {
-        Snapshot::take(&t, state(s, Some(f)))
-            .unwrap()
-            .commit(&run)
-            .await
-            .unwrap();
+        commit(&t, &run, state(s, Some(f))).await;
     }
     let deleted = apply_retention(&run, 2).await.unwrap();
     assert_eq!(deleted, vec![30, 10]);

@@ -27,13 +27,19 @@ fn parquet_bytes(batch: &RecordBatch, version: Option<&str>) -> Vec<u8> {
     buf
 }
 
-/// Puts one file into a fresh split and returns the error of reading the split back.
-async fn read_error(name: &str, bytes: Vec<u8>) -> String {
+/// A fresh split `memory://bad-{name}/train` holding `bytes` as its one file.
+async fn split_of(name: &str, bytes: Vec<u8>) -> Location {
     let loc = Location::parse(&format!("memory://bad-{name}/train")).unwrap();
     loc.store
         .put(&loc.path("part-00000.parquet"), bytes.into())
         .await
         .unwrap();
+    loc
+}
+
+/// Puts one file into a fresh split and returns the error of reading the split back.
+async fn read_error(name: &str, bytes: Vec<u8>) -> String {
+    let loc = split_of(name, bytes).await;
     let err = match SplitReader::open(loc).await {
         Err(e) => e,
         Ok(r) => r
@@ -309,12 +315,7 @@ async fn footers_that_lie_about_their_row_count() {
         ParquetMetaDataWriter::new(&mut crafted, &md)
             .finish()
             .unwrap();
-        let loc = Location::parse(&format!("memory://bad-{name}/train")).unwrap();
-        loc.store
-            .put(&loc.path("part-00000.parquet"), crafted.into())
-            .await
-            .unwrap();
-        let e = SplitReader::open(loc)
+        let e = SplitReader::open(split_of(name, crafted).await)
             .await
             .unwrap()
             .row_groups()
