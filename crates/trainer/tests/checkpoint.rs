@@ -35,6 +35,12 @@ async fn commit(t: &Trainer, run: &Location, state: CheckpointState) {
     Snapshot::take(t, state).unwrap().commit(run).await.unwrap();
 }
 
+/// The error of committing `t`'s weights with `state` to `run`.
+async fn commit_error(t: &Trainer, run: &Location, state: CheckpointState) -> String {
+    let e = Snapshot::take(t, state).unwrap().commit(run).await;
+    e.unwrap_err().to_string()
+}
+
 /// The tiny preset's model initialised from another seed: other weights.
 fn trainer_with_seed(seed: u64) -> Trainer {
     let mut job = JobConfig::preset("tiny").unwrap();
@@ -101,12 +107,7 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
         "never loaded"
     );
     // Re-committing a step whose manifest exists but fails is refused, not overwritten.
-    let e = Snapshot::take(&t, state(3, None))
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap_err()
-        .to_string();
+    let e = commit_error(&t, &run, state(3, None)).await;
     assert!(e.contains("does not verify"), "{e}");
 }
 
@@ -123,19 +124,10 @@ async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
     // The same step replayed: adopted.
     let mut again = state(5, None);
     again.wall_s = 99.0;
-    Snapshot::take(&t, again)
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap();
+    commit(&t, &run, again).await;
     // Other weights, another config, another world size: refused.
     let other = trainer_with_seed(99);
-    let e = Snapshot::take(&other, state(5, None))
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap_err()
-        .to_string();
+    let e = commit_error(&other, &run, state(5, None)).await;
     assert!(
         e.contains("another checkpoint is committed at step 5"),
         "{e}"
@@ -144,12 +136,7 @@ async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
     let mut hashed = state(5, None);
     hashed.config_hash = "other".into();
     hashed.world_size = 2;
-    let e = Snapshot::take(&t, hashed)
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap_err()
-        .to_string();
+    let e = commit_error(&t, &run, hashed).await;
     assert!(
         e.contains("job config") && e.contains("world size (1 there, 2 here)"),
         "{e}"
@@ -195,12 +182,7 @@ async fn a_transient_error_before_a_commit_never_overwrites() {
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     store.fail_heads.store(1, Ordering::SeqCst);
     let other = trainer_with_seed(7);
-    let e = Snapshot::take(&other, state(5, None))
-        .unwrap()
-        .commit(&run)
-        .await
-        .unwrap_err()
-        .to_string();
+    let e = commit_error(&other, &run, state(5, None)).await;
     assert!(e.contains("connection reset"), "{e}");
     assert_eq!(store.failed.load(Ordering::SeqCst), 1);
     let after = run.store.get(&model).await.unwrap().bytes().await.unwrap();
