@@ -4,8 +4,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use osrt_model::Precision;
-use osrt_model::fused::with_fused;
+use osrt_model::{Kernels, Precision};
 use osrt_trainer::bench::{bench_render, bench_step};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
@@ -44,6 +43,10 @@ pub struct BenchModelArgs {
     /// Matrix products in f32 or bf16 (GPU only).
     #[arg(long, default_value = "f32")]
     pub precision: Precision,
+    /// Time the step with these kernels only (default: fused, and composed beside it for
+    /// the fused ops' speed-up unless --step-only or a GPU).
+    #[arg(long)]
+    pub kernels: Option<Kernels>,
     /// Override the presets' scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -81,15 +84,16 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     for p in presets {
         let job = bench_job(a, p)?;
         // The same step with candle's composed ops, for the fused ops' speed-up.
-        let variants: &[bool] = if a.step_only || a.device.is_cuda() {
-            &[true]
-        } else {
-            &[true, false]
+        let variants: &[Kernels] = match a.kernels {
+            Some(Kernels::Fused) => &[Kernels::Fused],
+            Some(Kernels::Composed) => &[Kernels::Composed],
+            None if a.step_only || a.device.is_cuda() => &[Kernels::Fused],
+            None => &[Kernels::Fused, Kernels::Composed],
         };
-        for &fused in variants {
-            steps.push(with_fused(fused, || {
-                bench_step(p, &job, a.image_size, a.steps, &device)
-            })?);
+        for &kernels in variants {
+            let mut job = job.clone();
+            job.train.kernels = kernels;
+            steps.push(bench_step(p, &job, a.image_size, a.steps, &device)?);
         }
     }
     let model = JobConfig::preset(&a.presets[0])?.model;
@@ -97,7 +101,10 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let slots: &[usize] = if a.step_only { &[] } else { &a.slots };
     for &k in slots {
         for d in ["slot_mixer", "spatial_broadcast", "transformer"] {
-            renders.push(bench_render(&model, d, k, a.image_size, 5, &device)?);
+            let kernels = a.kernels.unwrap_or_default();
+            renders.push(osrt_kernels::with_kernels(kernels, || {
+                bench_render(&model, d, k, a.image_size, 5, &device)
+            })?);
         }
     }
     Ok(json!({ "steps": steps, "renders": renders }))
@@ -145,6 +152,11 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         .args(a.render_only.then_some("--render-only"))
         .args(["--device", &a.device.to_string()])
         .args(["--precision", &a.precision.to_string()])
+        .args(
+            a.kernels
+                .iter()
+                .flat_map(|k| ["--kernels".to_string(), k.to_string()]),
+        )
         .args(
             a.batch_size
                 .iter()

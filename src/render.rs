@@ -251,16 +251,19 @@ pub async fn render(a: RenderArgs) -> Result<()> {
         })
         .collect();
     let donor = a.add_slot.map(|(_, k)| (&scenes[1], k));
-    let r = render_frames(
-        &loaded,
-        scene,
-        donor,
-        a.drop_slot,
-        &cameras,
-        size,
-        a.scale,
-        &a.out,
-    )?;
+    // With the run's kernels (`train.kernels`), as its evaluations were.
+    let r = osrt_kernels::with_kernels(loaded.job.train.kernels, || {
+        render_frames(
+            &loaded,
+            scene,
+            donor,
+            a.drop_slot,
+            &cameras,
+            size,
+            a.scale,
+            &a.out,
+        )
+    })?;
     let layout = {
         let mut p = Vec::new();
         if a.motion == Motion::Views && cameras.iter().all(|c| c.1.is_some()) {

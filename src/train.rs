@@ -4,7 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
-use osrt_model::{Precision, SlotInit};
+use osrt_model::{Kernels, Precision, SlotInit};
 use osrt_trainer::run::eval_options;
 use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
 use std::io::IsTerminal;
@@ -83,6 +83,10 @@ pub struct TrainArgs {
     /// Matrix products in f32 or bf16 (GPU only; weights and optimiser stay f32).
     #[arg(long)]
     pub precision: Option<Precision>,
+    /// `fused` (the one-node CPU kernels; the default) or `composed` (candle's ops only):
+    /// the same functions, at different speeds.
+    #[arg(long)]
+    pub kernels: Option<Kernels>,
     /// Override seconds between validation runs.
     #[arg(long)]
     pub eval_every_s: Option<f64>,
@@ -155,6 +159,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.precision {
         t.precision = v;
+    }
+    if let Some(v) = a.kernels {
+        t.kernels = v;
     }
     if let Some(d) = &a.decoder {
         job.model = job.model.clone().with_decoder(d).with_context(|| {

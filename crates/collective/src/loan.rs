@@ -18,7 +18,7 @@
 //!   [`LentBuffer::reclaim`] takes the buffer back only once it is the last owner (or
 //!   copies it out, which is only a read, when the transport is slow to let go).
 //!
-//! This module and `osrt_model::fastmath`'s feature dispatch are the workspace's only
+//! This module and `osrt_kernels::fastmath`'s feature dispatch are the workspace's only
 //! `unsafe` code.
 #![allow(unsafe_code)]
 

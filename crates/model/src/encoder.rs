@@ -6,11 +6,11 @@
 //! 183 → 96 → 192 → 384 → 768 channels, total stride 8, a 1×1 conv to the token width,
 //! and 5 transformer layers of width 768 (12 heads × 64, MLP 1536).
 
-use crate::fused::{self, conv2d_nhwc};
 use crate::nn::{Transformer, TransformerConfig};
 use crate::ray_encoding::RayEncoding;
 use candle_core::{D, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
+use osrt_kernels::{conv2d_nhwc, relu};
 use serde::{Deserialize, Serialize};
 
 /// How the ray encoding enters the encoder.
@@ -154,15 +154,15 @@ impl Encoder {
             );
         }
         // Channels-last throughout: the convolutions are im2col + matmul on NHWC
-        // (`fused::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
+        // (`osrt_kernels::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
         let mut x = match &self.ray_embed {
             None => Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
                 .reshape((b * v, h, w, 3 + r))?, // [b·v, h, w, c]
             Some(_) => images.reshape((b * v, h, w, 3))?,
         };
         for (a, s2) in &self.convs {
-            x = fused::relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
-            x = fused::relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
+            x = relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
+            x = relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
         }
         let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {

@@ -11,8 +11,6 @@
 
 pub mod decoder;
 pub mod encoder;
-pub mod fastmath;
-pub mod fused;
 pub mod metrics;
 pub mod nn;
 pub mod osrt;
@@ -23,7 +21,7 @@ pub mod slot_attention;
 mod tests;
 
 pub use decoder::{Decoder, DecoderOutput};
-pub use fused::Precision;
 pub use osrt::{Config, Osrt, add_slot, drop_slot};
+pub use osrt_kernels::{Kernels, Precision};
 pub use params::Params;
 pub use slot_attention::{SlotInit, SlotOutput};

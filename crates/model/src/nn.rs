@@ -4,7 +4,7 @@
 //!
 //! candle's fused `layer_norm` and `softmax_last_dim` have no backward pass and fail
 //! silently (their parameters never train), so everything here uses ops that have one:
-//! our own fused LayerNorm, softmax, GELU and bias add (`crate::fused`, hand-written
+//! our own fused LayerNorm, softmax, GELU and bias add (`osrt_kernels`, hand-written
 //! backward passes), falling back to candle's composed ops where those do not apply.
 
 use candle_core::{Module, Result, Tensor};
@@ -45,7 +45,7 @@ impl Module for Linear {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         // Bias included, over all leading dims at once, without reshape nodes around it.
-        crate::fused::linear(x, &self.weight, self.bias.as_ref())
+        osrt_kernels::linear(x, &self.weight, self.bias.as_ref())
     }
 }
 
@@ -71,7 +71,7 @@ impl LayerNorm {
 impl Module for LayerNorm {
     /// `[.., d] → [.., d]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        crate::fused::layer_norm(x, &self.weight, &self.bias, self.eps)
+        osrt_kernels::layer_norm(x, &self.weight, &self.bias, self.eps)
     }
 }
 
@@ -88,12 +88,12 @@ pub enum Activation {
 
 impl Activation {
     /// The fused ops' activation.
-    fn fused(self) -> crate::fused::MlpAct {
+    fn fused(self) -> osrt_kernels::MlpAct {
         match self {
-            Activation::Relu => crate::fused::MlpAct::Relu,
+            Activation::Relu => osrt_kernels::MlpAct::Relu,
             // erf-based GELU, as in the reference transformer.
-            Activation::Gelu => crate::fused::MlpAct::Gelu,
-            Activation::LeakyRelu => crate::fused::MlpAct::LeakyRelu(LEAKY_RELU_SLOPE),
+            Activation::Gelu => osrt_kernels::MlpAct::Gelu,
+            Activation::LeakyRelu => osrt_kernels::MlpAct::LeakyRelu(LEAKY_RELU_SLOPE),
         }
     }
 }
@@ -119,7 +119,7 @@ impl Mlp {
 
 impl Mlp {
     /// The MLP of `[a, b]` concatenated on the last dim, without building the
-    /// concatenation where the fused ops apply (`fused::mlp_cat`).
+    /// concatenation where the fused ops apply (`osrt_kernels::mlp_cat`).
     ///
     /// # Shapes
     /// `a: [.., in_a]`, `b: [.., in_b]` with `in_a + in_b = in` → `[.., out]`
@@ -129,21 +129,21 @@ impl Mlp {
             .iter()
             .map(|l| (&l.weight, l.bias.as_ref()))
             .collect();
-        crate::fused::mlp_cat(a, b, &layers, self.act.fused())
+        osrt_kernels::mlp_cat(a, b, &layers, self.act.fused())
     }
 }
 
 impl Module for Mlp {
     /// `[.., in] → [.., out]`
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        // One node for the whole MLP over all leading dims (`fused::mlp`; layer by layer
+        // One node for the whole MLP over all leading dims (`osrt_kernels::mlp`; layer by layer
         // where the fused ops do not apply).
         let layers: Vec<_> = self
             .layers
             .iter()
             .map(|l| (&l.weight, l.bias.as_ref()))
             .collect();
-        crate::fused::mlp(x, &layers, self.act.fused())
+        osrt_kernels::mlp(x, &layers, self.act.fused())
     }
 }
 
@@ -182,7 +182,7 @@ impl Attention {
     /// `x: [b, n, q_dim]`, `ctx: [b, m, kv_dim]` → `[b, n, q_dim]`
     pub fn forward(&self, x: &Tensor, ctx: &Tensor) -> Result<Tensor> {
         let scale = 1.0 / (self.head_dim as f64).sqrt();
-        let o = crate::fused::attention(
+        let o = osrt_kernels::attention(
             &self.q.forward(x)?,
             &self.k.forward(ctx)?,
             &self.v.forward(ctx)?,
@@ -238,7 +238,7 @@ impl Block {
     pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
         // One graph node for the whole block where the fused ops apply.
         let (a, mlp) = (&self.attn, &self.mlp);
-        let params = crate::fused::BlockParams {
+        let params = osrt_kernels::BlockParams {
             norm_attn: (&self.norm_attn.weight, &self.norm_attn.bias),
             q: &a.q.weight,
             k: &a.k.weight,
@@ -261,7 +261,7 @@ impl Block {
         if self.norm_attn.eps != self.norm_mlp.eps || biased {
             return self.forward_composed(x, ctx);
         }
-        match crate::fused::block(x, ctx, &params)? {
+        match osrt_kernels::block(x, ctx, &params)? {
             Some(y) => Ok(y),
             None => self.forward_composed(x, ctx),
         }

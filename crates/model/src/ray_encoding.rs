@@ -5,8 +5,8 @@
 //! Layout of the output: `[sin(origin·f) for each octave and axis, sin(direction·f)…,
 //! cos(origin·f)…, cos(direction·f)…]`, i.e. a sine block then a cosine block.
 
-use crate::fastmath;
 use candle_core::{CpuStorage, CustomOp2, D, DType, Device, Layout, Result, Shape, Tensor};
+use osrt_kernels::fastmath;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -78,8 +78,8 @@ impl CustomOp2 for EncodeKernel {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let o = crate::fused::f32_slice(s1, l1, "ray encoding origins")?;
-        let d = crate::fused::f32_slice(s2, l2, "ray encoding directions")?;
+        let o = osrt_kernels::f32_slice(s1, l1, "ray encoding origins")?;
+        let d = osrt_kernels::f32_slice(s2, l2, "ray encoding directions")?;
         let (no, nd) = (3 * self.origin.len(), 3 * self.direction.len());
         let half = no + nd;
         let dim = 2 * half;
@@ -137,7 +137,7 @@ impl RayEncoding {
     pub fn forward(&self, origins: &Tensor, directions: &Tensor) -> Result<Tensor> {
         // Rays are data: without gradients to carry, one pass writes every sine and
         // cosine (the composed version below makes seven tensors and calls libm per value).
-        if crate::fused::enabled()
+        if osrt_kernels::enabled()
             && !origins.track_op()
             && !directions.track_op()
             && origins.dtype() == DType::F32

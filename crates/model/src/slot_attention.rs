@@ -243,7 +243,7 @@ impl SlotAttention {
             let prev = slots.clone();
             let q = self.to_q.forward(&self.norm_slots.forward(&slots)?)?; // [b, k, ds]
             let logits = (q.matmul(&kt)? * scale)?; // [b, k, n]
-            let attn = crate::fused::softmax(&logits, 1)?; // over slots
+            let attn = osrt_kernels::softmax(&logits, 1)?; // over slots
             let weights = (&attn + self.cfg.eps)?;
             let weights = weights.broadcast_div(&weights.sum_keepdim(D::Minus1)?)?; // mean over inputs
             let updates = weights.matmul(&v)?; // [b, k, ds]

@@ -29,7 +29,7 @@ pub struct StepFigures {
     pub device: String,
     /// The matrix products' precision.
     pub precision: String,
-    /// Whether the fused ops (osrt_model::fused, CPU only) ran.
+    /// Whether the fused ops (osrt_kernels, CPU only) ran.
     pub fused: bool,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
@@ -94,7 +94,7 @@ pub fn bench_batch(job: &JobConfig, image_size: u32, rng: &mut ChaCha8Rng) -> Re
 
 /// Median time of a full optimiser step (batch build excluded) over `steps` after the
 /// warm-up steps (one on the CPU; two on a GPU, whose first step loads its kernels), with
-/// the fused ops as this thread has them (`fused::with_fused`), on `device`.
+/// the job's kernels (`train.kernels`), on `device`.
 pub fn bench_step(
     preset: &str,
     job: &JobConfig,
@@ -137,7 +137,7 @@ pub fn bench_step(
         image_size,
         device: crate::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
-        fused: osrt_model::fused::enabled() && device.is_cpu(),
+        fused: job.train.kernels == osrt_model::Kernels::Fused && device.is_cpu(),
         median_step_s: m,
         median_forward_backward_s: median(fb_s),
         median_gradient_transfer_s: if transfer_s.is_empty() {
@@ -203,7 +203,7 @@ pub fn bench_render(
     for i in 0..=repeats {
         let t0 = Instant::now();
         // As the render path runs it (render::decode_rays).
-        let out = osrt_model::fused::on_device_pool(device, || model.decode(&s, &o, &d))?;
+        let out = osrt_kernels::on_device_pool(device, || model.decode(&s, &o, &d))?;
         let _ = out.rgb.flatten_all()?.to_vec1::<f32>()?;
         if i > 0 {
             times.push(t0.elapsed().as_secs_f64());

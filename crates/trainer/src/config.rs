@@ -5,7 +5,7 @@
 use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use osrt_dataset::{InputSelection, TargetViews};
-use osrt_model::Precision;
+use osrt_model::{Kernels, Precision};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -53,6 +53,10 @@ pub struct TrainConfig {
     /// Matrix products in `f32` or `bf16` (GPU only); weights and optimiser in f32.
     #[serde(default)]
     pub precision: Precision,
+    /// `fused` (the one-node CPU kernels of `osrt_kernels` where they apply) or
+    /// `composed` (candle's ops only): the same functions, at different speeds.
+    #[serde(default)]
+    pub kernels: Kernels,
 }
 
 impl TrainConfig {
@@ -83,6 +87,7 @@ impl TrainConfig {
             log_every: 10,
             device: DeviceSpec::Cpu,
             precision: Precision::F32,
+            kernels: Kernels::Fused,
         }
     }
 

@@ -6,8 +6,8 @@ use crate::error::Result;
 use crate::render::{Decoded, decode_rays};
 use crate::step::BatchTensors;
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch};
-use osrt_model::Osrt;
 use osrt_model::metrics::{Psnr, Segmentation};
+use osrt_model::{Kernels, Osrt};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -48,11 +48,15 @@ pub struct EvalOptions {
     pub grayscale: bool,
     /// Seed of the slot noise for random slot init.
     pub seed: u64,
+    /// The job's kernels (`train.kernels`).
+    pub kernels: Kernels,
 }
 
-/// Scores `scenes`, on candle's thread pool (see `fused::on_device_pool`).
+/// Scores `scenes`, on candle's thread pool (see `osrt_kernels::on_device_pool`).
 pub fn evaluate(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {
-    osrt_model::fused::on_device_pool(model.device(), || evaluate_here(model, scenes, opts))
+    osrt_kernels::with_kernels(opts.kernels, || {
+        osrt_kernels::on_device_pool(model.device(), || evaluate_here(model, scenes, opts))
+    })
 }
 
 fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<EvalResult> {

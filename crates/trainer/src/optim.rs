@@ -154,7 +154,7 @@ pub struct Hyper {
     lr: f64,
 }
 
-osrt_model::simd_kernel! {
+osrt_kernels::simd_kernel! {
     /// The AdamW update of every element, in f64 (moments and weights are stored in f32);
     /// written as one loop over equal-length slices so that it vectorises.
     #[allow(clippy::too_many_arguments)]

@@ -39,7 +39,7 @@ pub fn decode_rays(
     // On candle's pool, with the fused ops: since the step moved there and candle's
     // elementwise pool lost its spinning workers, they render faster than candle's
     // composed ops too (docs/performance.md).
-    osrt_model::fused::on_device_pool(model.device(), || {
+    osrt_kernels::on_device_pool(model.device(), || {
         decode_here(model, slots, origins, directions)
     })
 }
@@ -113,7 +113,7 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
     let origins = Tensor::from_slice(&batch.input_origins, img, dev)?;
     let directions = Tensor::from_slice(&batch.input_directions, img, dev)?;
     let noise = model.slot_noise(1, &mut rng)?;
-    let out = osrt_model::fused::on_device_pool(dev, || {
+    let out = osrt_kernels::on_device_pool(dev, || {
         model.encode(&images, &origins, &directions, noise.as_ref())
     })?;
     Ok(out.slots)

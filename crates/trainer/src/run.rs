@@ -58,6 +58,7 @@ pub fn eval_options(job: &JobConfig) -> EvalOptions {
         target_views: job.train.eval_target_views,
         grayscale: false,
         seed: job.train.seed ^ 0xE7A1,
+        kernels: job.train.kernels,
     }
 }
 

@@ -159,9 +159,11 @@ impl Trainer {
 
     /// MSE on the sampled target rays, and its gradient as one flat buffer.
     pub fn gradients(&self, batch: &Batch, rng: &mut (impl Rng + Send)) -> Result<StepGradients> {
-        let precision = self.cfg.train.precision;
-        osrt_model::fused::with_precision(precision, || {
-            osrt_model::fused::on_device_pool(&self.device, || self.gradients_here(batch, rng))
+        let (kernels, precision) = (self.cfg.train.kernels, self.cfg.train.precision);
+        osrt_kernels::with_kernels(kernels, || {
+            osrt_kernels::with_precision(precision, || {
+                osrt_kernels::on_device_pool(&self.device, || self.gradients_here(batch, rng))
+            })
         })
     }
 

@@ -250,16 +250,23 @@ fn same_seed_same_weights_after_several_steps() {
 
 /// The fused ops (LayerNorm, GELU, bias add with hand-written backward passes) change
 /// speed, not training: a short seeded run takes the same loss curve with them as with
-/// candle's composed ops, to float tolerance.
+/// candle's composed ops (`train.kernels`), to float tolerance, whatever the calling
+/// thread's own setting.
 #[test]
 fn fused_ops_leave_the_loss_curve_unchanged() {
-    use osrt_model::fused::with_fused;
+    use osrt_model::Kernels;
     let data = scenes(4);
     for preset in ["tiny", "clevr-lite-cpu"] {
-        let mut job = JobConfig::preset(preset).unwrap();
-        job.train.batch_size = 2;
-        let run = |fused: bool| {
-            with_fused(fused, || {
+        let run = |kernels: Kernels| {
+            let mut job = JobConfig::preset(preset).unwrap();
+            job.train.batch_size = 2;
+            job.train.kernels = kernels;
+            // The calling thread's switch says the opposite: the job's value wins.
+            let other = match kernels {
+                Kernels::Fused => Kernels::Composed,
+                Kernels::Composed => Kernels::Fused,
+            };
+            osrt_kernels::with_kernels(other, || {
                 let mut t = Trainer::new(job.clone(), Device::Cpu).unwrap();
                 let mut rng = ChaCha8Rng::seed_from_u64(5);
                 let mut losses = Vec::new();
@@ -272,8 +279,9 @@ fn fused_ops_leave_the_loss_curve_unchanged() {
                 (losses, t.params.flatten().unwrap())
             })
         };
-        let (fused, w_fused) = run(true);
-        let (composed, w_composed) = run(false);
+        let (fused, w_fused) = run(Kernels::Fused);
+        let (composed, w_composed) = run(Kernels::Composed);
+        assert_ne!(w_fused, w_composed, "the two kernel sets really both ran");
         for (step, (a, b)) in fused.iter().zip(&composed).enumerate() {
             assert!(
                 (a - b).abs() <= 1e-4 * b.abs().max(1e-3),

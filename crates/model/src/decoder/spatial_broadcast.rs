@@ -49,7 +49,7 @@ impl SpatialBroadcast {
         let out = self.mlp.forward(&x)?.reshape((b, r, k, 4))?;
         let logits = out.narrow(D::Minus1, 0, 1)?.squeeze(D::Minus1)?; // [b, r, k]
         let colours = candle_nn::ops::sigmoid(&out.narrow(D::Minus1, 1, 3)?)?; // [b, r, k, 3]
-        let weights = crate::fused::softmax(&logits, D::Minus1)?;
+        let weights = osrt_kernels::softmax(&logits, D::Minus1)?;
         let rgb = colours
             .broadcast_mul(&weights.unsqueeze(D::Minus1)?)?
             .sum(2)?; // [b, r, 3]

@@ -14,13 +14,8 @@
 use super::attention::{self, AttentionBwd, Dims};
 use super::gemm::{self, MatRef, Threads};
 use super::{Kept, cpu_storage as cpu, f32_slice, matmul_xwt, rows_layout, usable, weight_grad};
-use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};
 use std::sync::{Arc, Mutex};
-
-fn enabled_by_env() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::env_switch("OSRT_FUSED_MIX", &ON)
-}
 
 /// Queries `[R, ds]`, keys `[b·k, ds]`, the weights per batch element.
 struct Saved {
@@ -183,35 +178,29 @@ impl CustomOp3 for MixOp {
     }
 }
 
-/// The mixing block: `x: [b, r, dx]` ray queries, `slots: [b, k, ds]`, `w_q: [ds, dx]`,
-/// `w_k: [ds, ds]` → the mixed slots `[b, r, ds]` and the weights `[b, r, k]` (softmax over
-/// the slots; without a gradient when the fused op runs).
+/// The mixing block as one node: `x: [b, r, dx]` ray queries, `slots: [b, k, ds]`,
+/// `w_q: [ds, dx]`, `w_k: [ds, ds]` → the mixed slots `[b, r, ds]` and the weights
+/// `[b, r, k]` (softmax over the slots, without a gradient). `None` where it does not
+/// apply (composed kernels, other devices or dtypes, shapes that do not fit): the caller
+/// then composes the block from candle's ops (`osrt_model::decoder::slot_mixer`).
 pub fn slot_mix(
     x: &Tensor,
     slots: &Tensor,
     w_q: &Tensor,
     w_k: &Tensor,
     scale: f64,
-) -> Result<(Tensor, Tensor)> {
-    let composed = || -> Result<(Tensor, Tensor)> {
-        let q = super::linear(x, w_q, None)?; // [b, r, ds]
-        let k = super::linear(slots, w_k, None)?; // [b, k, ds]
-        let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
-        let weights = super::softmax(&logits, D::Minus1)?;
-        Ok((super::matmul(&weights, slots)?, weights))
-    };
+) -> Result<Option<(Tensor, Tensor)>> {
     let (Ok((b, r, dx)), Ok((bs, k, ds))) = (x.dims3(), slots.dims3()) else {
-        return composed();
+        return Ok(None);
     };
     let fits = bs == b
         && w_q.dims() == [ds, dx]
         && w_k.dims() == [ds, ds]
         && r > 0
         && k > 0
-        && enabled_by_env()
         && usable(&[x, slots, w_q, w_k]);
     if !fits {
-        return composed();
+        return Ok(None);
     }
     let packed = Tensor::cat(&[w_q.flatten_all()?, w_k.flatten_all()?], 0)?;
     let weights_out = Arc::new(Mutex::new(None));
@@ -235,16 +224,16 @@ pub fn slot_mix(
     let Some(w) = weights_out.lock().unwrap_or_else(|e| e.into_inner()).take() else {
         candle_core::bail!("slot mix: the forward pass left no weights");
     };
-    Ok((mixed, Tensor::from_vec(w, (b, r, k), x.device())?))
+    Ok(Some((mixed, Tensor::from_vec(w, (b, r, k), x.device())?)))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fused::tests::{
+    use crate::testing::{
         assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
     };
-    use crate::fused::with_fused;
+    use crate::with_fused;
     use candle_core::Var;
 
     /// `[x, slots, W_q, W_k]`: `b` elements, `r` rays of width `dx`, `k` slots of `ds`.
@@ -258,8 +247,25 @@ mod tests {
         ]
     }
 
+    /// The block from candle's ops (the decoder's composed path): the reference.
+    fn composed(t: &[Tensor], scale: f64) -> Result<(Tensor, Tensor)> {
+        let q = crate::linear(&t[0], &t[2], None)?; // [b, r, ds]
+        let k = crate::linear(&t[1], &t[3], None)?; // [b, k, ds]
+        let logits = (crate::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
+        let weights = crate::softmax(&logits, candle_core::D::Minus1)?;
+        Ok((crate::matmul(&weights, &t[1])?, weights))
+    }
+
+    /// The one node where it applies, else the composed block (as the decoder calls it).
+    fn mix(t: &[Tensor]) -> Result<(Tensor, Tensor)> {
+        match slot_mix(&t[0], &t[1], &t[2], &t[3], 0.4)? {
+            Some(out) => Ok(out),
+            None => composed(t, 0.4),
+        }
+    }
+
     fn mixed(t: &[Tensor]) -> Result<Tensor> {
-        Ok(slot_mix(&t[0], &t[1], &t[2], &t[3], 0.4)?.0)
+        Ok(mix(t)?.0)
     }
 
     /// The one-node mix against the composed block (projections, batched `q kᵀ`, softmax,
@@ -270,8 +276,7 @@ mod tests {
         let a = args((3, 40, 4), 1.0, 1);
         assert_matches_composed(&a, mixed, 1e-5);
         finite_difference_check(&args((2, 3, 3), 1.0, 2), mixed);
-        let [wf, wc] = [true, false]
-            .map(|on| with_fused(on, || slot_mix(&a[0], &a[1], &a[2], &a[3], 0.4).unwrap().1));
+        let [wf, wc] = [true, false].map(|on| with_fused(on, || mix(&a).unwrap().1));
         assert_eq!(wf.dims(), [3, 40, 4]);
         assert!(max_diff(&wf, &wc) <= 1e-6);
         let sums = wf.sum(candle_core::D::Minus1).unwrap();
@@ -300,7 +305,8 @@ mod tests {
             let (y, weights) = with_fused(true, || {
                 slot_mix(&t[0], &t[1], w[0].as_tensor(), w[1].as_tensor(), 0.4)
             })
-            .unwrap();
+            .unwrap()
+            .expect("the one-node mix applies");
             let g = y.sum_all().unwrap().backward().unwrap();
             let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             let dw: Vec<_> = w
@@ -324,11 +330,21 @@ mod tests {
         }
     }
 
-    /// Shapes that do not fit fall back to the composed ops, which report the error.
+    /// Shapes that do not fit are left to the composed ops (which report the error), as
+    /// is everything when the kernels are switched off.
     #[test]
-    fn mismatched_widths_are_an_error() {
+    fn shapes_that_do_not_fit_and_composed_kernels_are_left_to_the_caller() {
         let a = args((1, 4, 2), 1.0, 4);
-        let bad = with_fused(true, || slot_mix(&a[0], &a[1], &a[3], &a[3], 0.4));
-        assert!(bad.is_err());
+        let bad = [a[0].clone(), a[1].clone(), a[3].clone(), a[3].clone()];
+        let left = with_fused(true, || slot_mix(&bad[0], &bad[1], &bad[2], &bad[3], 0.4));
+        assert!(left.unwrap().is_none());
+        assert!(with_fused(true, || mix(&bad)).is_err());
+        let off = with_fused(false, || slot_mix(&a[0], &a[1], &a[2], &a[3], 0.4));
+        assert!(off.unwrap().is_none());
+        assert!(
+            with_fused(true, || slot_mix(&a[0], &a[1], &a[2], &a[3], 0.4))
+                .unwrap()
+                .is_some()
+        );
     }
 }

@@ -15,7 +15,7 @@
 //! separate ops', kernel for kernel: the same LayerNorm, projection, attention and MLP
 //! kernels on the same operands, and the forward pass gives the same bits (tested); in
 //! the backward pass only the order in which a tensor's gradient terms are summed may
-//! differ. `OSRT_FUSED_BLOCK=0` switches it off.
+//! differ.
 
 use super::attention::{self, AttentionBwd, Dims};
 use super::gemm::{self, MatRef, Threads};
@@ -26,11 +26,6 @@ use super::{
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
-
-fn enabled_by_env() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::env_switch("OSRT_FUSED_BLOCK", &ON)
-}
 
 /// The tensors of one block (those of `nn::Block`).
 pub struct BlockParams<'a> {
@@ -537,7 +532,7 @@ pub fn block(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Option
         all.push(w);
         all.extend(*b);
     }
-    if !(enabled_by_env() && usable(&all) && x.rank() == 3 && ctx.is_none_or(|c| c.rank() == 3)) {
+    if !(usable(&all) && x.rank() == 3 && ctx.is_none_or(|c| c.rank() == 3)) {
         return Ok(None);
     }
     let (b, n, d) = x.dims3()?;
@@ -621,10 +616,10 @@ pub fn block(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Option
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fused::tests::{
+    use crate::testing::{
         assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
     };
-    use crate::fused::{MlpAct, with_fused};
+    use crate::{MlpAct, with_fused};
     use candle_core::{D, Var};
 
     const HEADS: usize = 2;
@@ -679,19 +674,19 @@ mod tests {
     /// The block from the separate ops (fused or composed, as the thread's switch says),
     /// as `nn::Block::forward_composed` builds it.
     fn separate(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Tensor> {
-        let ln = |x: &Tensor, (g, b): (&Tensor, &Tensor)| super::super::layer_norm(x, g, b, p.eps);
+        let ln = |x: &Tensor, (g, b): (&Tensor, &Tensor)| crate::layer_norm(x, g, b, p.eps);
         let h = ln(x, p.norm_attn)?;
         let c = ctx.unwrap_or(&h);
-        let lin = |x: &Tensor, w: &Tensor| super::super::linear(x, w, None);
+        let lin = |x: &Tensor, w: &Tensor| crate::linear(x, w, None);
         let dh = p.q.dim(0)? / p.heads;
-        let o = super::super::attention(
+        let o = crate::attention(
             &lin(&h, p.q)?,
             &lin(c, p.k)?,
             &lin(c, p.v)?,
             p.heads,
             1.0 / (dh as f64).sqrt(),
         )?;
-        let x = (x + super::super::linear(&o, p.out.0, Some(p.out.1))?)?;
+        let x = (x + crate::linear(&o, p.out.0, Some(p.out.1))?)?;
         let m = mlp::mlp(&ln(&x, p.norm_mlp)?, &p.mlp, p.act)?;
         x + m
     }

@@ -10,9 +10,6 @@
 //! are strided views into the projections: no split or merge copies, one node, and the
 //! attention weights are kept for the backward pass instead of recomputed.
 //!
-//! `OSRT_FUSED_ATTENTION=0` switches it off (the composed version runs): it changes
-//! speed, not training.
-//!
 //! The arithmetic is the composed version's: the same gemm on the same operands, the
 //! scale applied to the logits, then the same row softmax. Tests check values and
 //! gradients against it, against finite differences, and on extreme inputs.
@@ -21,11 +18,6 @@ use super::{Kept, f32_slice, softmax_row, softmax_row_grad, usable};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
-
-fn enabled_by_env() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::env_switch("OSRT_FUSED_ATTENTION", &ON)
-}
 
 /// Sizes of one attention call.
 #[derive(Debug, Clone, Copy)]
@@ -389,7 +381,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -
             v.dims()
         );
     }
-    if !(enabled_by_env() && usable(&[q, k, v]) && n > 0 && m > 0) {
+    if !(usable(&[q, k, v]) && n > 0 && m > 0) {
         return attention_composed(q, k, v, heads, scale);
     }
     let op = AttentionOp {
@@ -438,10 +430,10 @@ pub fn attention_composed(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fused::tests::{
+    use crate::testing::{
         assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
     };
-    use crate::fused::with_fused;
+    use crate::with_fused;
     use candle_core::{Device, Var};
 
     /// `[q, k, v]` for `b` batch elements, `n` queries, `m` keys of width `inner`.

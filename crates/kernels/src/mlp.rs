@@ -11,8 +11,8 @@
 //!
 //! The arithmetic is the per-layer fused path's, op for op: the same matmuls (candle's CPU
 //! gemm, same operand layouts), the same in-place bias add, the same activation kernels
-//! and column sums. The results are the same bits (tested), so switching it on or off
-//! (`OSRT_FUSED_MLP=0`) changes speed, not training.
+//! and column sums. The results are the same bits (tested): it changes speed, not
+//! training.
 
 use super::gemm::{self, MatRef, Threads};
 use super::{
@@ -66,11 +66,6 @@ impl MlpAct {
             MlpAct::Gelu => super::gelu(x),
         }
     }
-}
-
-fn enabled_by_env() -> bool {
-    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    super::env_switch("OSRT_FUSED_MLP", &ON)
 }
 
 /// Widths `[in, hidden…, out]` and whether layers have biases: where each layer's weight
@@ -414,7 +409,7 @@ pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
         && layers
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
-    if !(fits && enabled_by_env() && usable(&all)) {
+    if !(fits && usable(&all)) {
         return mlp_layer_by_layer(x, layers, act);
     }
     let (dims, packed) = pack(x.dim(D::Minus1)?, layers)?;
@@ -520,7 +515,7 @@ pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
         && layers
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
-    if !(fits && lead_fits && enabled_by_env() && usable(&all)) {
+    if !(fits && lead_fits && usable(&all)) {
         return cat();
     }
     let (dims, packed) = pack(a.dim(D::Minus1)? + b.dim(D::Minus1)?, layers)?;
@@ -548,10 +543,10 @@ pub fn mlp_layer_by_layer(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fused::tests::{
+    use crate::testing::{
         assert_matches_composed, both, finite_difference_check, max_abs, max_diff, randn,
     };
-    use crate::fused::with_fused;
+    use crate::with_fused;
     use candle_core::{Device, Var};
 
     const ACTS: [MlpAct; 3] = [MlpAct::Relu, MlpAct::LeakyRelu(0.01), MlpAct::Gelu];

@@ -1,0 +1,134 @@
+use crate::*;
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+
+/// `o = softmax(x)` of one row.
+pub(crate) fn softmax_row(o: &mut [f32], x: &[f32]) {
+    // Shift by the row's maximum: exp never overflows, the largest term is 1.
+    let m = x.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    // The exp kernel vectorises; the ordered sum stays a separate loop.
+    fastmath::exp_shifted_slice(o, x, m);
+    let sum: f32 = o.iter().sum();
+    let inv = 1.0 / sum;
+    o.iter_mut().for_each(|v| *v *= inv);
+}
+
+/// `o = y ⊙ (dy − Σ y ⊙ dy)` of one row: the softmax's input gradient from its output `y`.
+pub(crate) fn softmax_row_grad(o: &mut [f32], y: &[f32], dy: &[f32]) {
+    let dot: f32 = y.iter().zip(dy).map(|(a, b)| a * b).sum();
+    for ((o, y), dy) in o.iter_mut().zip(y).zip(dy) {
+        *o = y * (dy - dot);
+    }
+}
+
+struct SoftmaxOp;
+
+impl CustomOp1 for SoftmaxOp {
+    fn name(&self) -> &'static str {
+        "osrt-softmax-last-dim"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = f32_slice(s, l, "softmax")?;
+        let d = l.dims().last().copied().unwrap_or(1).max(1);
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(d * ROWS_PER_TASK)
+            .zip(x.par_chunks(d * ROWS_PER_TASK))
+            .for_each(|(o, x)| {
+                for (o, x) in o.chunks_mut(d).zip(x.chunks(d)) {
+                    softmax_row(o, x);
+                }
+            });
+        Ok((CpuStorage::F32(out), l.shape().clone()))
+    }
+
+    fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(
+            res.apply_op2_no_bwd(&grad.contiguous()?, &SoftmaxBwd)?,
+        ))
+    }
+}
+
+/// `dx = y ⊙ (dy − Σ y ⊙ dy)` per row, from the softmax output `y`.
+struct SoftmaxBwd;
+
+impl CustomOp2 for SoftmaxBwd {
+    fn name(&self) -> &'static str {
+        "osrt-softmax-last-dim-bwd"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let y = f32_slice(s1, l1, "softmax backward output")?;
+        let dy = f32_slice(s2, l2, "softmax backward gradient")?;
+        let d = l1.dims().last().copied().unwrap_or(1).max(1);
+        let mut out = vec![0f32; y.len()];
+        out.par_chunks_mut(d * ROWS_PER_TASK)
+            .zip(
+                y.par_chunks(d * ROWS_PER_TASK)
+                    .zip(dy.par_chunks(d * ROWS_PER_TASK)),
+            )
+            .for_each(|(o, (y, dy))| {
+                for ((o, y), dy) in o.chunks_mut(d).zip(y.chunks(d)).zip(dy.chunks(d)) {
+                    softmax_row_grad(o, y, dy);
+                }
+            });
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+}
+
+/// Softmax over dimension `dim` (any; other than the last it goes through a transpose).
+pub fn softmax<Dim: candle_core::shape::Dim>(x: &Tensor, dim: Dim) -> Result<Tensor> {
+    let dim = dim.to_index(x.shape(), "softmax")?;
+    if !usable(&[x]) {
+        return candle_nn::ops::softmax(x, dim);
+    }
+    let last = x.rank() - 1;
+    if dim == last {
+        x.contiguous()?.apply_op1(SoftmaxOp)
+    } else {
+        x.transpose(dim, last)?
+            .contiguous()?
+            .apply_op1(SoftmaxOp)?
+            .transpose(dim, last)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::*;
+    use candle_core::Device;
+
+    #[test]
+    fn softmax_matches_the_composed_version_and_finite_differences() {
+        let x = randn(&[3, 5, 40], 2.0, 41);
+        for dim in [2, 1] {
+            assert_matches_composed(std::slice::from_ref(&x), |t| softmax(&t[0], dim), 1e-5);
+            finite_difference_check(&[randn(&[2, 3, 6], 1.5, 42)], |t| softmax(&t[0], dim));
+        }
+        // Extremes: huge logits pick one entry, a constant row is uniform, nothing overflows.
+        let x = Tensor::new(
+            &[
+                [1e30f32, -1e30, 0.0, 5.0],
+                [7.0, 7.0, 7.0, 7.0],
+                [-1e30, -1e30, -1e30, -2e30],
+            ],
+            &Device::Cpu,
+        )
+        .unwrap();
+        let [(y, g), _] = both(std::slice::from_ref(&x), |t| softmax(&t[0], 1));
+        let y: Vec<Vec<f32>> = y.to_vec2().unwrap();
+        assert_eq!(y[0], vec![1.0, 0.0, 0.0, 0.0]);
+        assert_eq!(y[1], vec![0.25; 4]);
+        assert_eq!(y[2], vec![1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 0.0]);
+        let g: Vec<f32> = g[0].flatten_all().unwrap().to_vec1().unwrap();
+        assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+        assert_matches_composed(&[x], |t| softmax(&t[0], 1), 1e-6);
+    }
+}
