@@ -5,6 +5,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_model::{Kernels, Precision};
+use osrt_run::MetricsRecord;
 use osrt_trainer::bench::{bench_render, bench_step};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
@@ -199,6 +200,13 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         println!("{text}");
         return Ok(());
     }
+    print_model_report(&a, &report);
+    println!("saved to {}", a.out.display());
+    Ok(())
+}
+
+/// The figures of `osrt bench model`, for people.
+fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
     for (threads, v) in report.as_object().expect("object") {
         println!("{threads} thread(s):");
         for s in v["steps"].as_array().expect("array") {
@@ -266,8 +274,6 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
             }
         }
     }
-    println!("saved to {}", a.out.display());
-    Ok(())
 }
 
 #[derive(Args)]
@@ -393,12 +399,13 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
                 String::from_utf8_lossy(&out.stderr)
             );
         }
-        let text = std::fs::read_to_string(run.join("metrics.jsonl"))?;
+        let text = std::fs::read_to_string(run.join(osrt_run::METRICS_FILE))?;
         let sps: Vec<f64> = text
             .lines()
-            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-            .filter(|r| r["step"].as_u64().is_some_and(|s| s > a.warmup))
-            .filter_map(|r| r["scenes_per_s"].as_f64())
+            .filter_map(|l| match MetricsRecord::parse(l)? {
+                MetricsRecord::Train(r) if r.step > a.warmup => Some(r.scenes_per_s),
+                _ => None,
+            })
             .collect();
         if sps.is_empty() {
             bail!("no training records after warm-up for {c}: raise --steps");

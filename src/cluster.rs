@@ -9,6 +9,7 @@ use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
+use osrt_run::MetricsRecord;
 use osrt_trainer::worker::{run_worker_until, unix_now};
 use osrt_trainer::{DeviceSpec, JobConfig, WorkerOptions};
 use std::io::IsTerminal;
@@ -114,7 +115,7 @@ pub fn spec(
     Ok(JobSpec {
         job_id: job_id(),
         job_toml: job.to_toml(),
-        job,
+        cluster: job.cluster,
         data: absolute_local(data)?,
         run: run.to_string(),
         max_steps,
@@ -319,16 +320,14 @@ fn spawn_worker(
     Ok(cmd.spawn()?)
 }
 
-fn parse_record(s: &str) -> Option<serde_json::Value> {
-    serde_json::from_str(s).ok()
-}
-
 /// Runs the job on loopback; returns the final status.
 pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let token = Token::generate();
     let max_steps = job.spec.max_steps;
-    let max_restarts = job.spec.job.cluster.max_restarts;
-    let device = job.spec.job.train.device;
+    let max_restarts = job.spec.cluster.max_restarts;
+    let device = JobConfig::from_toml("the job config", &job.spec.job_toml)?
+        .train
+        .device;
     let coord = Coordinator::open(job.spec, job.resume).await?;
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = format!("http://{}", listener.local_addr()?);
@@ -405,15 +404,11 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         }
         let s = status_view.status();
         bar.set_position(s.step);
-        if let Some(r) = parse_record(&s.last_record) {
-            let loss = r.get("loss").and_then(|v| v.as_f64());
-            let sps = r.get("scenes_per_s").and_then(|v| v.as_f64());
-            if let (Some(loss), Some(sps)) = (loss, sps) {
-                bar.set_message(format!(
-                    "loss {loss:.5} {sps:.1} scenes/s gen {}",
-                    s.generation
-                ));
-            }
+        if let Some(MetricsRecord::Train(r)) = MetricsRecord::parse(&s.last_record) {
+            bar.set_message(format!(
+                "loss {:.5} {:.1} scenes/s gen {}",
+                r.loss, r.scenes_per_s, s.generation
+            ));
         }
         // A worker that died while the job runs is replaced (as a Job controller would).
         let over = matches!(

@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
-    Columns, Location, SplitReader, SplitSizes, WriterOptions, generate_dataset, inspect,
+    Columns, Location, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
 };
 use std::io::IsTerminal;
 
@@ -193,25 +193,11 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
         }
     }
     if let Some(path) = a.sheet {
-        let reader = SplitReader::open(loc.join(&a.sheet_split)).await?;
-        let mut scenes = Vec::new();
-        for rg in reader.row_groups().await? {
-            if scenes.len() >= a.sheet_scenes {
-                break;
-            }
-            scenes.extend(
-                reader
-                    .read_row_group(
-                        &rg,
-                        Columns {
-                            masks: true,
-                            objects: false,
-                        },
-                    )
-                    .await?,
-            );
-        }
-        scenes.truncate(a.sheet_scenes);
+        let columns = Columns {
+            masks: true,
+            objects: false,
+        };
+        let scenes = load_split(&loc, &a.sheet_split, columns, Some(a.sheet_scenes)).await?;
         let img = inspect::contact_sheet(&scenes)?;
         img.save(&path)
             .with_context(|| format!("writing contact sheet {}", path.display()))?;

@@ -80,7 +80,7 @@ async fn load_scenes(data: &str, split: &str, limit: Option<usize>) -> Result<Ve
         masks: true,
         objects: false,
     };
-    osrt_trainer::data::load_split(&loc, split, columns, limit)
+    osrt_dataset::load_split(&loc, split, columns, limit)
         .await
         .with_context(|| format!("reading {data}/{split}"))
 }

@@ -61,6 +61,23 @@ fn note(f: &SweepFile) -> String {
     )
 }
 
+/// Makes `out` the folder of the sweep in `file` (a copy of the file goes there); a folder
+/// holding another sweep is refused.
+fn claim_folder(file: &Path, out: &Path) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let copy = out.join(SWEEP_COPY);
+    let text = std::fs::read_to_string(file)?;
+    match std::fs::read_to_string(&copy) {
+        Ok(old) if old != text => bail!(
+            "{} holds a different sweep ({}); choose another --out or remove it",
+            out.display(),
+            copy.display()
+        ),
+        _ => std::fs::write(&copy, &text)?,
+    }
+    Ok(())
+}
+
 pub async fn sweep(a: SweepArgs) -> Result<()> {
     let file = SweepFile::load(&a.file)?;
     let dir = a.file.parent().unwrap_or(Path::new("."));
@@ -74,17 +91,7 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
         .await
         .with_context(|| format!("reading the dataset {}", file.data))?;
     let points = file.check(&base, manifest.views_per_scene[0] as usize)?;
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    let copy = out.join(SWEEP_COPY);
-    let text = std::fs::read_to_string(&a.file)?;
-    match std::fs::read_to_string(&copy) {
-        Ok(old) if old != text => bail!(
-            "{} holds a different sweep ({}); choose another --out or remove it",
-            out.display(),
-            copy.display()
-        ),
-        _ => std::fs::write(&copy, &text)?,
-    }
+    claim_folder(&a.file, &out)?;
     let n = points.len();
     eprintln!(
         "sweep `{}`: {n} point{} into {} (budget per point: {})",

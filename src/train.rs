@@ -5,6 +5,7 @@ use clap::Args;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
 use osrt_model::{Kernels, Precision, SlotInit};
+use osrt_run::MetricsRecord;
 use osrt_trainer::run::eval_options;
 use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
 use std::io::IsTerminal;
@@ -295,25 +296,28 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     })
     .await?;
     let loc = Location::parse(&run)?;
-    let metrics = osrt_trainer::run::read_file(&loc, osrt_trainer::run::METRICS_FILE)
+    let metrics = osrt_run::read_file(&loc, osrt_run::METRICS_FILE)
         .await?
         .unwrap_or_default();
     let last_eval = String::from_utf8_lossy(&metrics)
         .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .rfind(|v| v.get("psnr").is_some());
+        .filter_map(MetricsRecord::parse)
+        .filter_map(|r| match r {
+            MetricsRecord::Eval(e) => Some(e),
+            MetricsRecord::Train(_) => None,
+        })
+        .next_back();
     println!(
         "trained to step {} ({} restarts); checkpoints: {run}/checkpoints",
         status.last_checkpoint.unwrap_or(0),
         status.restarts,
     );
     if let Some(e) = last_eval {
-        let f = |k: &str| e.get(k).and_then(|v| v.as_f64());
         println!(
             "validation: PSNR {:.2} dB (mean-colour baseline {:.2} dB), FG-ARI {}",
-            f("psnr").unwrap_or(f64::NAN),
-            f("baseline_psnr").unwrap_or(f64::NAN),
-            f("fg_ari").map_or("n/a".into(), |v| format!("{v:.3}"))
+            e.psnr,
+            e.baseline_psnr.unwrap_or(f64::NAN),
+            e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
         );
     }
     Ok(())
@@ -344,7 +348,7 @@ pub async fn evaluate_run(
         .with_context(|| format!("loading run {run}"))?;
     let data = req.data.clone().unwrap_or_else(|| loaded.info.data.clone());
     let loc = Location::parse(&data)?;
-    let scenes = osrt_trainer::data::load_split(
+    let scenes = osrt_dataset::load_split(
         &loc,
         split,
         Columns {

@@ -10,11 +10,10 @@
 //! payload as two body frames, the server slices the payload out of the HTTP/2 DATA frame
 //! it arrived in (copying only when the payload was split across frames).
 //!
-//! Two methods: `PushChunk` (unary, one chunk per call) and `PushChunks` (client
-//! streaming, one call per all-reduce). The ring uses the stream: a unary call costs a
-//! request's headers, a response with trailers and a server task per chunk, which made
-//! chunks smaller than 1 MiB slower than large ones and left buffers of a few MB with too
-//! few chunks to pipeline (docs/performance.md). On the stream a chunk is one message.
+//! One method: `PushChunks`, client streaming, one call per all-reduce, a chunk per
+//! message. (A unary call per chunk costs a request's headers, a response with trailers
+//! and a server task per chunk, which made chunks smaller than 1 MiB slower than large
+//! ones and left buffers of a few MB with too few chunks to pipeline: docs/performance.md.)
 //!
 //! Any gRPC client or server of `osrt.v1.Collective` interoperates with it; the tests call
 //! the server with tonic's generated client and the client against tonic's generated
@@ -38,9 +37,7 @@ use tonic::metadata::{Ascii, MetadataValue};
 use tonic::transport::Channel;
 use tower_service::Service;
 
-/// The unary method's HTTP/2 path.
-pub const PATH: &str = "/osrt.v1.Collective/PushChunk";
-/// The client-streaming method's HTTP/2 path.
+/// The method's HTTP/2 path.
 pub const STREAM_PATH: &str = "/osrt.v1.Collective/PushChunks";
 
 /// Protobuf keys of `Chunk`'s fields: field number << 3 | wire type 2 (length-delimited).
@@ -77,12 +74,6 @@ struct Frames {
 }
 
 impl Frames {
-    fn new(parts: Vec<Bytes>) -> Self {
-        let mut f = Self::default();
-        parts.into_iter().for_each(|p| f.push(p));
-        f
-    }
-
     fn push(&mut self, part: Bytes) {
         self.remaining += part.len();
         if !part.is_empty() {
@@ -228,42 +219,6 @@ fn decode_chunk(mut f: Frames) -> Result<Chunk, Status> {
     Ok(chunk)
 }
 
-/// Parses the body of a unary `PushChunk` (the frames of one call) into its `Chunk`.
-pub fn decode_request(parts: Vec<Bytes>) -> Result<Chunk, Status> {
-    let mut f = Frames::new(parts);
-    let total = f.remaining;
-    let Some(message) = f.next_message(usize::MAX)? else {
-        return Err(malformed(format!(
-            "a {total}-byte body is not one whole message (its prefix announces more)"
-        )));
-    };
-    if f.remaining > 0 {
-        return Err(malformed(format!(
-            "{} bytes after the message (one message per unary call)",
-            f.remaining
-        )));
-    }
-    decode_chunk(message)
-}
-
-/// The data frames of a request body, refusing bodies over `limit` bytes.
-async fn read_body(mut body: Body, limit: usize) -> Result<Vec<Bytes>, Status> {
-    let mut parts = Vec::new();
-    let mut n = 0;
-    while let Some(frame) = body.frame().await {
-        if let Ok(data) = frame?.into_data() {
-            n += data.len();
-            if n > limit {
-                return Err(Status::resource_exhausted(format!(
-                    "PushChunk request over {limit} bytes"
-                )));
-            }
-            parts.push(data);
-        }
-    }
-    Ok(parts)
-}
-
 /// Hands every chunk of a `PushChunks` body to `accept` as soon as its message is whole;
 /// the first refusal (or malformed message) ends the call.
 async fn accept_stream<A>(mut body: Body, accept: &A, limit: usize) -> Result<(), Status>
@@ -352,14 +307,6 @@ where
         let (accept, limit) = (self.accept.clone(), self.limit);
         Box::pin(async move {
             let result = match req.uri().path() {
-                PATH => {
-                    async {
-                        // gRPC framing of one message: the 5-byte prefix on top of the limit.
-                        let parts = read_body(req.into_body(), limit + 5).await?;
-                        accept(decode_request(parts)?)
-                    }
-                    .await
-                }
                 STREAM_PATH => accept_stream(req.into_body(), &accept, limit).await,
                 other => Err(Status::unimplemented(format!("no method {other}"))),
             };
@@ -553,6 +500,26 @@ fn result_of(status: Status) -> Result<(), Status> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The one message of a body (the frames of one call) as its `Chunk`: decoding
+    /// alone, for the tests of the message format.
+    fn decode_request(parts: Vec<Bytes>) -> Result<Chunk, Status> {
+        let mut f = Frames::default();
+        parts.into_iter().for_each(|p| f.push(p));
+        let total = f.remaining;
+        let Some(message) = f.next_message(usize::MAX)? else {
+            return Err(malformed(format!(
+                "a {total}-byte body is not one whole message (its prefix announces more)"
+            )));
+        };
+        if f.remaining > 0 {
+            return Err(malformed(format!(
+                "{} bytes after the message",
+                f.remaining
+            )));
+        }
+        decode_chunk(message)
+    }
 
     fn tag() -> ChunkTag {
         ChunkTag {

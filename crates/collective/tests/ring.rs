@@ -229,8 +229,7 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
     let mut bare = CollectiveClient::connect(nodes[1].addr.clone())
         .await
         .unwrap();
-    let e = bare
-        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 4]))
+    let e = push_one(&mut bare, chunk("test-job", 1, 3, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
@@ -241,45 +240,41 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
         .unwrap();
     let mut foreign =
         CollectiveClient::with_interceptor(channel.clone(), AttachToken(Token::generate()));
-    let e = foreign
-        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 4]))
+    let e = push_one(&mut foreign, chunk("test-job", 1, 3, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
     let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()));
-    let e = client
-        .push_chunk(chunk("other-job", 1, 3, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("other-job", 1, 3, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::PermissionDenied, "{e}");
-    let e = client
-        .push_chunk(chunk("test-job", 0, 3, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 0, 3, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition);
     assert!(e.message().contains("stale chunk: generation 0"), "{e}");
-    let e = client
-        .push_chunk(chunk("test-job", 1, 2, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 1, 2, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert!(e.message().contains("stale chunk: step 2"), "{e}");
     // A chunk of a *newer* generation (a peer that joined it first) is kept, not refused.
-    client
-        .push_chunk(chunk("test-job", 2, 0, 0, vec![0.0; 4]))
+    push_one(&mut client, chunk("test-job", 2, 0, 0, vec![0.0; 4]))
         .await
         .unwrap();
-    let e = client
-        .push_chunk(Chunk {
+    let e = push_one(
+        &mut client,
+        Chunk {
             tag: None,
             data: Bytes::new(),
-        })
-        .await
-        .unwrap_err();
+        },
+    )
+    .await
+    .unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument);
     // Wrong length: refused, and the waiting round fails at once with the reason.
     let t = Instant::now();
-    let e = client
-        .push_chunk(chunk("test-job", 1, 3, 0, vec![0.0; 3]))
+    let e = push_one(&mut client, chunk("test-job", 1, 3, 0, vec![0.0; 3]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument);
@@ -296,37 +291,31 @@ async fn chunks_kept_for_later_are_bounded() {
     let mut client = client_of(&nodes[1]).await;
     // Rank 1 is in step 3: step 4 is kept (from the ring predecessor only), step 5
     // refused.
-    client
-        .push_chunk(chunk("test-job", 1, 4, 0, vec![0.0; 4]))
+    push_one(&mut client, chunk("test-job", 1, 4, 0, vec![0.0; 4]))
         .await
         .unwrap();
-    let e = client
-        .push_chunk(chunk("test-job", 1, 4, 1, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 1, 4, 1, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert!(
         e.message().contains("expected the ring predecessor 0"),
         "{e}"
     );
-    let e = client
-        .push_chunk(chunk("test-job", 1, 5, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 1, 5, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert!(e.message().contains("at most one step ahead"), "{e}");
-    let e = client
-        .push_chunk(chunk("test-job", 3, 0, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 3, 0, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition);
     assert!(e.message().contains("at most one ahead"), "{e}");
     // Generation 2, step 1 is kept early; step 0 of it is then stale (one step of a
     // generation waits at a time: a newer one replaces it).
-    client
-        .push_chunk(chunk("test-job", 2, 1, 0, vec![0.0; 4]))
+    push_one(&mut client, chunk("test-job", 2, 1, 0, vec![0.0; 4]))
         .await
         .unwrap();
-    let e = client
-        .push_chunk(chunk("test-job", 2, 0, 0, vec![0.0; 4]))
+    let e = push_one(&mut client, chunk("test-job", 2, 0, 0, vec![0.0; 4]))
         .await
         .unwrap_err();
     assert!(e.message().contains("stale early chunk"), "{e}");
@@ -355,9 +344,9 @@ async fn chunks_kept_for_later_are_bounded() {
     let mut client = CollectiveClient::with_interceptor(channel, AttachToken(token()))
         .max_encoding_message_size(8 << 20);
     let mut big = chunk("test-job", 2, 0, 0, vec![0.0; 1 << 18]);
-    client.push_chunk(big.clone()).await.unwrap();
+    push_one(&mut client, big.clone()).await.unwrap();
     big.tag.as_mut().unwrap().chunk = 1;
-    let e = client.push_chunk(big).await.unwrap_err();
+    let e = push_one(&mut client, big).await.unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e}");
 }
 
@@ -438,14 +427,6 @@ impl Recorder {
 
 #[tonic::async_trait]
 impl Collective for Recorder {
-    async fn push_chunk(
-        &self,
-        request: tonic::Request<Chunk>,
-    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
-        self.record(request.into_inner())?;
-        Ok(tonic::Response::new(ChunkAck {}))
-    }
-
     async fn push_chunks(
         &self,
         request: tonic::Request<tonic::Streaming<Chunk>>,
@@ -456,6 +437,21 @@ impl Collective for Recorder {
         }
         Ok(tonic::Response::new(ChunkAck {}))
     }
+}
+
+/// Sends one chunk on its own `PushChunks` call (tonic's generated client), returning the
+/// server's answer.
+async fn push_one<T>(
+    client: &mut CollectiveClient<T>,
+    c: Chunk,
+) -> Result<tonic::Response<ChunkAck>, tonic::Status>
+where
+    T: tonic::client::GrpcService<tonic::body::Body>,
+    T::Error: Into<tonic::codegen::StdError>,
+    T::ResponseBody: tonic::codegen::Body<Data = bytes::Bytes> + Send + 'static,
+    <T::ResponseBody as tonic::codegen::Body>::Error: Into<tonic::codegen::StdError> + Send,
+{
+    client.push_chunks(futures::stream::iter([c])).await
 }
 
 /// Sends `chunks` on one hand-framed `PushChunks` call and returns its status.
@@ -484,13 +480,6 @@ struct Silent;
 
 #[tonic::async_trait]
 impl Collective for Silent {
-    async fn push_chunk(
-        &self,
-        _request: tonic::Request<Chunk>,
-    ) -> Result<tonic::Response<ChunkAck>, tonic::Status> {
-        std::future::pending().await
-    }
-
     async fn push_chunks(
         &self,
         request: tonic::Request<tonic::Streaming<Chunk>>,

@@ -14,7 +14,8 @@
 
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
-use osrt_trainer::JobConfig;
+pub use osrt_run::ClusterOverrides;
+use osrt_run::{ClusterConfig, MetricsRecord};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -24,7 +25,8 @@ use tonic::Status;
 #[derive(Debug, Clone)]
 pub struct JobSpec {
     pub job_id: String,
-    pub job: JobConfig,
+    /// The job config's `[cluster]` table: all of it the coordinator reads.
+    pub cluster: ClusterConfig,
     /// The exact TOML handed to workers (its hash is checked against checkpoints).
     pub job_toml: String,
     pub data: String,
@@ -35,31 +37,6 @@ pub struct JobSpec {
     /// `config.toml` when a job is resumed (that file's text, whose hash checkpoints
     /// carry, stays as it is).
     pub cluster_overrides: ClusterOverrides,
-}
-
-/// `--min-workers`, `--max-workers`, `--max-restarts`.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct ClusterOverrides {
-    pub min_workers: Option<usize>,
-    pub max_workers: Option<usize>,
-    pub max_restarts: Option<u32>,
-}
-
-impl ClusterOverrides {
-    /// Applies the limits given; without an explicit `max_workers`, the config's is
-    /// raised to `min_workers` where it is lower.
-    pub fn apply(&self, c: &mut osrt_trainer::ClusterConfig) {
-        if let Some(v) = self.min_workers {
-            c.min_workers = v;
-        }
-        match self.max_workers {
-            Some(v) => c.max_workers = v,
-            None => c.max_workers = c.max_workers.max(c.min_workers),
-        }
-        if let Some(v) = self.max_restarts {
-            c.max_restarts = v;
-        }
-    }
 }
 
 /// The part of the state kept in `RUN/job.json`.
@@ -159,12 +136,9 @@ pub enum MetricsWrite {
 /// Records one progress report may carry (a worker holds at most as many unsent).
 pub const MAX_RECORDS_PER_CALL: usize = 10_000;
 
-/// The `step` of a metrics record line.
+/// The `step` of a metrics record line (`None`: not a record).
 pub fn record_step(line: &str) -> Option<u64> {
-    serde_json::from_str::<serde_json::Value>(line)
-        .ok()?
-        .get("step")?
-        .as_u64()
+    MetricsRecord::parse(line).map(|r| r.step())
 }
 
 impl Core {
@@ -301,7 +275,7 @@ impl Core {
         self.dirty_job = true;
         if counts_as_restart {
             self.restarts += 1;
-            let max = self.spec.job.cluster.max_restarts;
+            let max = self.spec.cluster.max_restarts;
             if self.restarts - self.restarts_before > max {
                 self.fail(format!(
                     "{reason}; gave up after {max} restarts (cluster.max_restarts)"
@@ -331,7 +305,7 @@ impl Core {
         if self.is_over() {
             return Err(Status::failed_precondition("the job is over"));
         }
-        let max = self.spec.job.cluster.max_workers;
+        let max = self.spec.cluster.max_workers;
         if self.members.len() >= max {
             return Err(Status::resource_exhausted(format!(
                 "the job already has {max} workers (cluster.max_workers)"
@@ -427,7 +401,7 @@ impl Core {
         if self.is_over() {
             return;
         }
-        let timeout = Duration::from_secs_f64(self.spec.job.cluster.heartbeat_timeout_s);
+        let timeout = Duration::from_secs_f64(self.spec.cluster.heartbeat_timeout_s);
         let lost: Vec<u64> = self
             .members
             .values()
@@ -457,7 +431,7 @@ impl Core {
                 .filter(|m| m.last_seen >= since)
                 .map(|m| m.id)
                 .collect();
-            let c = &self.spec.job.cluster;
+            let c = &self.spec.cluster;
             let n = eligible.len();
             let grace = Duration::from_secs_f64(c.join_grace_s);
             let waited = now.duration_since(since);
@@ -646,356 +620,4 @@ impl Core {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn spec(min: usize, max: usize, restarts: u32) -> JobSpec {
-        let mut job = JobConfig::preset("tiny").unwrap();
-        job.cluster.min_workers = min;
-        job.cluster.max_workers = max;
-        job.cluster.max_restarts = restarts;
-        job.cluster.join_grace_s = 0.0;
-        JobSpec {
-            job_id: "j".into(),
-            job_toml: job.to_toml(),
-            job,
-            data: "data".into(),
-            run: "run".into(),
-            max_steps: Some(10),
-            deadline_unix_s: None,
-            cluster_overrides: ClusterOverrides::default(),
-        }
-    }
-
-    fn prog(
-        id: u64,
-        generation: u64,
-        rank: usize,
-        step: u64,
-        hash: Option<&str>,
-        records: Vec<String>,
-    ) -> Progress {
-        Progress {
-            worker_id: id,
-            generation,
-            rank,
-            step,
-            param_hash: hash.map(str::to_string),
-            records,
-        }
-    }
-
-    fn reg(c: &mut Core, now: Instant) -> u64 {
-        c.register(PROTOCOL_VERSION, "w".into(), "http://x:1".into(), 1, now)
-            .unwrap()
-    }
-
-    #[test]
-    fn a_generation_forms_at_min_workers_and_ranks_follow_registration() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(2, 2, 3), t);
-        let a = reg(&mut c, t);
-        c.tick(t);
-        assert!(matches!(c.phase, Phase::Waiting { .. }));
-        assert_eq!(c.plan(a, 0, t).unwrap(), PlanState::Waiting);
-        let b = reg(&mut c, t);
-        c.tick(t);
-        assert_eq!(c.phase, Phase::Running);
-        let PlanState::Running(p) = c.plan(b, 0, t).unwrap() else {
-            panic!()
-        };
-        assert_eq!(
-            (p.rank, p.world(), p.generation, p.resume_step),
-            (1, 2, 1, None)
-        );
-        // Already running this generation: wait for a newer one.
-        assert_eq!(c.plan(b, 1, t).unwrap(), PlanState::Waiting);
-    }
-
-    #[test]
-    fn a_lost_member_restarts_survivors_from_the_last_checkpoint() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(1, 2, 3), t);
-        let a = reg(&mut c, t);
-        let b = reg(&mut c, t);
-        c.tick(t);
-        c.checkpoint(a, 1, 5, false, t).unwrap();
-        for s in [0, 5, 6] {
-            let line = format!("{{\"step\":{s}}}");
-            c.progress(prog(a, 1, 0, s, None, vec![line]), t).unwrap();
-        }
-        let later = t + Duration::from_secs(4);
-        assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Continue);
-        c.tick(later);
-        assert!(!c.members.contains_key(&b), "b timed out");
-        assert_eq!(c.restarts, 1);
-        assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Restart);
-        c.tick(later);
-        let PlanState::Running(p) = c.plan(a, 1, later).unwrap() else {
-            panic!()
-        };
-        assert_eq!((p.generation, p.world(), p.resume_step), (2, 1, Some(5)));
-        let steps: Vec<u64> = c.records.iter().map(|(s, _)| *s).collect();
-        assert_eq!(steps, vec![0, 5], "records past the checkpoint are dropped");
-        // A resent report (its answer was lost) does not repeat records.
-        let resent = vec!["{\"step\":5}".to_string(), "{\"step\":7}".to_string()];
-        c.progress(prog(a, 2, 0, 7, None, resent), later).unwrap();
-        let steps: Vec<u64> = c.records.iter().map(|(s, _)| *s).collect();
-        assert_eq!(steps, vec![0, 5, 7]);
-        // The unknown (timed-out) worker is told to register again.
-        assert_eq!(
-            c.heartbeat(b, 1, 6, later).unwrap_err().code(),
-            tonic::Code::NotFound
-        );
-    }
-
-    #[test]
-    fn a_failed_round_does_not_re_admit_a_silent_peer() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(1, 2, 3), t);
-        let a = reg(&mut c, t);
-        let b = reg(&mut c, t);
-        c.tick(t);
-        c.checkpoint(a, 1, 5, false, t).unwrap();
-        // b died; a's round fails and a reports it at once, long before b times out.
-        let t1 = t + Duration::from_millis(500);
-        c.fault(a, 1, "sending to rank 1 failed", false, false, t1)
-            .unwrap();
-        let t2 = t1 + Duration::from_millis(1100);
-        c.plan(a, 1, t2).unwrap();
-        c.tick(t2);
-        let PlanState::Running(p) = c.plan(a, 1, t2).unwrap() else {
-            panic!("{:?}", c.phase)
-        };
-        assert_eq!((p.world(), p.generation, p.resume_step), (1, 2, Some(5)));
-        assert_eq!(c.restarts, 1);
-        // A late report of generation 1's next checkpoint does not move generation 2's
-        // starting point.
-        c.checkpoint(a, 1, 10, false, t2).unwrap();
-        assert_eq!(c.last_checkpoint, Some(5));
-        let _ = b;
-    }
-
-    /// A coordinator restarted while a worker was paused issues new ids: the paused
-    /// worker's old id is unknown to it (so that worker registers again) even after
-    /// another worker registered with the new coordinator.
-    #[test]
-    fn a_restarted_coordinator_never_reissues_an_earlier_incarnations_ids() {
-        let t = Instant::now();
-        let mut first = Core::with_incarnation(spec(2, 2, 3), 7, t);
-        let paused = reg(&mut first, t);
-        let other = reg(&mut first, t);
-        let mut second = Core::with_incarnation(spec(2, 2, 3), 8, t);
-        let again = reg(&mut second, t);
-        assert_ne!(again, paused);
-        assert_ne!(again, other);
-        for id in [paused, other] {
-            let e = second.heartbeat(id, 1, 3, t).unwrap_err();
-            assert_eq!(e.code(), tonic::Code::NotFound);
-            let e = second.plan(id, 1, t).unwrap_err();
-            assert_eq!(e.code(), tonic::Code::NotFound);
-        }
-        // Two coordinators started independently draw different incarnations.
-        let ids: std::collections::BTreeSet<u64> = (0..2)
-            .map(|_| reg(&mut Core::new(spec(1, 9, 0), t), t))
-            .collect();
-        assert_eq!(ids.len(), 2, "random incarnations: {ids:?}");
-    }
-
-    /// Too few workers: the waiting phase ends in a clear failure, not a wait forever.
-    #[test]
-    fn waiting_for_too_few_workers_fails_after_the_wait_timeout() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(2, 2, 3), t);
-        let limit = c.spec.job.cluster.wait_timeout_s;
-        let a = reg(&mut c, t);
-        let before = t + Duration::from_secs_f64(limit * 0.9);
-        c.heartbeat(a, 0, 0, before).unwrap();
-        c.tick(before);
-        assert!(matches!(c.phase, Phase::Waiting { .. }));
-        let after = t + Duration::from_secs_f64(limit + 1.0);
-        c.heartbeat(a, 0, 0, after).unwrap();
-        c.tick(after);
-        let Phase::Failed(m) = &c.phase else {
-            panic!("{:?}", c.phase)
-        };
-        assert!(
-            m.contains("cluster.wait_timeout_s") && m.contains("1 took part"),
-            "{m}"
-        );
-        assert_eq!(c.heartbeat(a, 0, 0, after).unwrap().0, Directive::Stop);
-        // With nobody at all (a finished job resumed with no workers) as well.
-        let mut c = Core::new(spec(1, 2, 3), t);
-        c.tick(after);
-        assert!(matches!(c.phase, Phase::Failed(_)), "{:?}", c.phase);
-    }
-
-    /// `--resume` is a new invocation: the restarts of earlier ones do not count against
-    /// its budget; a coordinator restarted after a crash keeps counting.
-    #[test]
-    fn a_resumed_job_gets_a_fresh_restart_budget() {
-        let t = Instant::now();
-        for (resume, fails) in [(true, false), (false, true)] {
-            let mut c = Core::new(spec(1, 1, 1), t);
-            let mut p = c.persisted();
-            p.restarts = 1;
-            c.restore(&p, vec![], Some(5), resume, t);
-            let a = reg(&mut c, t);
-            c.tick(t);
-            c.fault(a, c.generation, "boom", false, false, t).unwrap();
-            assert_eq!(c.restarts, 2);
-            assert_eq!(
-                matches!(c.phase, Phase::Failed(_)),
-                fails,
-                "resume {resume}"
-            );
-        }
-    }
-
-    /// metrics.jsonl grows by appends while records only grow; dropped records (a new
-    /// generation from an older checkpoint) or a failed write make the next write whole.
-    #[test]
-    fn metrics_are_appended_until_records_are_dropped() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(1, 2, 3), t);
-        let a = reg(&mut c, t);
-        c.tick(t);
-        let line = |s: u64| format!("{{\"step\":{s}}}");
-        let report = |c: &mut Core, g: u64, steps: std::ops::RangeInclusive<u64>| {
-            let lines = steps.clone().map(line).collect();
-            c.progress(prog(a, g, 0, *steps.end(), None, lines), t)
-                .unwrap();
-        };
-        report(&mut c, 1, 1..=2);
-        let both = format!("{}\n{}\n", line(1), line(2));
-        assert_eq!(c.metrics_write(true), MetricsWrite::Append(both.clone()));
-        report(&mut c, 1, 3..=3);
-        let third = format!("{}\n", line(3));
-        assert_eq!(c.metrics_write(true), MetricsWrite::Append(third));
-        // An object store rewrites whole.
-        report(&mut c, 1, 4..=4);
-        assert!(matches!(c.metrics_write(false), MetricsWrite::Whole(_)));
-        // A failed write: whole next time.
-        c.metrics_write_failed();
-        assert!(matches!(c.metrics_write(true), MetricsWrite::Whole(_)));
-        // A new generation from checkpoint 2 drops records 3 and 4: whole.
-        c.checkpoint(a, 1, 2, false, t).unwrap();
-        c.fault(a, 1, "boom", false, false, t).unwrap();
-        c.tick(t);
-        assert_eq!(c.metrics_write(true), MetricsWrite::Whole(both));
-    }
-
-    /// A worker that leaves is dropped at once: the next generation forms without it,
-    /// not with a dead member that fails its first round.
-    #[test]
-    fn a_leaving_worker_is_dropped_at_once() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(2, 3, 5), t);
-        let a = reg(&mut c, t);
-        let b = reg(&mut c, t);
-        c.tick(t);
-        assert_eq!(c.phase, Phase::Running);
-        c.fault(b, 1, "stopped by a signal", false, true, t)
-            .unwrap();
-        assert!(!c.members.contains_key(&b));
-        assert_eq!(c.restarts, 1);
-        let d = reg(&mut c, t);
-        c.tick(t);
-        let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
-            panic!("{:?}", c.phase)
-        };
-        assert_eq!((p.generation, p.world()), (2, 2));
-        assert!(c.ring.contains(&d) && !c.ring.contains(&b));
-    }
-
-    #[test]
-    fn a_report_may_carry_a_bounded_number_of_records() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(1, 1, 1), t);
-        let a = reg(&mut c, t);
-        c.tick(t);
-        let many = vec!["{\"step\":1}".to_string(); MAX_RECORDS_PER_CALL + 1];
-        let e = c.progress(prog(a, 1, 0, 1, None, many), t).unwrap_err();
-        assert_eq!(e.code(), tonic::Code::InvalidArgument);
-        assert!(c.records.is_empty());
-    }
-
-    #[test]
-    fn cluster_overrides_apply_and_keep_max_at_least_min() {
-        let mut c = JobConfig::preset("tiny").unwrap().cluster;
-        c.max_workers = 2;
-        let o = ClusterOverrides {
-            min_workers: Some(3),
-            max_workers: None,
-            max_restarts: Some(9),
-        };
-        o.apply(&mut c);
-        assert_eq!((c.min_workers, c.max_workers, c.max_restarts), (3, 3, 9));
-        ClusterOverrides {
-            max_workers: Some(5),
-            ..Default::default()
-        }
-        .apply(&mut c);
-        assert_eq!((c.min_workers, c.max_workers, c.max_restarts), (3, 5, 9));
-    }
-
-    /// Diverged replicas restart from the last checkpoint (a restart); once the budget
-    /// is spent, the job fails and says why.
-    #[test]
-    fn diverged_hashes_restart_from_the_checkpoint_and_equal_ones_count() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(2, 2, 1), t);
-        let a = reg(&mut c, t);
-        let b = reg(&mut c, t);
-        c.tick(t);
-        c.checkpoint(a, 1, 1, false, t).unwrap();
-        c.progress(prog(a, 1, 0, 1, Some("aa"), vec![]), t).unwrap();
-        c.progress(prog(b, 1, 1, 1, Some("aa"), vec![]), t).unwrap();
-        assert_eq!(c.hash_checks, 1);
-        c.progress(prog(a, 1, 0, 2, Some("aa"), vec![]), t).unwrap();
-        let d = c.progress(prog(b, 1, 1, 2, Some("bb"), vec![]), t).unwrap();
-        assert_eq!(d, Directive::Restart);
-        assert_eq!(c.restarts, 1);
-        c.tick(t);
-        let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
-            panic!("{:?}", c.phase)
-        };
-        assert_eq!((p.generation, p.resume_step), (2, Some(1)));
-        c.progress(prog(a, 2, 0, 2, Some("aa"), vec![]), t).unwrap();
-        let d = c.progress(prog(b, 2, 1, 2, Some("cc"), vec![]), t).unwrap();
-        assert_eq!(d, Directive::Stop);
-        let Phase::Failed(m) = &c.phase else { panic!() };
-        assert!(m.contains("replicas diverged at step 2"), "{m}");
-        assert!(m.contains("gave up after 1 restarts"), "{m}");
-    }
-
-    #[test]
-    fn restarts_are_bounded_and_bad_registrations_refused() {
-        let t = Instant::now();
-        let mut c = Core::new(spec(1, 1, 1), t);
-        let e = c
-            .register(99, "w".into(), "http://x:1".into(), 1, t)
-            .unwrap_err();
-        assert_eq!(e.code(), tonic::Code::FailedPrecondition);
-        let a = reg(&mut c, t);
-        let e = c
-            .register(PROTOCOL_VERSION, "w".into(), "http://y:1".into(), 1, t)
-            .unwrap_err();
-        assert_eq!(e.code(), tonic::Code::ResourceExhausted);
-        c.tick(t);
-        c.fault(a, 1, "boom", false, false, t).unwrap();
-        assert_eq!(c.restarts, 1);
-        c.tick(t);
-        c.fault(a, 2, "boom again", false, false, t).unwrap();
-        let Phase::Failed(m) = &c.phase else { panic!() };
-        assert!(m.contains("gave up after 1 restarts"), "{m}");
-        assert_eq!(c.heartbeat(a, 2, 0, t).unwrap().0, Directive::Stop);
-        // A final checkpoint of the current generation finishes a job.
-        let mut c = Core::new(spec(1, 1, 1), t);
-        let a = reg(&mut c, t);
-        c.tick(t);
-        c.checkpoint(a, 1, 10, true, t).unwrap();
-        assert_eq!(c.phase, Phase::Done);
-        assert_eq!(c.plan(a, 1, t).unwrap(), PlanState::Done);
-    }
-}
+mod tests;

@@ -6,7 +6,9 @@
 //! the loop that times out silent members and persists state.
 
 pub mod core;
+pub mod error;
 pub mod service;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
+pub use error::CoordinatorError;
 pub use service::{Coordinator, JOB_FILE, StatusSnapshot};

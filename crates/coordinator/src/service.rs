@@ -2,20 +2,23 @@
 //! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
 
 use crate::core::{Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, record_step};
-use osrt_dataset::Location;
+use crate::error::CoordinatorError;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
-use osrt_trainer::run::{CONFIG_FILE, INFO_FILE, METRICS_FILE, RunInfo, read_file, write_file};
-use osrt_trainer::{JobConfig, TrainError, checkpoint};
+use osrt_run::Location;
+use osrt_run::{
+    CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
+    write_file,
+};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::Notify;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 
-pub const JOB_FILE: &str = "job.json";
+pub use osrt_run::JOB_FILE;
 
 /// Largest message the coordinator takes or sends.
 const MAX_MESSAGE_BYTES: usize = 16 << 20;
@@ -49,18 +52,18 @@ pub struct Coordinator {
 /// A copy of the job's status for displays (the launcher's progress bar).
 pub type StatusSnapshot = v1::JobStatus;
 
-fn run_err(run: &Location, name: &str, reason: impl std::fmt::Display) -> TrainError {
-    TrainError::Run {
+fn run_err(run: &Location, name: &str, reason: impl std::fmt::Display) -> CoordinatorError {
+    CoordinatorError::Run(RunError::Run {
         path: run.describe(&run.path(name)),
         reason: reason.to_string(),
-    }
+    })
 }
 
 impl Coordinator {
     /// Opens the job in `spec.run`. A run folder with an unfinished `job.json` is a
     /// restarted coordinator: the job continues from its newest committed checkpoint (its
     /// own `config.toml` wins). `resume` continues a finished job with the new limits.
-    pub async fn open(spec: JobSpec, resume: bool) -> Result<Self, TrainError> {
+    pub async fn open(spec: JobSpec, resume: bool) -> Result<Self, CoordinatorError> {
         let run = Location::parse(&spec.run)?;
         Self::open_at(spec, run, resume).await
     }
@@ -70,7 +73,7 @@ impl Coordinator {
         mut spec: JobSpec,
         run: Location,
         resume: bool,
-    ) -> Result<Self, TrainError> {
+    ) -> Result<Self, CoordinatorError> {
         let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
             Some(b) => Some(
                 serde_json::from_slice(&b)
@@ -102,7 +105,7 @@ impl Coordinator {
                 let info = RunInfo {
                     data: spec.data.clone(),
                     parameters: None,
-                    workers: spec.job.cluster.min_workers,
+                    workers: spec.cluster.min_workers,
                 };
                 write_file(
                     &run,
@@ -128,11 +131,12 @@ impl Coordinator {
                     .await?
                     .ok_or_else(|| run_err(&run, CONFIG_FILE, "missing"))?;
                 let text = String::from_utf8_lossy(&text).into_owned();
-                spec.job = JobConfig::from_toml(&run.describe(&run.path(CONFIG_FILE)), &text)?;
+                spec.cluster =
+                    ClusterConfig::from_job_toml(&run.describe(&run.path(CONFIG_FILE)), &text)?;
                 // The command line's membership limits win over the stored ones; the
                 // stored text (hashed into checkpoints) is what workers get.
-                spec.cluster_overrides.apply(&mut spec.job.cluster);
-                spec.job.validate()?;
+                spec.cluster_overrides.apply(&mut spec.cluster);
+                spec.cluster.validate()?;
                 spec.job_toml = text;
                 spec.job_id = p.job_id.clone();
                 spec.data = p.data.clone();
@@ -197,7 +201,7 @@ impl Coordinator {
         tls: Option<osrt_proto::tls::Tls>,
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
-    ) -> Result<StatusSnapshot, TrainError> {
+    ) -> Result<StatusSnapshot, CoordinatorError> {
         let (health, health_service) = tonic_health::server::health_reporter();
         health.set_serving::<CoordinatorServer<Service>>().await;
         let service = InterceptedService::new(
@@ -212,14 +216,14 @@ impl Coordinator {
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
         let mut builder = tonic::transport::Server::builder();
         if let Some(tls) = &tls {
-            builder = builder
-                .tls_config(tls.server())
-                .map_err(|e| TrainError::Cluster(format!("coordinator TLS configuration: {e}")))?;
+            builder = builder.tls_config(tls.server()).map_err(|e| {
+                CoordinatorError::Cluster(format!("coordinator TLS configuration: {e}"))
+            })?;
         }
         let server = tokio::spawn(
             builder
-                .http2_keepalive_interval(Some(osrt_trainer::collective::KEEP_ALIVE_INTERVAL))
-                .http2_keepalive_timeout(Some(osrt_trainer::collective::KEEP_ALIVE_TIMEOUT))
+                .http2_keepalive_interval(Some(osrt_proto::KEEP_ALIVE_INTERVAL))
+                .http2_keepalive_timeout(Some(osrt_proto::KEEP_ALIVE_TIMEOUT))
                 .tcp_nodelay(true)
                 .add_service(health_service)
                 .add_service(service)
@@ -241,7 +245,7 @@ impl Coordinator {
         &self,
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()>,
-    ) -> Result<StatusSnapshot, TrainError> {
+    ) -> Result<StatusSnapshot, CoordinatorError> {
         tokio::pin!(shutdown);
         let mut last_flush = Instant::now();
         let mut over_since: Option<Instant> = None;
@@ -264,10 +268,10 @@ impl Coordinator {
             });
             let run = &self.shared.run;
             let (had_job, had_metrics) = (job.is_some(), metrics.is_some());
-            let mut written = Ok(());
+            let mut written: Result<(), CoordinatorError> = Ok(());
             if let Some(p) = job {
                 let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
-                written = write_file(run, JOB_FILE, bytes).await;
+                written = write_file(run, JOB_FILE, bytes).await.map_err(Into::into);
             }
             if let Some(w) = metrics {
                 if written.is_ok() {
@@ -326,7 +330,7 @@ impl Coordinator {
 
     /// Appends to `metrics.jsonl` in place (a local run folder: synced before it counts),
     /// or writes it whole (object stores cannot append).
-    async fn write_metrics(&self, w: MetricsWrite) -> Result<(), TrainError> {
+    async fn write_metrics(&self, w: MetricsWrite) -> Result<(), CoordinatorError> {
         let run = &self.shared.run;
         match (w, self.local_metrics()) {
             (MetricsWrite::Append(text), Some(file)) => {
@@ -342,13 +346,15 @@ impl Coordinator {
                 })
                 .await
                 .map_err(|e| run_err(run, METRICS_FILE, e))?
-                .map_err(|e| TrainError::Run {
-                    path: shown,
-                    reason: format!("appending: {e}"),
+                .map_err(|e| {
+                    CoordinatorError::Run(RunError::Run {
+                        path: shown,
+                        reason: format!("appending: {e}"),
+                    })
                 })
             }
             (MetricsWrite::Whole(text), _) => {
-                write_file(run, METRICS_FILE, text.into_bytes()).await
+                Ok(write_file(run, METRICS_FILE, text.into_bytes()).await?)
             }
             // Not asked of an object store (`can_append` is false there); were it, the
             // failure makes the next write whole.
@@ -379,7 +385,7 @@ impl StoreRetry {
         self.next_try.is_none_or(|t| Instant::now() >= t)
     }
 
-    fn failed(&mut self, e: TrainError) -> Result<(), TrainError> {
+    fn failed(&mut self, e: CoordinatorError) -> Result<(), CoordinatorError> {
         let since = *self.failing_since.get_or_insert_with(Instant::now);
         if since.elapsed() >= STORE_RETRY_BUDGET {
             tracing::error!(error = %e, "the run folder could not be written for {STORE_RETRY_BUDGET:?}");

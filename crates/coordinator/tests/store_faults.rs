@@ -6,7 +6,7 @@ use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
 use osrt_dataset::Location;
 use osrt_dataset::faulty::FaultyStore;
 use osrt_proto::auth::Token;
-use osrt_trainer::JobConfig;
+use osrt_run::ClusterConfig;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
@@ -15,11 +15,10 @@ use std::time::{Duration, Instant};
 async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
     let store = Arc::new(FaultyStore::default());
     let run = Location::new(store.clone(), "run");
-    let job = JobConfig::preset("tiny").unwrap();
     let spec = JobSpec {
         job_id: "job-flaky".into(),
-        job_toml: job.to_toml(),
-        job,
+        job_toml: "[cluster]\n".into(),
+        cluster: ClusterConfig::default(),
         data: "memory://nowhere/data".into(),
         run: "flaky://run".into(),
         max_steps: Some(3),

@@ -101,32 +101,6 @@ pub async fn inspect(dataset: &Location) -> Result<Report> {
     })
 }
 
-/// A distinct colour per instance id (0 = background stays black).
-pub fn instance_color(id: u8) -> [u8; 3] {
-    if id == 0 {
-        return [0, 0, 0];
-    }
-    // Golden-angle hues: neighbours in id get far-apart colours.
-    let h = (id as f64 * 137.508) % 360.0;
-    let (s, v) = (0.75, 0.95);
-    let c = v * s;
-    let x = c * (1.0 - ((h / 60.0) % 2.0 - 1.0).abs());
-    let (r, g, b) = match (h / 60.0) as u32 {
-        0 => (c, x, 0.0),
-        1 => (x, c, 0.0),
-        2 => (0.0, c, x),
-        3 => (0.0, x, c),
-        4 => (x, 0.0, c),
-        _ => (c, 0.0, x),
-    };
-    let m = v - c;
-    [
-        ((r + m) * 255.0) as u8,
-        ((g + m) * 255.0) as u8,
-        ((b + m) * 255.0) as u8,
-    ]
-}
-
 /// A contact sheet: one row per scene, its views followed by their coloured masks.
 /// Views of other sizes than the first are skipped. Returns an RGB8 image.
 pub fn contact_sheet(scenes: &[Scene]) -> Result<image::RgbImage> {
@@ -160,7 +134,11 @@ pub fn contact_sheet(scenes: &[Scene]) -> Result<image::RgbImage> {
                     sheet.put_pixel(xi + x, y0 + y, image::Rgb(v.rgb(x, y)));
                     if let Some(m) = &v.mask {
                         let id = m[(y * w + x) as usize];
-                        sheet.put_pixel(xm + x, y0 + y, image::Rgb(instance_color(id)));
+                        sheet.put_pixel(
+                            xm + x,
+                            y0 + y,
+                            image::Rgb(crate::palette::instance_colour(id)),
+                        );
                     }
                 }
             }

@@ -294,3 +294,25 @@ impl SplitReader {
         Ok(scenes)
     }
 }
+/// Reads a split of `dataset` into memory, at most `limit` scenes (whole row groups,
+/// then truncated): validation and test scenes, renders, contact sheets. (Training shards
+/// are read per epoch and rank, by row-group pieces.)
+pub async fn load_split(
+    dataset: &Location,
+    split: &str,
+    columns: Columns,
+    limit: Option<usize>,
+) -> Result<Vec<Scene>> {
+    let reader = SplitReader::open(dataset.join(split)).await?;
+    let mut scenes = Vec::new();
+    for rg in reader.row_groups().await? {
+        if limit.is_some_and(|l| scenes.len() >= l) {
+            break;
+        }
+        scenes.extend(reader.read_row_group(&rg, columns).await?);
+    }
+    if let Some(l) = limit {
+        scenes.truncate(l);
+    }
+    Ok(scenes)
+}

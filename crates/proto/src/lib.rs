@@ -9,7 +9,17 @@ pub mod tls;
 
 /// Protocol version: peers of another version are refused at registration.
 /// 2: the ring sends its chunks with the client-streaming `PushChunks`.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// 3: the unary `PushChunk` is gone.
+pub const PROTOCOL_VERSION: u32 = 3;
+
+/// Largest chunk payload of the collective: 1 MiB of f32.
+pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
+
+/// HTTP/2 pings on every connection of both services, both ways: a peer that answers
+/// none within the timeout is gone (a half-open TCP connection otherwise looks alive
+/// forever).
+pub const KEEP_ALIVE_INTERVAL: std::time::Duration = std::time::Duration::from_secs(5);
+pub const KEEP_ALIVE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
 
 #[allow(clippy::all, missing_docs)]
 pub mod v1 {

@@ -7,25 +7,12 @@ use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, Rgb, RgbImage};
 use std::path::Path;
 
-/// Distinct colours for slot ids (Tableau 10, then repeated); index = slot.
-const PALETTE: [[u8; 3]; 10] = [
-    [31, 119, 180],
-    [255, 127, 14],
-    [44, 160, 44],
-    [214, 39, 40],
-    [148, 103, 189],
-    [140, 86, 75],
-    [227, 119, 194],
-    [127, 127, 127],
-    [188, 189, 34],
-    [23, 190, 207],
-];
-
 /// Pixels between panels of a strip.
 const GAP: u32 = 2;
 
+/// The colour of slot `slot` (the project's one palette).
 pub fn slot_colour(slot: u32) -> [u8; 3] {
-    PALETTE[slot as usize % PALETTE.len()]
+    osrt_dataset::palette::label_colour(slot)
 }
 
 /// An RGB image from `[h * w * 3]` floats in `[0, 1]` (clamped; NaN shows as black).

@@ -1,6 +1,7 @@
 //! Result rows of a sweep, their tables, and the curves of a run's `metrics.jsonl`.
 
 use crate::Result;
+use osrt_run::MetricsRecord;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -82,39 +83,33 @@ impl RunSummary {
         let (mut rate_sum, mut rate_n) = (0.0, 0usize);
         let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
         for (i, line) in lines.iter().enumerate() {
-            let v: serde_json::Value = match serde_json::from_str(line) {
+            let record: MetricsRecord = match serde_json::from_str(line) {
                 Ok(v) => v,
                 Err(_) if i + 1 == lines.len() => break,
                 Err(e) => {
                     return Err(crate::SweepError::Io {
                         path: origin.to_string(),
-                        reason: format!("line {}: {e}", i + 1),
+                        reason: format!("line {}: not a metrics record: {e}", i + 1),
                     });
                 }
             };
-            let f = |k: &str| v.get(k).and_then(serde_json::Value::as_f64);
-            let step = v
-                .get("step")
-                .and_then(serde_json::Value::as_u64)
-                .unwrap_or(0);
-            let wall = f("wall_s").unwrap_or(0.0);
-            s.steps = s.steps.max(step);
-            s.wall_s = s.wall_s.max(wall);
-            if let Some(r) = f("scenes_per_s") {
-                rate_sum += r;
-                rate_n += 1;
-            }
-            if let Some(m) = f("peak_rss_mb") {
-                s.peak_rss_mb = Some(s.peak_rss_mb.map_or(m, |p: f64| p.max(m)));
-            }
-            if let Some(psnr) = f("psnr") {
-                s.evaluations.push(CurvePoint {
-                    step,
-                    wall_s: wall,
-                    psnr,
-                    baseline_psnr: f("baseline_psnr"),
-                    fg_ari: f("fg_ari"),
-                });
+            s.steps = s.steps.max(record.step());
+            s.wall_s = s.wall_s.max(record.wall_s());
+            match record {
+                MetricsRecord::Train(r) => {
+                    rate_sum += r.scenes_per_s;
+                    rate_n += 1;
+                    if let Some(m) = r.peak_rss_mb {
+                        s.peak_rss_mb = Some(s.peak_rss_mb.map_or(m, |p: f64| p.max(m)));
+                    }
+                }
+                MetricsRecord::Eval(r) => s.evaluations.push(CurvePoint {
+                    step: r.step,
+                    wall_s: r.wall_s,
+                    psnr: r.psnr,
+                    baseline_psnr: r.baseline_psnr,
+                    fg_ari: r.fg_ari,
+                }),
             }
         }
         if rate_n > 0 {
@@ -133,7 +128,7 @@ impl RunSummary {
     }
 
     pub fn load(run_dir: &Path) -> Result<Self> {
-        let path = run_dir.join(osrt_trainer::run::METRICS_FILE);
+        let path = run_dir.join(osrt_run::METRICS_FILE);
         Self::parse(&crate::read_text(&path)?, &path.display().to_string())
     }
 

@@ -178,15 +178,8 @@ impl TcpRing {
     }
 }
 
-/// Median over at least `repeats` of a 2-rank all-reduce of `floats` values and of a
-/// TCP copy of the same number of bytes. Buffers under 10 M floats get proportionally
-/// more repeats (at most 20×): a 1 M-float all-reduce takes a few milliseconds, and a
-/// median of 5 such figures on a shared 2-core machine says little.
-pub async fn bench_allreduce(
-    floats: usize,
-    repeats: usize,
-    chunk_floats: usize,
-) -> AllReduceFigures {
+/// Two ranks' rings on loopback, each with its own Collective server.
+async fn loopback_rings(chunk_floats: usize) -> Vec<Option<Ring>> {
     let mut addrs = Vec::new();
     let mut mailboxes = Vec::new();
     let token = osrt_proto::auth::Token::generate();
@@ -205,7 +198,7 @@ pub async fn bench_allreduce(
         ));
         mailboxes.push(m);
     }
-    let mut rings: Vec<Option<Ring>> = (0..2)
+    (0..2)
         .map(|rank| {
             let cfg = RingConfig {
                 job: "bench".into(),
@@ -220,7 +213,19 @@ pub async fn bench_allreduce(
             };
             Some(Ring::new(cfg, mailboxes[rank].clone()).expect("ring"))
         })
-        .collect();
+        .collect()
+}
+
+/// Median over at least `repeats` of a 2-rank all-reduce of `floats` values and of a
+/// TCP copy of the same number of bytes. Buffers under 10 M floats get proportionally
+/// more repeats (at most 20×): a 1 M-float all-reduce takes a few milliseconds, and a
+/// median of 5 such figures on a shared 2-core machine says little.
+pub async fn bench_allreduce(
+    floats: usize,
+    repeats: usize,
+    chunk_floats: usize,
+) -> AllReduceFigures {
+    let mut rings = loopback_rings(chunk_floats).await;
     let bytes = floats * 4;
     let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
     let (mut times, mut tcp, mut ring, mut discard) =

@@ -6,6 +6,7 @@ use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use osrt_dataset::{InputSelection, TargetViews};
 use osrt_model::{Kernels, Precision};
+pub use osrt_run::{ClusterConfig, ClusterOverrides};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -100,54 +101,6 @@ impl TrainConfig {
                 * self
                     .decay_rate
                     .powf((step - self.warmup_steps) as f64 / self.decay_steps)
-        }
-    }
-}
-
-/// How the job runs as a cluster: membership, the collective, checkpoints.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct ClusterConfig {
-    /// The job starts (and continues after a loss) with at least this many workers.
-    pub min_workers: usize,
-    /// Registrations beyond this many are refused.
-    pub max_workers: usize,
-    /// Generation changes after a lost member or a failed round before the job fails.
-    pub max_restarts: u32,
-    /// A member silent for this long is lost.
-    pub heartbeat_timeout_s: f64,
-    /// Once `min_workers` are present, wait this long for more (up to `max_workers`).
-    pub join_grace_s: f64,
-    /// The job fails if no generation forms for this long (too few workers ever came).
-    pub wait_timeout_s: f64,
-    /// Deadline of every collective RPC and wait: a dead peer fails the round this fast.
-    pub rpc_timeout_s: f64,
-    /// All-reduce bucket size (floats) and chunk size (floats, at most 1 MiB of f32).
-    pub bucket_floats: usize,
-    pub chunk_floats: usize,
-    /// Compare replicas' parameter hashes through the coordinator every this many steps.
-    pub hash_every: u64,
-    /// Commit a checkpoint every this many steps (and always at the end).
-    pub checkpoint_every: u64,
-    /// Retention: the newest `keep_last` checkpoints plus the best by validation FG-ARI.
-    pub keep_last: usize,
-}
-
-impl Default for ClusterConfig {
-    fn default() -> Self {
-        Self {
-            min_workers: 1,
-            max_workers: 64,
-            max_restarts: 5,
-            heartbeat_timeout_s: 5.0,
-            join_grace_s: 1.0,
-            wait_timeout_s: 600.0,
-            rpc_timeout_s: 10.0,
-            bucket_floats: 1 << 22,
-            chunk_floats: crate::collective::MAX_CHUNK_FLOATS,
-            hash_every: 10,
-            checkpoint_every: 500,
-            keep_last: 3,
         }
     }
 }
@@ -325,50 +278,7 @@ impl JobConfig {
         if self.model.slot_attention.num_slots == 0 {
             return bad("num_slots must be positive".into());
         }
-        let c = &self.cluster;
-        if c.min_workers == 0 || c.min_workers > c.max_workers {
-            return bad(format!(
-                "cluster: need 1 <= min_workers ({}) <= max_workers ({})",
-                c.min_workers, c.max_workers
-            ));
-        }
-        for (name, v) in [
-            ("bucket_floats", c.bucket_floats as u64),
-            ("chunk_floats", c.chunk_floats as u64),
-            ("hash_every", c.hash_every),
-            ("checkpoint_every", c.checkpoint_every),
-            ("keep_last", c.keep_last as u64),
-        ] {
-            if v == 0 {
-                // keep_last = 0 would let retention delete the newest committed checkpoint.
-                return bad(format!("cluster.{name} must be positive"));
-            }
-        }
-        if c.chunk_floats > crate::collective::MAX_CHUNK_FLOATS {
-            return bad(format!(
-                "cluster: chunk_floats {} exceeds 1 MiB of f32 ({})",
-                c.chunk_floats,
-                crate::collective::MAX_CHUNK_FLOATS
-            ));
-        }
-        for (name, v) in [
-            ("heartbeat_timeout_s", c.heartbeat_timeout_s),
-            ("rpc_timeout_s", c.rpc_timeout_s),
-            ("wait_timeout_s", c.wait_timeout_s),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return bad(format!(
-                    "cluster.{name} must be positive and finite, got {v}"
-                ));
-            }
-        }
-        if !(c.join_grace_s.is_finite() && c.join_grace_s >= 0.0) {
-            return bad(format!(
-                "cluster.join_grace_s must be non-negative and finite, got {}",
-                c.join_grace_s
-            ));
-        }
-        Ok(())
+        Ok(self.cluster.validate()?)
     }
 }
 

@@ -48,6 +48,19 @@ pub enum TrainError {
     TooManySkips { skipped: u64, limit: u64 },
 }
 
+/// The run folder's errors keep their kind (and their message) in the trainer's.
+impl From<osrt_run::RunError> for TrainError {
+    fn from(e: osrt_run::RunError) -> Self {
+        use osrt_run::RunError as R;
+        match e {
+            R::Dataset(e) => Self::Dataset(e),
+            R::Config { path, reason } => Self::Config { path, reason },
+            R::Run { path, reason } => Self::Run { path, reason },
+            R::Checkpoint { path, reason } => Self::Checkpoint { path, reason },
+        }
+    }
+}
+
 impl TrainError {
     pub(crate) fn io(path: impl std::fmt::Display, source: std::io::Error) -> Self {
         Self::Io {

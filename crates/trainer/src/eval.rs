@@ -113,31 +113,10 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         frames += n_views.len();
         psnr.update(&rgb, &batch.target_rgb);
 
-        // Baseline: the mean colour of the input views, everywhere.
-        let mut mean = [0f64; 3];
-        for px in batch.input_images.chunks(3) {
-            for c in 0..3 {
-                mean[c] += px[c] as f64;
-            }
-        }
-        let npx = (batch.input_images.len() / 3) as f64;
-        let pred: Vec<f32> = (0..r * 3).map(|i| (mean[i % 3] / npx) as f32).collect();
-        baseline.update(&pred, &batch.target_rgb);
-
+        baseline.update(&mean_colour(&batch.input_images, r), &batch.target_rgb);
         match (labels, &batch.target_masks) {
             (Some(labels), Some(masks)) => {
-                // Group rays by view, in order: views are contiguous in a whole-view batch.
-                let mut views: Vec<(&[u8], &[u32])> = Vec::new();
-                let mut s = 0;
-                while s < r {
-                    let v = batch.target_pixels[s].0;
-                    let mut e = s;
-                    while e < r && batch.target_pixels[e].0 == v {
-                        e += 1;
-                    }
-                    views.push((&masks[s..e], &labels[s..e]));
-                    s = e;
-                }
+                let views = by_view(&batch.target_pixels[..r], masks, &labels);
                 seg.update(&views);
                 if let Some(n) = scene.num_objects() {
                     let (count, s) = seg_by_objects.entry(n).or_default();
@@ -182,4 +161,34 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
             Vec::new()
         },
     })
+}
+
+/// The baseline's prediction for `rays` rays: the mean colour of the input views.
+fn mean_colour(input_images: &[f32], rays: usize) -> Vec<f32> {
+    let mut mean = [0f64; 3];
+    for px in input_images.chunks(3) {
+        for c in 0..3 {
+            mean[c] += px[c] as f64;
+        }
+    }
+    let npx = (input_images.len() / 3) as f64;
+    (0..rays * 3).map(|i| (mean[i % 3] / npx) as f32).collect()
+}
+
+/// Masks and slot labels of a whole-view batch, grouped by view (in a whole-view batch a
+/// view's rays are contiguous). `pixels`: each ray's view first.
+fn by_view<'a>(
+    pixels: &[(u32, u32)],
+    masks: &'a [u8],
+    labels: &'a [u32],
+) -> Vec<(&'a [u8], &'a [u32])> {
+    let mut views = Vec::new();
+    let mut s = 0;
+    while s < pixels.len() {
+        let v = pixels[s].0;
+        let e = s + pixels[s..].iter().take_while(|p| p.0 == v).count();
+        views.push((&masks[s..e], &labels[s..e]));
+        s = e;
+    }
+    views
 }

@@ -1,6 +1,7 @@
 //! The worker side of osrt: job configuration, the train step (gradients as one flat
-//! buffer, AdamW applied from one), evaluation, data sharding, the gRPC ring all-reduce,
-//! object-store checkpoints, and the worker process loop.
+//! buffer, AdamW applied from one), evaluation, data sharding, checkpoints' tensors, the
+//! learner (one rank's training loop, no RPC) and the worker shell around it (membership,
+//! heartbeats, the ring all-reduce of `osrt-collective`, reports).
 
 pub mod bench;
 pub mod bench_allreduce;
@@ -10,11 +11,11 @@ pub use osrt_collective::chunk_wire;
 pub mod check;
 pub mod checkpoint;
 pub mod config;
-pub mod data;
 pub mod device;
 pub mod distributed;
 pub mod error;
 pub mod eval;
+pub mod learner;
 pub mod memory;
 pub mod optim;
 pub mod render;

@@ -1,14 +1,6 @@
-//! A run folder (a path or an object-store URL), as the coordinator and workers leave it:
-//!
-//! ```text
-//! RUN/config.toml     the resolved job config
-//! RUN/run.json        dataset location, parameter count, workers
-//! RUN/job.json        the coordinator's persisted job state (generation, restarts, …)
-//! RUN/metrics.jsonl   one JSON object per line: training and evaluation records
-//! RUN/checkpoints/step-NNNNNNNNN/…   see `checkpoint`
-//! ```
-//!
-//! A run is evaluated from its newest checkpoint that verifies.
+//! A trained run loaded for evaluation or rendering: the job config, and the model from
+//! its newest checkpoint that verifies. The folder's layout and files: `osrt_run`
+//! (re-exported here).
 
 use crate::checkpoint;
 use crate::config::JobConfig;
@@ -16,41 +8,11 @@ use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use crate::eval::EvalOptions;
 use crate::step::Trainer;
-use object_store::ObjectStoreExt;
 use osrt_dataset::Location;
-use serde::{Deserialize, Serialize};
-
-pub const CONFIG_FILE: &str = "config.toml";
-pub const INFO_FILE: &str = "run.json";
-pub const METRICS_FILE: &str = "metrics.jsonl";
-
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct RunInfo {
-    pub data: String,
-    /// The model's parameter count, written by rank 0 when it first builds the model (the
-    /// coordinator never builds one).
-    #[serde(default)]
-    pub parameters: Option<usize>,
-    pub workers: usize,
-}
-
-/// Records the model's parameter count in `RUN/run.json` (rank 0, at a generation's
-/// start); a no-op when it is there already.
-pub async fn record_parameters(run: &Location, parameters: usize) -> Result<()> {
-    let Some(bytes) = read_file(run, INFO_FILE).await? else {
-        return Ok(());
-    };
-    let mut info: RunInfo = serde_json::from_slice(&bytes).map_err(|e| TrainError::Run {
-        path: run.describe(&run.path(INFO_FILE)),
-        reason: format!("unreadable: {e}"),
-    })?;
-    if info.parameters == Some(parameters) {
-        return Ok(());
-    }
-    info.parameters = Some(parameters);
-    let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
-    write_file(run, INFO_FILE, bytes).await
-}
+pub use osrt_run::{
+    CONFIG_FILE, INFO_FILE, JOB_FILE, METRICS_FILE, RunInfo, read_file, record_parameters,
+    write_file,
+};
 
 pub fn eval_options(job: &JobConfig) -> EvalOptions {
     EvalOptions {
@@ -60,33 +22,6 @@ pub fn eval_options(job: &JobConfig) -> EvalOptions {
         seed: job.train.seed ^ 0xE7A1,
         kernels: job.train.kernels,
     }
-}
-
-/// Reads `RUN/name`; `Ok(None)` if it does not exist.
-pub async fn read_file(run: &Location, name: &str) -> Result<Option<bytes::Bytes>> {
-    let path = run.path(name);
-    let err = |e: object_store::Error| TrainError::Run {
-        path: run.describe(&path),
-        reason: e.to_string(),
-    };
-    match run.store.get(&path).await {
-        Ok(r) => Ok(Some(r.bytes().await.map_err(err)?)),
-        Err(object_store::Error::NotFound { .. }) => Ok(None),
-        Err(e) => Err(err(e)),
-    }
-}
-
-/// Writes `RUN/name` (one put: atomic on every store).
-pub async fn write_file(run: &Location, name: &str, bytes: Vec<u8>) -> Result<()> {
-    let path = run.path(name);
-    run.store
-        .put(&path, bytes.into())
-        .await
-        .map(|_| ())
-        .map_err(|e| TrainError::Run {
-            path: run.describe(&path),
-            reason: e.to_string(),
-        })
 }
 
 /// A trained run, loaded for evaluation or rendering.

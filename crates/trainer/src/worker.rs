@@ -1,5 +1,7 @@
-//! The worker process: registers with the coordinator, asks for a plan, and trains its
-//! share of every step, all-reducing gradients with the other ranks, until the job is done.
+//! The worker shell: registers with the coordinator, asks for a plan, and runs each
+//! generation's [`Learner`] (the training loop, which makes no RPC) inside membership,
+//! heartbeats, the ring all-reduce and the progress and checkpoint reports, until the job
+//! is done.
 //!
 //! One **generation** = one fixed ring of members. A generation starts from the committed
 //! checkpoint the plan names (or from rank 0's fresh weights, broadcast over the ring) and
@@ -12,24 +14,20 @@
 //! summed in fixed ring order, and rank 0's clock decides evaluation and stopping for all
 //! ([`crate::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
 
-use crate::checkpoint::{self, CheckpointState, Snapshot};
+use crate::checkpoint::{self, Snapshot};
 use crate::collective::{Mailbox, Ring, RingConfig, serve};
-use crate::config::JobConfig;
-use crate::data::load_split;
-use crate::distributed::{Signals, broadcast_from_rank0, reduce};
+use crate::config::{ClusterConfig, JobConfig};
+use crate::distributed::{broadcast_from_rank0, reduce};
 use crate::error::{Result, TrainError};
-use crate::eval::evaluate;
-use crate::retry::{READ_RETRY_BUDGET, retry_transient};
-use crate::shard::{EpochPlan, step_rng};
-use crate::step::{ApplyOutcome, Trainer};
-use osrt_dataset::{BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch};
+use crate::learner::{Learner, Start};
+use osrt_dataset::Location;
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
-use serde_json::json;
+use osrt_run::MetricsRecord;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -373,15 +371,13 @@ impl Liveness {
 }
 
 fn spawn_heartbeat(
-    client: Client,
+    (client, worker_id, every, coordinator_timeout): (Client, u64, Duration, Duration),
     plan: &WorkerPlan,
-    worker_id: u64,
-    every: Duration,
-    coordinator_timeout: Duration,
-    live: Arc<Liveness>,
-    mailbox: Arc<Mailbox>,
+    live: &Arc<Liveness>,
+    mailbox: &Arc<Mailbox>,
 ) -> tokio::task::JoinHandle<()> {
     let (job, generation) = (plan.job.clone(), plan.generation);
+    let (live, mailbox) = (live.clone(), mailbox.clone());
     tokio::spawn(async move {
         let mut last_ok = Instant::now();
         loop {
@@ -456,55 +452,6 @@ fn spawn_heartbeat(
 }
 
 /// The train split's row groups, listed once per generation.
-async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
-    Ok(SplitReader::open(data.join("train"))
-        .await?
-        .row_groups()
-        .await?)
-}
-
-/// This rank's scenes for one epoch, read straight from the store.
-async fn load_shard(data: &Location, plan: &EpochPlan) -> Result<Vec<Scene>> {
-    let reader = SplitReader::open(data.join("train")).await?;
-    let mut scenes = Vec::new();
-    for piece in &plan.pieces {
-        let group = reader.read_row_group(&piece.group, Columns::TRAIN).await?;
-        let (start, end) = (piece.rows.start as usize, piece.rows.end as usize);
-        scenes.extend(group.into_iter().take(end).skip(start));
-    }
-    Ok(scenes)
-}
-
-struct Epoch {
-    plan: EpochPlan,
-    scenes: Vec<Scene>,
-    order: Vec<usize>,
-    start_step: u64,
-}
-
-async fn open_epoch(
-    data: &Location,
-    groups: &[RowGroupRef],
-    job: &JobConfig,
-    epoch: u64,
-    start_step: u64,
-    plan: &WorkerPlan,
-) -> Result<Epoch> {
-    let t = &job.train;
-    let ep = EpochPlan::new(groups, t.seed, epoch, plan.world(), plan.rank, t.batch_size)?;
-    let scenes = retry_transient("reading this rank's shard", READ_RETRY_BUDGET, || {
-        load_shard(data, &ep)
-    })
-    .await?;
-    let order = ep.scene_order(t.seed, scenes.len());
-    Ok(Epoch {
-        plan: ep,
-        scenes,
-        order,
-        start_step,
-    })
-}
-
 async fn run_generation(
     opts: &WorkerOptions,
     client: &mut Client,
@@ -512,16 +459,8 @@ async fn run_generation(
     worker_id: u64,
     plan: &WorkerPlan,
 ) -> Result<Ended> {
-    let mut job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
-    if let Some(d) = opts.device {
-        job.train.device = d;
-    }
-    let device = job.train.device.open()?;
-    job.validate()?;
-    let cfg_hash = checkpoint::config_hash(&plan.job_config_toml);
-    let t = job.train.clone();
+    let (job, device) = plan_job(opts, plan)?;
     let c = job.cluster.clone();
-    let data = Location::parse(&plan.data)?;
     let run = Location::parse(&plan.run)?;
     let (rank, world) = (plan.rank, plan.world());
 
@@ -530,317 +469,97 @@ async fn run_generation(
         abort: Mutex::new(None),
     });
     mailbox.set_generation(plan.generation, rank);
-    let heartbeat = spawn_heartbeat(
-        client.clone(),
-        plan,
-        worker_id,
-        Duration::from_secs_f64((c.heartbeat_timeout_s / 5.0).clamp(0.05, 1.0)),
-        opts.coordinator_timeout,
-        live.clone(),
-        mailbox.clone(),
-    );
-    let _stop_heartbeat = AbortOnDrop(Some(heartbeat));
+    // Five heartbeats per timeout: one lost beat never looks like a lost member.
+    let every = Duration::from_secs_f64((c.heartbeat_timeout_s / 5.0).clamp(0.05, 1.0));
+    let beats = (client.clone(), worker_id, every, opts.coordinator_timeout);
+    let _stop_heartbeat = AbortOnDrop(Some(spawn_heartbeat(beats, plan, &live, mailbox)));
+    let mut ring = open_ring(opts, plan, &c, mailbox)?;
 
-    let mut ring = if world > 1 {
-        Some(Ring::new(
-            RingConfig {
-                job: plan.job.clone(),
-                generation: plan.generation,
-                rank,
-                peers: plan.peers.clone(),
-                bucket_floats: c.bucket_floats,
-                chunk_floats: c.chunk_floats,
-                timeout: Duration::from_secs_f64(c.rpc_timeout_s),
-                token: opts.token.clone(),
-                tls: opts.tls.clone(),
-            },
-            mailbox.clone(),
-        )?)
-    } else {
-        None
+    let start = Start {
+        data: Location::parse(&plan.data)?,
+        run: run.clone(),
+        rank,
+        world,
+        resume_step: plan.resume_step,
+        config_hash: checkpoint::config_hash(&plan.job_config_toml),
     };
-    let aborted = |live: &Liveness, e: TrainError| -> Result<Ended> {
-        // A round that failed because the coordinator moved on is not a fault of its own.
-        if let Some(a) = live.take_abort() {
-            return Ok(a);
+    let mut learner = Learner::open(job, device, start).await?;
+    if learner.is_fresh() {
+        // Every rank starts from rank 0's fresh weights.
+        let mut flat = learner.trainer.params.flatten()?;
+        if let Err(e) = broadcast_from_rank0(ring.as_mut(), 0, rank, &mut flat).await {
+            return aborted(&live, e);
         }
-        match e {
-            TrainError::Collective(err) => Ok(Ended::Aborted {
-                reason: err.to_string(),
-                report: true,
-            }),
-            other => Err(other),
-        }
-    };
-
-    if rank == 0 {
-        // Checkpoints past the generation's starting point belong to an abandoned
-        // timeline (committed just before a generation ended, too late to count): this
-        // generation replays those steps, maybe with another world size, and its
-        // checkpoints take their place.
-        let discarded = checkpoint::discard_after(&run, plan.resume_step).await?;
-        if !discarded.is_empty() {
-            tracing::info!(?discarded, resume_step = ?plan.resume_step, "checkpoints of an abandoned timeline discarded");
-        }
+        learner.trainer.params.load_flat(&flat)?;
     }
-    let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
-    if rank == 0
-        && let Err(e) = crate::run::record_parameters(&run, trainer.num_parameters()).await
-    {
-        tracing::warn!(error = %e, "could not record the parameter count in run.json");
-    }
-    let mut state = match plan.resume_step {
-        Some(step) => {
-            let st = checkpoint::load(&run, step, &mut trainer).await?;
-            if st.config_hash != cfg_hash {
-                return Err(TrainError::Config {
-                    path: run.describe(&run.path(&checkpoint::step_dir(step))),
-                    reason: "the checkpoint was written with another job config; resume with the run's own config.toml".into(),
-                });
-            }
-            st
-        }
-        None => {
-            let mut flat = trainer.params.flatten()?;
-            if let Err(e) = broadcast_from_rank0(ring.as_mut(), 0, rank, &mut flat).await {
-                return aborted(&live, e);
-            }
-            trainer.params.load_flat(&flat)?;
-            CheckpointState {
-                step: 0,
-                epoch: 0,
-                epoch_start_step: 0,
-                world_size: world,
-                rng: String::new(),
-                adam_t: 0,
-                skipped_total: 0,
-                wall_s: 0.0,
-                train_s: 0.0,
-                config_hash: cfg_hash.clone(),
-                val_fg_ari: None,
-                val_psnr: None,
-            }
-        }
-    };
-    // Another world size deals the data differently: continue with a fresh epoch.
-    if state.world_size != world {
-        state.epoch += 1;
-        state.epoch_start_step = state.step;
-        state.world_size = world;
-    }
-    state.rng = format!(
-        "ChaCha8 per step from (seed {}, step, rank, world {world})",
-        t.seed
-    );
-
-    let groups = retry_transient("listing the train split", READ_RETRY_BUDGET, || {
-        list_row_groups(&data)
-    })
-    .await?;
-    let val = retry_transient("reading the validation scenes", READ_RETRY_BUDGET, || {
-        let columns = Columns {
-            masks: true,
-            objects: false,
-        };
-        load_split(&data, "val", columns, Some(t.eval_scenes))
-    })
-    .await?;
-    let mut epoch = open_epoch(
-        &data,
-        &groups,
-        &job,
-        state.epoch,
-        state.epoch_start_step,
-        plan,
-    )
-    .await?;
-    let batch_cfg = BatchConfig {
-        input_views: t.input_views,
-        input_selection: t.input_selection,
-        target_views: t.target_views,
-        rays_per_scene: Some(t.rays_per_scene),
-        with_masks: false,
-        salient_fraction: t.salient_fraction,
-    };
-    let eval_opts = crate::run::eval_options(&job);
-
-    let gen_start = Instant::now();
-    let (wall0, train0) = (state.wall_s, state.train_s);
-    let mut train_s = train0;
-    let mut last_eval = Instant::now();
-    let mut window = (Instant::now(), 0.0f64, 0.0f64, 0u64);
-    // A save still running when the generation is aborted is cancelled (its checkpoint
-    // stays torn: no manifest); a finished generation awaits it.
-    let mut pending_save: Option<AbortOnDrop<Result<u64>>> = None;
-    let wall = |gen_start: Instant| wall0 + gen_start.elapsed().as_secs_f64();
-    // A fresh job evaluates its initial weights: the curve starts at step 0. Every rank
-    // evaluates, so none waits for rank 0 in the first all-reduce.
     // Records a report could not deliver go again with the next one (the coordinator
     // drops a record it already holds).
-    let mut unsent: Vec<serde_json::Value> = Vec::new();
-    if trainer.step == 0 {
-        let r = tokio::task::block_in_place(|| evaluate(&trainer.model, &val, &eval_opts))?;
-        if rank == 0 {
-            unsent.push(eval_record(0, 0.0, 0.0, &r));
-            if send_records(client, plan, worker_id, 0, None, &unsent)
-                .await
-                .is_some()
-            {
-                unsent.clear();
-            }
-        }
+    let mut unsent: Vec<MetricsRecord> = learner.begin()?.into_iter().collect();
+    if !unsent.is_empty() {
+        report_step(client, plan, worker_id, 0, None, &mut unsent).await;
     }
 
     // Resumed at (or past) the step limit, e.g. a job that was stopped after its final
     // checkpoint committed but before the coordinator recorded it: that checkpoint is the
     // job's last one, and rank 0 reports it as final so the job ends instead of waiting.
-    if plan.max_steps.is_some_and(|m| trainer.step >= m) {
+    if plan.max_steps.is_some_and(|m| learner.step() >= m) {
         if rank == 0 {
-            report_checkpoint(client, plan, worker_id, trainer.step, true).await?;
+            report_checkpoint(client, plan, worker_id, learner.step(), true).await?;
         }
         return Ok(Ended::Finished);
     }
 
+    // A save still running when the generation is aborted is cancelled (its checkpoint
+    // stays torn: no manifest); a finished generation awaits it.
+    let mut pending_save: Option<AbortOnDrop<Result<u64>>> = None;
     loop {
         if let Some(a) = live.take_abort() {
             return Ok(a);
         }
-        let step = trainer.step;
+        let step = learner.step();
         if plan.max_steps.is_some_and(|m| step >= m) {
             break;
         }
         live.step.store(step, Ordering::Relaxed);
-        if step - epoch.start_step >= epoch.plan.steps {
-            let next = epoch.plan.epoch + 1;
-            epoch = open_epoch(&data, &groups, &job, next, step, plan).await?;
-        }
-        let step_start = Instant::now();
-        let k = (step - epoch.start_step) as usize;
-        let b = epoch.plan.local_batch;
-        let refs: Vec<&Scene> = epoch.order[k * b..(k + 1) * b]
-            .iter()
-            .map(|&i| &epoch.scenes[i])
-            .collect();
-        let mut rng = step_rng(t.seed, step, rank, world);
-        let g = tokio::task::block_in_place(|| -> Result<_> {
-            let batch = build_batch(&refs, &batch_cfg, &mut rng)?;
-            trainer.gradients(&batch, &mut rng)
-        })?;
-        let signals = Signals {
-            evaluate: last_eval.elapsed().as_secs_f64() >= t.eval_every_s,
-            stop: plan.deadline_unix_s.is_some_and(|d| unix_now() >= d),
-        };
+        let g = learner.gradients().await?;
+        let signals = learner.signals(plan.deadline_unix_s);
         let reduced = match reduce(ring.as_mut(), step + 1, rank, g, signals).await {
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
-        let nonfinite = reduced.nonfinite;
-        let outcome = tokio::task::block_in_place(|| trainer.apply(reduced.loss, reduced.grads))?;
-        train_s += step_start.elapsed().as_secs_f64();
-        if let ApplyOutcome::Skipped { reason } = &outcome {
-            tracing::warn!(step = trainer.step - 1, reason, from = %nonfinite, "step skipped on every rank");
-        }
-        if let ApplyOutcome::Skipped { .. } = outcome
-            && trainer.skipped_in_a_row >= t.max_consecutive_skips
+        let end = learner.finish_step(reduced, plan.max_steps)?;
+        let step = learner.step();
+        live.step.store(step, Ordering::Relaxed);
+        unsent.extend(end.records);
+        if (end.hash.is_some() || !unsent.is_empty())
+            && report_step(client, plan, worker_id, step, end.hash, &mut unsent).await
+                == Some(Directive::Stop)
         {
-            return Err(TrainError::TooManySkips {
-                skipped: trainer.skipped_in_a_row,
-                limit: t.max_consecutive_skips,
+            return Ok(Ended::Aborted {
+                reason: "the coordinator stopped the job".into(),
+                report: false,
             });
         }
-        let step = trainer.step;
-        live.step.store(step, Ordering::Relaxed);
-        window.1 += reduced.samples;
-        window.2 += reduced.loss;
-        window.3 += 1;
-
-        let mut records = Vec::new();
-        if rank == 0 && step % t.log_every == 0 {
-            let dt = window.0.elapsed().as_secs_f64().max(1e-9);
-            records.push(json!({
-                "step": step,
-                "wall_s": wall(gen_start),
-                "train_s": train_s,
-                "loss": window.2 / window.3 as f64,
-                "scenes_per_s": window.1 / dt,
-                "lr": t.lr_at(step - 1),
-                "skipped": trainer.skipped_total,
-                "epoch": epoch.plan.epoch,
-                "workers": world,
-                "peak_rss_mb": crate::memory::peak_rss_mb(),
-            }));
-            window = (Instant::now(), 0.0, 0.0, 0);
-        }
-        let last = reduced.signals.stop || plan.max_steps.is_some_and(|m| step >= m);
-        if reduced.signals.evaluate || last {
-            // Every rank evaluates (identical weights, identical result): nobody idles in
-            // the next all-reduce waiting for rank 0.
-            let r = tokio::task::block_in_place(|| evaluate(&trainer.model, &val, &eval_opts))?;
-            state.val_fg_ari = r.fg_ari;
-            state.val_psnr = Some(r.psnr);
-            if rank == 0 {
-                records.push(eval_record(step, wall(gen_start), train_s, &r));
-            }
-            last_eval = Instant::now();
-        }
-        let hash = (step % c.hash_every == 0 || last)
-            .then(|| trainer.params.flatten().map(|f| checkpoint::param_hash(&f)))
-            .transpose()?;
-        if hash.is_some() || !records.is_empty() || !unsent.is_empty() {
-            unsent.extend(records);
-            if unsent.len() > MAX_UNSENT_RECORDS {
-                let dropped = unsent.len() - MAX_UNSENT_RECORDS;
-                tracing::warn!(
-                    dropped,
-                    "the coordinator took no records for long: oldest dropped"
-                );
-                unsent.drain(..dropped);
-            }
-            let directive = send_records(client, plan, worker_id, step, hash, &unsent).await;
-            if directive.is_some() {
-                unsent.clear();
-            }
-            if directive == Some(Directive::Stop) {
-                return Ok(Ended::Aborted {
-                    reason: "the coordinator stopped the job".into(),
-                    report: false,
-                });
-            }
-        }
-        if rank == 0 && (step % c.checkpoint_every == 0 || last) {
+        if let Some(snap) = end.snapshot {
             if let Some(prev) = pending_save.take() {
                 prev.join().await?;
             }
-            let st = CheckpointState {
-                step,
-                epoch: epoch.plan.epoch,
-                epoch_start_step: epoch.start_step,
-                world_size: world,
-                adam_t: trainer.opt.t(),
-                skipped_total: trainer.skipped_total,
-                wall_s: wall(gen_start),
-                train_s,
-                ..state.clone()
-            };
-            let snap = tokio::task::block_in_place(|| Snapshot::take(&trainer, st))?;
+            let report = (client.clone(), plan.clone(), worker_id, unsent.clone());
             let task = tokio::spawn(commit_and_report(
                 snap,
                 run.clone(),
-                client.clone(),
-                plan.clone(),
-                worker_id,
-                last,
+                report,
+                end.last,
                 c.keep_last,
-                unsent.clone(),
             ));
             let task = AbortOnDrop(Some(task));
-            if last {
+            if end.last {
                 task.join().await?;
             } else {
                 pending_save = Some(task);
             }
         }
-        if last {
+        if end.last {
             break;
         }
     }
@@ -850,20 +569,92 @@ async fn run_generation(
     Ok(Ended::Finished)
 }
 
+/// The plan's job config (with this worker's `--device`), checked, and its device.
+fn plan_job(opts: &WorkerOptions, plan: &WorkerPlan) -> Result<(JobConfig, candle_core::Device)> {
+    let mut job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
+    if let Some(d) = opts.device {
+        job.train.device = d;
+    }
+    let device = job.train.device.open()?;
+    job.validate()?;
+    Ok((job, device))
+}
+
+/// How a generation ends after `e`: a failed round is an abort to report (or no fault of
+/// this rank's, if the coordinator moved on meanwhile); any other error fails it.
+fn aborted(live: &Liveness, e: TrainError) -> Result<Ended> {
+    if let Some(a) = live.take_abort() {
+        return Ok(a);
+    }
+    match e {
+        TrainError::Collective(err) => Ok(Ended::Aborted {
+            reason: err.to_string(),
+            report: true,
+        }),
+        other => Err(other),
+    }
+}
+
+/// Reports a step's parameter hash and the records not yet delivered (`unsent`, emptied
+/// once delivered; beyond [`MAX_UNSENT_RECORDS`] the oldest are dropped); returns the
+/// coordinator's answer (`None`: not delivered).
+async fn report_step(
+    client: &mut Client,
+    plan: &WorkerPlan,
+    worker_id: u64,
+    step: u64,
+    hash: Option<String>,
+    unsent: &mut Vec<MetricsRecord>,
+) -> Option<Directive> {
+    if unsent.len() > MAX_UNSENT_RECORDS {
+        let dropped = unsent.len() - MAX_UNSENT_RECORDS;
+        tracing::warn!(
+            dropped,
+            "the coordinator took no records for long: oldest dropped"
+        );
+        unsent.drain(..dropped);
+    }
+    let directive = send_records(client, plan, worker_id, step, hash, unsent).await;
+    if directive.is_some() {
+        unsent.clear();
+    }
+    directive
+}
+
+/// The generation's ring (none for a world of one).
+fn open_ring(
+    opts: &WorkerOptions,
+    plan: &WorkerPlan,
+    c: &ClusterConfig,
+    mailbox: &Arc<Mailbox>,
+) -> Result<Option<Ring>> {
+    if plan.world() == 1 {
+        return Ok(None);
+    }
+    let cfg = RingConfig {
+        job: plan.job.clone(),
+        generation: plan.generation,
+        rank: plan.rank,
+        peers: plan.peers.clone(),
+        bucket_floats: c.bucket_floats,
+        chunk_floats: c.chunk_floats,
+        timeout: Duration::from_secs_f64(c.rpc_timeout_s),
+        token: opts.token.clone(),
+        tls: opts.tls.clone(),
+    };
+    Ok(Some(Ring::new(cfg, mailbox.clone())?))
+}
+
 /// Commits a checkpoint, delivers the records up to its step that earlier reports could
 /// not (`unsent`), then reports the checkpoint: a checkpoint the coordinator accepts never
 /// leaves a gap before it in `metrics.jsonl` (later steps are replayed if the generation
 /// ends).
-#[allow(clippy::too_many_arguments)]
 async fn commit_and_report(
     snap: Snapshot,
     run: Location,
-    mut client: Client,
-    plan: WorkerPlan,
-    worker_id: u64,
+    (mut client, plan, worker_id, unsent): (Client, WorkerPlan, u64, Vec<MetricsRecord>),
     last: bool,
     keep_last: usize,
-    unsent: Vec<serde_json::Value>,
 ) -> Result<u64> {
     let step = snap.commit(&run).await?;
     if !unsent.is_empty() {
@@ -922,7 +713,7 @@ fn progress_report(
     worker_id: u64,
     step: u64,
     param_hash: Option<String>,
-    records: &[serde_json::Value],
+    records: &[MetricsRecord],
 ) -> v1::ProgressReport {
     v1::ProgressReport {
         job: plan.job.clone(),
@@ -931,7 +722,7 @@ fn progress_report(
         rank: plan.rank as u32,
         step,
         param_hash,
-        records: records.iter().map(|r| r.to_string()).collect(),
+        records: records.iter().map(MetricsRecord::to_line).collect(),
     }
 }
 
@@ -947,7 +738,7 @@ async fn send_records(
     worker_id: u64,
     step: u64,
     param_hash: Option<String>,
-    records: &[serde_json::Value],
+    records: &[MetricsRecord],
 ) -> Option<Directive> {
     let r = client
         .report_progress(progress_report(plan, worker_id, step, param_hash, records))
@@ -959,27 +750,6 @@ async fn send_records(
             None
         }
     }
-}
-
-pub fn eval_record(
-    step: u64,
-    wall_s: f64,
-    train_s: f64,
-    r: &crate::eval::EvalResult,
-) -> serde_json::Value {
-    json!({
-        "step": step,
-        "wall_s": wall_s,
-        "train_s": train_s,
-        "psnr": r.psnr,
-        "baseline_psnr": r.baseline_psnr,
-        "fg_ari": r.fg_ari,
-        "fg_ari_2d": r.fg_ari_2d,
-        "ari": r.ari,
-        "ratio": r.ratio,
-        "render_fps": r.render_fps,
-        "eval_scenes": r.scenes,
-    })
 }
 
 /// A task that is cancelled if its handle is dropped before it is joined.

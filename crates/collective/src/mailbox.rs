@@ -1,0 +1,311 @@
+//! Chunks received by this rank's Collective server, checked and held until the local
+//! all-reduce takes them.
+
+use crate::{Layout, MAX_CHUNK_FLOATS};
+use bytes::Bytes;
+use osrt_proto::v1::{Chunk, ChunkTag, Phase};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::Notify;
+use tonic::Status;
+
+/// `(generation, step, bucket, phase, round, chunk)`
+pub(crate) type Key = (u64, u64, u32, i32, u32, u32);
+
+/// What is wrong with a chunk addressed to `rank` at step `min_step`, if anything.
+fn validate(
+    layout: &Layout,
+    rank: usize,
+    min_step: u64,
+    tag: &ChunkTag,
+    phase: Phase,
+    bytes: usize,
+) -> Option<String> {
+    let w = layout.world;
+    let expected_from = (rank + w - 1) % w;
+    if tag.from_rank as usize != expected_from {
+        return Some(format!(
+            "chunk from rank {}, expected the ring predecessor {expected_from}",
+            tag.from_rank
+        ));
+    }
+    if tag.round as usize + 1 >= w.max(2)
+        || (tag.step == min_step && tag.bucket as usize >= layout.buckets.len())
+    {
+        return Some(format!(
+            "unknown bucket {} or round {}",
+            tag.bucket, tag.round
+        ));
+    }
+    if tag.step == min_step {
+        let seg = layout.segment(
+            tag.bucket as usize,
+            layout.recv_segment(rank, phase, tag.round as usize),
+        );
+        let want = layout
+            .chunks(seg)
+            .get(tag.chunk as usize)
+            .map(|c| c.len() * 4);
+        if want != Some(bytes) {
+            return Some(format!(
+                "malformed chunk {} of bucket {}: {bytes} bytes, expected {}",
+                tag.chunk,
+                tag.bucket,
+                want.map_or("no such chunk".to_string(), |w| w.to_string())
+            ));
+        }
+    }
+    None
+}
+
+#[derive(Default)]
+struct MailboxState {
+    job: String,
+    generation: u64,
+    rank: usize,
+    min_step: u64,
+    layout: Option<Layout>,
+    chunks: HashMap<Key, Bytes>,
+    /// A malformed chunk aimed at this rank fails the round that waits for it.
+    failure: Option<String>,
+    /// Set by the worker when the coordinator moved on: every wait of this generation
+    /// fails at once instead of running into its deadline.
+    aborted: Option<String>,
+    /// Chunks kept before they could be checked (a peer already in the next generation,
+    /// or in this one before this rank's first step): their `(generation, step)` — one
+    /// pair only, for a peer cannot get past a step without this rank — and their bytes.
+    early: Option<(u64, u64)>,
+    early_bytes: usize,
+    /// Bytes of the last gradient this mailbox saw reduced (bounds `early_bytes`).
+    gradient_bytes: usize,
+}
+
+/// Bound of unchecked early chunks before any gradient size is known: the round-0 share
+/// of a 2-worker ring at 67 M parameters (the `paper` preset's is 41 M floats).
+const EARLY_BYTES_DEFAULT: usize = 256 << 20;
+
+impl MailboxState {
+    fn early_limit(&self) -> usize {
+        if self.gradient_bytes == 0 {
+            EARLY_BYTES_DEFAULT
+        } else {
+            // A peer sends at most its share of one step before it needs this rank's.
+            self.gradient_bytes + (MAX_CHUNK_FLOATS * 4)
+        }
+    }
+
+    /// Whether a kept chunk could not be checked on arrival.
+    fn is_early(&self, k: &Key) -> bool {
+        k.0 > self.generation || self.layout.is_none() || k.1 > self.min_step
+    }
+
+    /// Recounts the early chunks after the generation or step moved.
+    fn recount_early(&mut self) {
+        let early: Vec<(&Key, &Bytes)> = self
+            .chunks
+            .iter()
+            .filter(|(k, _)| self.is_early(k))
+            .collect();
+        self.early_bytes = early.iter().map(|(_, b)| b.len()).sum();
+        self.early = early.iter().map(|(k, _)| (k.0, k.1)).max();
+    }
+}
+
+/// Chunks received by this rank's server, waiting for the local all-reduce.
+#[derive(Default)]
+pub struct Mailbox {
+    state: Mutex<MailboxState>,
+    notify: Notify,
+}
+
+impl Mailbox {
+    pub fn new(job: &str) -> Arc<Self> {
+        let m = Arc::new(Self::default());
+        m.state.lock().expect("mailbox").job = job.to_string();
+        m
+    }
+
+    /// The job this mailbox accepts chunks of (learnt at registration).
+    pub fn set_job(&self, job: &str) {
+        self.state.lock().expect("mailbox").job = job.to_string();
+    }
+
+    /// Starts a new generation (membership changed): older traffic becomes stale.
+    pub fn set_generation(&self, generation: u64, rank: usize) {
+        let mut s = self.state.lock().expect("mailbox");
+        s.generation = generation;
+        s.rank = rank;
+        // Keep chunks a faster peer already sent for this generation.
+        s.chunks.retain(|k, _| k.0 >= generation);
+        s.failure = None;
+        s.aborted = None;
+        // A new generation restarts from a checkpoint: its steps may be lower than the
+        // last generation's, so nothing about them is stale yet.
+        s.min_step = 0;
+        s.layout = None;
+        s.recount_early();
+    }
+
+    /// Fails the current and every later wait of this generation with `reason`.
+    pub fn abort(&self, reason: &str) {
+        self.state.lock().expect("mailbox").aborted = Some(reason.to_string());
+        self.notify.notify_waiters();
+    }
+
+    pub(crate) fn begin_step(&self, step: u64, layout: Layout) {
+        let mut s = self.state.lock().expect("mailbox");
+        s.min_step = step;
+        s.gradient_bytes = layout.buckets.iter().map(|b| b.len() * 4).sum();
+        s.layout = Some(layout);
+        let generation = s.generation;
+        s.chunks.retain(|k, _| k.0 > generation || k.1 >= step);
+        s.failure = None;
+        s.recount_early();
+    }
+
+    /// Keeps a chunk that cannot be checked yet, within the bounds of what a live peer
+    /// sends ahead of this rank.
+    fn keep_early(s: &mut MailboxState, key: Key, data: Bytes) -> Result<(), Status> {
+        let pair = (key.0, key.1);
+        if let Some((g, st)) = s.early
+            && (g, st) != pair
+        {
+            if pair < (g, st) {
+                return Err(Status::failed_precondition(format!(
+                    "stale early chunk of generation {}, step {}: chunks of generation {g}, \
+                     step {st} are waiting",
+                    pair.0, pair.1
+                )));
+            }
+            // The peer moved on: what it sent ahead for an older step or generation will
+            // never be used (a live peer cannot pass a step without this rank's chunks).
+            s.chunks.retain(|k, _| (k.0, k.1) != (g, st));
+            s.recount_early();
+        }
+        let limit = s.early_limit();
+        if s.early_bytes + data.len() > limit {
+            return Err(Status::resource_exhausted(format!(
+                "{} bytes of early chunks would exceed {limit}",
+                s.early_bytes + data.len()
+            )));
+        }
+        s.early = Some(pair);
+        s.early_bytes += data.len();
+        if let Some(old) = s.chunks.insert(key, data) {
+            s.early_bytes -= old.len();
+        }
+        Ok(())
+    }
+
+    pub(crate) fn accept(&self, chunk: Chunk) -> Result<(), Status> {
+        let tag = chunk
+            .tag
+            .ok_or_else(|| Status::invalid_argument("chunk without a tag"))?;
+        let mut s = self.state.lock().expect("mailbox");
+        if tag.job != s.job {
+            return Err(Status::permission_denied(format!(
+                "chunk of job `{}`, this is job `{}`",
+                tag.job, s.job
+            )));
+        }
+        if tag.generation < s.generation {
+            return Err(Status::failed_precondition(format!(
+                "stale chunk: generation {}, current generation {}",
+                tag.generation, s.generation
+            )));
+        }
+        let key = (
+            tag.generation,
+            tag.step,
+            tag.bucket,
+            tag.phase,
+            tag.round,
+            tag.chunk,
+        );
+        if tag.generation > s.generation + 1 {
+            return Err(Status::failed_precondition(format!(
+                "chunk of generation {}, this rank is in generation {}: a peer is at most one ahead",
+                tag.generation, s.generation
+            )));
+        }
+        if tag.generation > s.generation {
+            // A peer that joined the next generation first: keep it, bounded; the length
+            // is checked when the chunk is used.
+            Self::keep_early(&mut s, key, chunk.data)?;
+            self.notify.notify_waiters();
+            return Ok(());
+        }
+        if tag.step < s.min_step {
+            return Err(Status::failed_precondition(format!(
+                "stale chunk: step {}, current step {}",
+                tag.step, s.min_step
+            )));
+        }
+        let phase = Phase::try_from(tag.phase)
+            .map_err(|_| Status::invalid_argument(format!("unknown phase {}", tag.phase)))?;
+        if phase == Phase::Unspecified {
+            return Err(Status::invalid_argument("chunk phase unspecified"));
+        }
+        let Some(layout) = s.layout.clone() else {
+            // The local worker has not reached its first step of the generation: keep
+            // it, bounded; validate on use.
+            Self::keep_early(&mut s, key, chunk.data)?;
+            self.notify.notify_waiters();
+            return Ok(());
+        };
+        let (rank, min_step) = (s.rank, s.min_step);
+        let problem = if tag.step > min_step + 1 {
+            Some(format!(
+                "chunk of step {}, this rank is at step {min_step}: a peer is at most one step ahead",
+                tag.step
+            ))
+        } else {
+            validate(&layout, rank, min_step, &tag, phase, chunk.data.len())
+        };
+        if let Some(msg) = problem {
+            s.failure = Some(msg.clone());
+            self.notify.notify_waiters();
+            return Err(Status::invalid_argument(msg));
+        }
+        if tag.step > min_step {
+            // The next all-reduce may have another length (the weights' broadcast comes
+            // before the first gradient's): its chunks are checked when used, and bounded.
+            Self::keep_early(&mut s, key, chunk.data)?;
+        } else {
+            s.chunks.insert(key, chunk.data);
+        }
+        self.notify.notify_waiters();
+        Ok(())
+    }
+
+    pub(crate) async fn take(
+        &self,
+        key: Key,
+        timeout: Duration,
+    ) -> Result<Result<Bytes, String>, ()> {
+        let deadline = crate::loan::deadline(timeout);
+        loop {
+            // Register as a waiter *before* looking, or a notification that lands between
+            // the look and the wait is lost (notify_waiters only wakes registered waiters).
+            let notified = self.notify.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            {
+                let mut s = self.state.lock().expect("mailbox");
+                if let Some(a) = &s.aborted {
+                    return Ok(Err(a.clone()));
+                }
+                if let Some(f) = s.failure.take() {
+                    return Ok(Err(f));
+                }
+                if let Some(b) = s.chunks.remove(&key) {
+                    return Ok(Ok(b));
+                }
+            }
+            if tokio::time::timeout_at(deadline, notified).await.is_err() {
+                return Err(());
+            }
+        }
+    }
+}

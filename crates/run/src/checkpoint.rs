@@ -1,0 +1,382 @@
+//! Checkpoints in an object store (local filesystem, `file://`, `memory://`, `s3://`):
+//! their layout, commit, verification, listing and retention. Writing tensors and loading
+//! them into a model is the trainer's (`osrt_trainer::checkpoint`); nothing here knows a
+//! tensor, so the coordinator can list and verify checkpoints without a model.
+//!
+//! ```text
+//! RUN/checkpoints/step-000000120/model.safetensors      weights, by parameter name
+//! RUN/checkpoints/step-000000120/optimizer.safetensors  AdamW moments `m`, `v` (flat)
+//! RUN/checkpoints/step-000000120/state.json             step, epoch, data cursor, …
+//! RUN/checkpoints/step-000000120/MANIFEST.json          written last, PutMode::Create
+//! ```
+//!
+//! A checkpoint exists only if its manifest is present and every file it lists has the
+//! listed size and SHA-256: a crash mid-write leaves no manifest, a corrupted file fails
+//! its hash, and either is skipped with a warning — never loaded.
+
+use crate::error::{Result, RunError};
+use bytes::Bytes;
+use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use osrt_dataset::Location;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+
+pub const MANIFEST: &str = "MANIFEST.json";
+pub const MODEL: &str = "model.safetensors";
+pub const OPTIMIZER: &str = "optimizer.safetensors";
+pub const STATE: &str = "state.json";
+
+/// Everything besides tensors that an exact resume needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointState {
+    /// Optimiser steps taken (the next step to run).
+    pub step: u64,
+    /// Data cursor: the epoch in progress and the step it began at (steps within the
+    /// epoch index the epoch's shuffled order).
+    pub epoch: u64,
+    pub epoch_start_step: u64,
+    /// World size the cursor refers to: with another world size the data order of the
+    /// epoch differs, so a resume with another size starts a fresh epoch.
+    pub world_size: usize,
+    /// Random state: every step's RNG is derived from (seed, step, rank, world), so the
+    /// step number *is* the RNG state; recorded here for people reading the file.
+    pub rng: String,
+    pub adam_t: u64,
+    pub skipped_total: u64,
+    /// Wall-clock seconds of the job up to this step, and the part spent in train steps
+    /// (summed over generations; replayed steps after a restart count once).
+    pub wall_s: f64,
+    pub train_s: f64,
+    /// SHA-256 of the job config TOML: a resume with another config is refused.
+    pub config_hash: String,
+    /// Latest validation FG-ARI and PSNR before this step (retention keeps the best).
+    pub val_fg_ari: Option<f64>,
+    pub val_psnr: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ManifestEntry {
+    pub name: String,
+    pub size: u64,
+    pub sha256: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub step: u64,
+    pub files: Vec<ManifestEntry>,
+}
+
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// SHA-256 of the job config, as recorded in checkpoints.
+pub fn config_hash(job_toml: &str) -> String {
+    sha256_hex(job_toml.as_bytes())
+}
+
+/// Hash of a replica's parameters (first 16 hex digits of the SHA-256 of their bytes).
+pub fn param_hash(flat: &[f32]) -> String {
+    let mut h = Sha256::new();
+    for x in flat {
+        h.update(x.to_le_bytes());
+    }
+    h.finalize()[..8]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+pub fn step_dir(step: u64) -> String {
+    format!("checkpoints/step-{step:09}")
+}
+
+/// A checkpoint error naming the file or folder under `loc`.
+pub fn store_err(loc: &Location, path: &str, e: impl std::fmt::Display) -> RunError {
+    RunError::Checkpoint {
+        path: loc.describe(&loc.path(path)),
+        reason: e.to_string(),
+    }
+}
+
+/// Writes `files` (name, bytes) of the checkpoint of `state`, then the manifest with `PutMode::Create`. A committed checkpoint
+/// at the same step is adopted only if it is this one (a replayed step after a
+/// restart produces the same weights and optimizer bytes under the same config);
+/// anything else there is an error, never overwritten.
+pub async fn commit(
+    run: &Location,
+    state: &CheckpointState,
+    files: Vec<(&'static str, Bytes)>,
+) -> Result<u64> {
+    let step = state.step;
+    let dir = step_dir(step);
+    let manifest_path = format!("{dir}/{MANIFEST}");
+    match run.store.head(&run.path(&manifest_path)).await {
+        Ok(_) => return adopt(run, state, &files).await,
+        Err(object_store::Error::NotFound { .. }) => {}
+        // Not knowing whether a committed checkpoint is there must not lead to
+        // writing over its files.
+        Err(e) => return Err(store_err(run, &manifest_path, e)),
+    }
+    let mut entries = Vec::new();
+    for (name, bytes) in files {
+        let path = format!("{dir}/{name}");
+        entries.push(ManifestEntry {
+            name: name.to_string(),
+            size: bytes.len() as u64,
+            sha256: sha256_hex(&bytes),
+        });
+        run.store
+            .put(&run.path(&path), PutPayload::from_bytes(bytes))
+            .await
+            .map_err(|e| store_err(run, &path, e))?;
+    }
+    let manifest = Manifest {
+        step,
+        files: entries,
+    };
+    let bytes = serde_json::to_vec_pretty(&manifest).expect("serialises");
+    run.store
+        .put_opts(
+            &run.path(&manifest_path),
+            PutPayload::from(bytes),
+            PutOptions {
+                mode: PutMode::Create,
+                ..Default::default()
+            },
+        )
+        .await
+        .map_err(|e| store_err(run, &manifest_path, e))?;
+    tracing::info!(step, dir = %run.describe(&run.path(&dir)), "checkpoint committed");
+    Ok(step)
+}
+
+/// Accepts the checkpoint already committed at this step if it verifies and holds
+/// these weights and optimizer state under this config and world size.
+async fn adopt(run: &Location, state: &CheckpointState, files: &[(&str, Bytes)]) -> Result<u64> {
+    let step = state.step;
+    let dir = step_dir(step);
+    let there = verify(run, step).await.map_err(|e| {
+        store_err(
+            run,
+            &dir,
+            format!("a manifest exists but does not verify ({e}); delete the folder to re-save"),
+        )
+    })?;
+    let theirs: CheckpointState = there
+        .get(STATE)
+        .and_then(|b| serde_json::from_slice(b).ok())
+        .ok_or_else(|| {
+            store_err(
+                run,
+                &dir,
+                "the committed checkpoint has no readable state.json",
+            )
+        })?;
+    let mut differs = Vec::new();
+    if theirs.config_hash != state.config_hash {
+        differs.push("job config".to_string());
+    }
+    if theirs.world_size != state.world_size {
+        differs.push(format!(
+            "world size ({} there, {} here)",
+            theirs.world_size, state.world_size
+        ));
+    }
+    for (name, bytes) in files.iter().filter(|(n, _)| *n != STATE) {
+        if there.get(*name).is_none_or(|b| b != bytes) {
+            differs.push((*name).to_string());
+        }
+    }
+    if !differs.is_empty() {
+        return Err(store_err(
+            run,
+            &dir,
+            format!(
+                "another checkpoint is committed at step {step}: its {} differ from this job's; \
+                 choose a new run folder or delete that checkpoint",
+                differs.join(", ")
+            ),
+        ));
+    }
+    tracing::info!(step, "checkpoint already committed");
+    Ok(step)
+}
+
+/// Steps of every checkpoint folder under `run` (verified or not), newest first.
+pub async fn list_steps(run: &Location) -> Result<Vec<u64>> {
+    let prefix = run.path("checkpoints");
+    let listing = run
+        .store
+        .list_with_delimiter(Some(&prefix))
+        .await
+        .map_err(|e| store_err(run, "checkpoints", e))?;
+    let mut steps: Vec<u64> = listing
+        .common_prefixes
+        .iter()
+        .filter_map(|p| p.filename()?.strip_prefix("step-")?.parse().ok())
+        .collect();
+    steps.sort_unstable_by(|a, b| b.cmp(a));
+    Ok(steps)
+}
+
+/// The files of a checkpoint, after checking the manifest and every size and hash.
+pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>> {
+    let dir = step_dir(step);
+    let mpath = format!("{dir}/{MANIFEST}");
+    let bytes = match run.store.get(&run.path(&mpath)).await {
+        Ok(r) => r.bytes().await.map_err(|e| store_err(run, &mpath, e))?,
+        Err(object_store::Error::NotFound { .. }) => {
+            return Err(store_err(
+                run,
+                &dir,
+                "no MANIFEST.json: the checkpoint was not finished (torn)",
+            ));
+        }
+        Err(e) => return Err(store_err(run, &mpath, e)),
+    };
+    let manifest: Manifest = serde_json::from_slice(&bytes)
+        .map_err(|e| store_err(run, &mpath, format!("unreadable manifest: {e}")))?;
+    if manifest.step != step {
+        return Err(store_err(
+            run,
+            &mpath,
+            format!(
+                "manifest says step {}, folder is step {step}",
+                manifest.step
+            ),
+        ));
+    }
+    let mut files = HashMap::new();
+    for e in &manifest.files {
+        let path = format!("{dir}/{}", e.name);
+        let data = run
+            .store
+            .get(&run.path(&path))
+            .await
+            .map_err(|err| store_err(run, &path, err))?
+            .bytes()
+            .await
+            .map_err(|err| store_err(run, &path, err))?;
+        if data.len() as u64 != e.size {
+            return Err(store_err(
+                run,
+                &path,
+                format!("{} bytes, the manifest lists {}", data.len(), e.size),
+            ));
+        }
+        let h = sha256_hex(&data);
+        if h != e.sha256 {
+            return Err(store_err(
+                run,
+                &path,
+                format!("SHA-256 {h} does not match the manifest's {}", e.sha256),
+            ));
+        }
+        files.insert(e.name.clone(), data);
+    }
+    for want in [MODEL, OPTIMIZER, STATE] {
+        if !files.contains_key(want) {
+            return Err(store_err(
+                run,
+                &mpath,
+                format!("manifest does not list {want}"),
+            ));
+        }
+    }
+    Ok(files)
+}
+
+/// The newest checkpoint that verifies (torn or corrupt ones are skipped with a warning),
+/// optionally the newest at or below `at_most`.
+pub async fn latest_verified(run: &Location, at_most: Option<u64>) -> Result<Option<u64>> {
+    for step in list_steps(run).await? {
+        if at_most.is_some_and(|m| step > m) {
+            continue;
+        }
+        match verify(run, step).await {
+            Ok(_) => return Ok(Some(step)),
+            Err(e) => tracing::warn!(step, error = %e, "skipping checkpoint"),
+        }
+    }
+    Ok(None)
+}
+
+/// Deletes every checkpoint folder (committed or torn) past `step` (`None`: all), the
+/// manifest first; returns their steps.
+pub async fn discard_after(run: &Location, step: Option<u64>) -> Result<Vec<u64>> {
+    let mut discarded = Vec::new();
+    for s in list_steps(run).await? {
+        if step.is_some_and(|k| s <= k) {
+            continue;
+        }
+        delete_checkpoint(run, s).await?;
+        discarded.push(s);
+    }
+    Ok(discarded)
+}
+
+/// Deletes one checkpoint folder, the manifest first (a half-deleted folder is torn).
+async fn delete_checkpoint(run: &Location, step: u64) -> Result<()> {
+    let dir = step_dir(step);
+    for name in [MANIFEST, MODEL, OPTIMIZER, STATE] {
+        let path = format!("{dir}/{name}");
+        match run.store.delete(&run.path(&path)).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => return Err(store_err(run, &path, e)),
+        }
+    }
+    Ok(())
+}
+
+/// Deletes committed checkpoints beyond the newest `keep_last` (at least 1) and the best
+/// by validation FG-ARI (then PSNR). Folders without a manifest are neither counted nor
+/// deleted (one may be a checkpoint being written). The manifest goes first, so a
+/// half-deleted folder is simply torn.
+pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64>> {
+    let keep_last = keep_last.max(1);
+    let mut steps = Vec::new();
+    for s in list_steps(run).await? {
+        let manifest = format!("{}/{MANIFEST}", step_dir(s));
+        match run.store.head(&run.path(&manifest)).await {
+            Ok(_) => steps.push(s),
+            Err(object_store::Error::NotFound { .. }) => {}
+            Err(e) => return Err(store_err(run, &manifest, e)),
+        }
+    }
+    if steps.len() <= keep_last {
+        return Ok(Vec::new());
+    }
+    let mut best: Option<(u64, (f64, f64))> = None;
+    for &s in &steps {
+        let path = format!("{}/{STATE}", step_dir(s));
+        let Ok(r) = run.store.get(&run.path(&path)).await else {
+            continue;
+        };
+        let Ok(bytes) = r.bytes().await else { continue };
+        let Ok(st) = serde_json::from_slice::<CheckpointState>(&bytes) else {
+            continue;
+        };
+        let score = (
+            st.val_fg_ari.unwrap_or(f64::NEG_INFINITY),
+            st.val_psnr.unwrap_or(f64::NEG_INFINITY),
+        );
+        if st.val_fg_ari.is_some() && best.is_none_or(|(_, b)| score > b) {
+            best = Some((s, score));
+        }
+    }
+    let mut deleted = Vec::new();
+    for &s in steps.iter().skip(keep_last) {
+        if best.is_some_and(|(b, _)| b == s) {
+            continue;
+        }
+        delete_checkpoint(run, s).await?;
+        deleted.push(s);
+    }
+    Ok(deleted)
+}

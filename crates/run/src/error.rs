@@ -1,0 +1,20 @@
+//! Typed errors of the run folder.
+
+use thiserror::Error;
+
+pub type Result<T, E = RunError> = std::result::Result<T, E>;
+
+#[derive(Debug, Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Dataset(#[from] osrt_dataset::DatasetError),
+
+    #[error("config {path}: {reason}")]
+    Config { path: String, reason: String },
+
+    #[error("run folder {path}: {reason}")]
+    Run { path: String, reason: String },
+
+    #[error("checkpoint {path}: {reason}")]
+    Checkpoint { path: String, reason: String },
+}

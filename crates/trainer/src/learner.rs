@@ -1,0 +1,441 @@
+//! The learner: one rank's side of a generation without the cluster around it. It opens
+//! the generation's starting point (a verified checkpoint, or fresh weights), deals this
+//! rank's data epoch by epoch, computes each step's gradients, applies the reduced step,
+//! and decides what the step leaves behind: metrics records, the parameter hash, a
+//! validation run, a checkpoint snapshot. It makes no RPC; the worker shell
+//! ([`crate::worker`]) does membership, heartbeats, the all-reduce and the reports.
+//!
+//! A generation runs as:
+//! ```text
+//! Learner::open ─▶ (fresh: shell broadcasts rank 0's weights) ─▶ begin
+//!   loop: gradients ─▶ (shell: all-reduce) ─▶ finish_step ─▶ (shell: reports, commit)
+//! ```
+
+use crate::checkpoint::{self, CheckpointState, Snapshot};
+use crate::config::{JobConfig, TrainConfig};
+use crate::distributed::{Reduced, Signals};
+use crate::error::{Result, TrainError};
+use crate::eval::{EvalOptions, EvalResult, evaluate};
+use crate::retry::{READ_RETRY_BUDGET, retry_transient};
+use crate::shard::{EpochPlan, step_rng};
+use crate::step::{ApplyOutcome, StepGradients, Trainer};
+use crate::worker::unix_now;
+use candle_core::Device;
+use osrt_dataset::{
+    BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch, load_split,
+};
+use osrt_run::{EvalRecord, MetricsRecord, TrainRecord};
+use std::time::Instant;
+
+/// Where a generation starts and who this rank is in it.
+pub struct Start {
+    pub data: Location,
+    pub run: Location,
+    pub rank: usize,
+    pub world: usize,
+    /// The committed checkpoint to start from; `None`: fresh weights.
+    pub resume_step: Option<u64>,
+    /// SHA-256 of the job config's TOML: a checkpoint of another config is refused.
+    pub config_hash: String,
+}
+
+/// What a finished step asks of the shell.
+pub struct StepEnd {
+    /// Records for `metrics.jsonl` (rank 0 only).
+    pub records: Vec<MetricsRecord>,
+    /// This replica's parameter hash, when the coordinator compares them.
+    pub hash: Option<String>,
+    /// A checkpoint to commit (rank 0, every `checkpoint_every` steps and at the end).
+    pub snapshot: Option<Snapshot>,
+    /// The job's last step (the step limit or the deadline).
+    pub last: bool,
+}
+
+/// This rank's scenes of one epoch and their order.
+struct Epoch {
+    plan: EpochPlan,
+    scenes: Vec<Scene>,
+    order: Vec<usize>,
+    start_step: u64,
+}
+
+/// The training window a [`TrainRecord`] averages over.
+struct Window {
+    since: Instant,
+    samples: f64,
+    loss: f64,
+    steps: u64,
+}
+
+impl Window {
+    fn new() -> Self {
+        Self {
+            since: Instant::now(),
+            samples: 0.0,
+            loss: 0.0,
+            steps: 0,
+        }
+    }
+}
+
+pub struct Learner {
+    pub trainer: Trainer,
+    state: CheckpointState,
+    job: JobConfig,
+    rank: usize,
+    world: usize,
+    fresh: bool,
+    data: Location,
+    groups: Vec<RowGroupRef>,
+    val: Vec<Scene>,
+    epoch: Epoch,
+    batch_cfg: BatchConfig,
+    eval_opts: EvalOptions,
+    /// Clocks: the generation's start, the job's wall and train seconds before it, the
+    /// train seconds so far, the last validation, the step in progress.
+    gen_start: Instant,
+    wall0: f64,
+    train_s: f64,
+    last_eval: Instant,
+    step_start: Instant,
+    window: Window,
+}
+
+impl Learner {
+    /// Builds the model and opens the generation's starting point, this rank's first
+    /// epoch and the validation scenes. Rank 0 first discards checkpoints past the
+    /// starting point: they belong to an abandoned timeline (committed just before a
+    /// generation ended, too late to count), and this generation replays those steps,
+    /// maybe with another world size.
+    pub async fn open(job: JobConfig, device: Device, s: Start) -> Result<Self> {
+        let (rank, world) = (s.rank, s.world);
+        if rank == 0 {
+            let discarded = checkpoint::discard_after(&s.run, s.resume_step).await?;
+            if !discarded.is_empty() {
+                tracing::info!(?discarded, resume_step = ?s.resume_step, "checkpoints of an abandoned timeline discarded");
+            }
+        }
+        let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
+        if rank == 0
+            && let Err(e) = crate::run::record_parameters(&s.run, trainer.num_parameters()).await
+        {
+            tracing::warn!(error = %e, "could not record the parameter count in run.json");
+        }
+        let t = &job.train;
+        let mut state = match s.resume_step {
+            Some(step) => {
+                let st = checkpoint::load(&s.run, step, &mut trainer).await?;
+                if st.config_hash != s.config_hash {
+                    return Err(TrainError::Config {
+                        path: s.run.describe(&s.run.path(&checkpoint::step_dir(step))),
+                        reason: "the checkpoint was written with another job config; resume with the run's own config.toml".into(),
+                    });
+                }
+                st
+            }
+            None => CheckpointState {
+                step: 0,
+                epoch: 0,
+                epoch_start_step: 0,
+                world_size: world,
+                rng: String::new(),
+                adam_t: 0,
+                skipped_total: 0,
+                wall_s: 0.0,
+                train_s: 0.0,
+                config_hash: s.config_hash.clone(),
+                val_fg_ari: None,
+                val_psnr: None,
+            },
+        };
+        // Another world size deals the data differently: continue with a fresh epoch.
+        if state.world_size != world {
+            state.epoch += 1;
+            state.epoch_start_step = state.step;
+            state.world_size = world;
+        }
+        state.rng = format!(
+            "ChaCha8 per step from (seed {}, step, rank, world {world})",
+            t.seed
+        );
+        let data = s.data;
+        let groups = retry_transient("listing the train split", READ_RETRY_BUDGET, || {
+            list_row_groups(&data)
+        })
+        .await?;
+        let val = retry_transient("reading the validation scenes", READ_RETRY_BUDGET, || {
+            let columns = Columns {
+                masks: true,
+                objects: false,
+            };
+            let data = &data;
+            async move { Ok(load_split(data, "val", columns, Some(t.eval_scenes)).await?) }
+        })
+        .await?;
+        let epoch = open_epoch(
+            &data,
+            &groups,
+            t,
+            state.epoch,
+            state.epoch_start_step,
+            rank,
+            world,
+        )
+        .await?;
+        let batch_cfg = BatchConfig {
+            input_views: t.input_views,
+            input_selection: t.input_selection,
+            target_views: t.target_views,
+            rays_per_scene: Some(t.rays_per_scene),
+            with_masks: false,
+            salient_fraction: t.salient_fraction,
+        };
+        let eval_opts = crate::run::eval_options(&job);
+        let now = Instant::now();
+        Ok(Self {
+            trainer,
+            wall0: state.wall_s,
+            train_s: state.train_s,
+            state,
+            job,
+            rank,
+            world,
+            fresh: s.resume_step.is_none(),
+            data,
+            groups,
+            val,
+            epoch,
+            batch_cfg,
+            eval_opts,
+            gen_start: now,
+            last_eval: now,
+            step_start: now,
+            window: Window::new(),
+        })
+    }
+
+    /// Whether the weights are fresh (not from a checkpoint): the shell then makes every
+    /// rank's weights rank 0's before [`Learner::begin`].
+    pub fn is_fresh(&self) -> bool {
+        self.fresh
+    }
+
+    /// The optimiser steps taken so far.
+    pub fn step(&self) -> u64 {
+        self.trainer.step
+    }
+
+    fn train(&self) -> &TrainConfig {
+        &self.job.train
+    }
+
+    fn wall(&self) -> f64 {
+        self.wall0 + self.gen_start.elapsed().as_secs_f64()
+    }
+
+    /// Starts the generation's clocks. A fresh job evaluates its initial weights (every
+    /// rank, so none waits for rank 0 in the first all-reduce): the curve starts at step
+    /// 0; rank 0 gets its record.
+    pub fn begin(&mut self) -> Result<Option<MetricsRecord>> {
+        self.gen_start = Instant::now();
+        self.last_eval = Instant::now();
+        self.window = Window::new();
+        if self.trainer.step != 0 {
+            return Ok(None);
+        }
+        let r = self.evaluate()?;
+        Ok((self.rank == 0).then(|| eval_record(0, 0.0, 0.0, &r).into()))
+    }
+
+    /// Rank 0's clock decides for every rank: validate now (the interval has passed),
+    /// stop now (the deadline has passed).
+    pub fn signals(&self, deadline_unix_s: Option<f64>) -> Signals {
+        Signals {
+            evaluate: self.last_eval.elapsed().as_secs_f64() >= self.train().eval_every_s,
+            stop: deadline_unix_s.is_some_and(|d| unix_now() >= d),
+        }
+    }
+
+    /// This rank's gradients of the next step (its share of the global batch), opening
+    /// the next epoch where the last one is used up.
+    pub async fn gradients(&mut self) -> Result<StepGradients> {
+        let step = self.trainer.step;
+        if step - self.epoch.start_step >= self.epoch.plan.steps {
+            let next = self.epoch.plan.epoch + 1;
+            let t = &self.job.train;
+            self.epoch = open_epoch(
+                &self.data,
+                &self.groups,
+                t,
+                next,
+                step,
+                self.rank,
+                self.world,
+            )
+            .await?;
+        }
+        self.step_start = Instant::now();
+        let (rank, world, seed) = (self.rank, self.world, self.train().seed);
+        let e = &self.epoch;
+        let k = (step - e.start_step) as usize;
+        let b = e.plan.local_batch;
+        let refs: Vec<&Scene> = e.order[k * b..(k + 1) * b]
+            .iter()
+            .map(|&i| &e.scenes[i])
+            .collect();
+        let mut rng = step_rng(seed, step, rank, world);
+        let (cfg, trainer) = (&self.batch_cfg, &self.trainer);
+        tokio::task::block_in_place(|| {
+            let batch = build_batch(&refs, cfg, &mut rng)?;
+            trainer.gradients(&batch, &mut rng)
+        })
+    }
+
+    /// Applies the reduced step (or skips it everywhere, if it was not finite), then
+    /// decides what the step leaves: a training record every `log_every` steps, a
+    /// validation when rank 0's clock asked or at the end, the parameter hash every
+    /// `hash_every` steps, a checkpoint snapshot every `checkpoint_every` steps.
+    pub fn finish_step(&mut self, reduced: Reduced, max_steps: Option<u64>) -> Result<StepEnd> {
+        let t = self.job.train.clone();
+        let c = self.job.cluster.clone();
+        let outcome =
+            tokio::task::block_in_place(|| self.trainer.apply(reduced.loss, reduced.grads))?;
+        self.train_s += self.step_start.elapsed().as_secs_f64();
+        if let ApplyOutcome::Skipped { reason } = &outcome {
+            tracing::warn!(step = self.trainer.step - 1, reason, from = %reduced.nonfinite, "step skipped on every rank");
+            if self.trainer.skipped_in_a_row >= t.max_consecutive_skips {
+                return Err(TrainError::TooManySkips {
+                    skipped: self.trainer.skipped_in_a_row,
+                    limit: t.max_consecutive_skips,
+                });
+            }
+        }
+        let step = self.trainer.step;
+        self.window.samples += reduced.samples;
+        self.window.loss += reduced.loss;
+        self.window.steps += 1;
+
+        let mut records = Vec::new();
+        if self.rank == 0 && step.is_multiple_of(t.log_every) {
+            let dt = self.window.since.elapsed().as_secs_f64().max(1e-9);
+            records.push(MetricsRecord::Train(TrainRecord {
+                epoch: self.epoch.plan.epoch,
+                loss: self.window.loss / self.window.steps as f64,
+                lr: t.lr_at(step - 1),
+                peak_rss_mb: crate::memory::peak_rss_mb(),
+                scenes_per_s: self.window.samples / dt,
+                skipped: self.trainer.skipped_total,
+                step,
+                train_s: self.train_s,
+                wall_s: self.wall(),
+                workers: self.world,
+            }));
+            self.window = Window::new();
+        }
+        let last = reduced.signals.stop || max_steps.is_some_and(|m| step >= m);
+        if reduced.signals.evaluate || last {
+            // Every rank evaluates (identical weights, identical result): nobody idles in
+            // the next all-reduce waiting for rank 0.
+            let r = self.evaluate()?;
+            self.state.val_fg_ari = r.fg_ari;
+            self.state.val_psnr = Some(r.psnr);
+            if self.rank == 0 {
+                records.push(eval_record(step, self.wall(), self.train_s, &r).into());
+            }
+            self.last_eval = Instant::now();
+        }
+        let hash = (step.is_multiple_of(c.hash_every) || last)
+            .then(|| {
+                self.trainer
+                    .params
+                    .flatten()
+                    .map(|f| checkpoint::param_hash(&f))
+            })
+            .transpose()?;
+        let snapshot = (self.rank == 0 && (step.is_multiple_of(c.checkpoint_every) || last))
+            .then(|| {
+                let st = CheckpointState {
+                    step,
+                    epoch: self.epoch.plan.epoch,
+                    epoch_start_step: self.epoch.start_step,
+                    world_size: self.world,
+                    adam_t: self.trainer.opt.t(),
+                    skipped_total: self.trainer.skipped_total,
+                    wall_s: self.wall(),
+                    train_s: self.train_s,
+                    ..self.state.clone()
+                };
+                tokio::task::block_in_place(|| Snapshot::take(&self.trainer, st))
+            })
+            .transpose()?;
+        Ok(StepEnd {
+            records,
+            hash,
+            snapshot,
+            last,
+        })
+    }
+
+    fn evaluate(&self) -> Result<EvalResult> {
+        tokio::task::block_in_place(|| evaluate(&self.trainer.model, &self.val, &self.eval_opts))
+    }
+}
+
+/// The record of a validation at `step`.
+pub fn eval_record(step: u64, wall_s: f64, train_s: f64, r: &EvalResult) -> EvalRecord {
+    EvalRecord {
+        ari: r.ari,
+        baseline_psnr: Some(r.baseline_psnr).filter(|v| v.is_finite()),
+        eval_scenes: r.scenes,
+        fg_ari: r.fg_ari,
+        fg_ari_2d: r.fg_ari_2d,
+        psnr: r.psnr,
+        ratio: r.ratio,
+        render_fps: r.render_fps,
+        step,
+        train_s,
+        wall_s,
+    }
+}
+
+async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
+    Ok(SplitReader::open(data.join("train"))
+        .await?
+        .row_groups()
+        .await?)
+}
+
+/// This rank's scenes for one epoch, read straight from the store.
+async fn load_shard(data: &Location, plan: &EpochPlan) -> Result<Vec<Scene>> {
+    let reader = SplitReader::open(data.join("train")).await?;
+    let mut scenes = Vec::new();
+    for piece in &plan.pieces {
+        let group = reader.read_row_group(&piece.group, Columns::TRAIN).await?;
+        let (start, end) = (piece.rows.start as usize, piece.rows.end as usize);
+        scenes.extend(group.into_iter().take(end).skip(start));
+    }
+    Ok(scenes)
+}
+
+async fn open_epoch(
+    data: &Location,
+    groups: &[RowGroupRef],
+    t: &TrainConfig,
+    epoch: u64,
+    start_step: u64,
+    rank: usize,
+    world: usize,
+) -> Result<Epoch> {
+    let ep = EpochPlan::new(groups, t.seed, epoch, world, rank, t.batch_size)?;
+    let scenes = retry_transient("reading this rank's shard", READ_RETRY_BUDGET, || {
+        load_shard(data, &ep)
+    })
+    .await?;
+    let order = ep.scene_order(t.seed, scenes.len());
+    Ok(Epoch {
+        plan: ep,
+        scenes,
+        order,
+        start_step,
+    })
+}
