@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
-    Columns, Location, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
+    Columns, ImageCodec, Location, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
 };
 use std::io::IsTerminal;
 
@@ -52,6 +52,9 @@ pub struct GenerateArgs {
     /// Scenes per Parquet row group (the sharding unit).
     #[arg(long, default_value_t = 32)]
     pub scenes_per_row_group: usize,
+    /// How images and masks are stored: raw pixels, or PNG.
+    #[arg(long, default_value = "raw")]
+    pub codec: ImageCodec,
 }
 
 #[derive(Args)]
@@ -135,6 +138,7 @@ async fn generate(a: GenerateArgs) -> Result<()> {
     };
     let opts = WriterOptions {
         scenes_per_row_group: a.scenes_per_row_group.max(1),
+        codec: a.codec,
         ..WriterOptions::default()
     };
     let t = std::time::Instant::now();
@@ -172,7 +176,10 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
         println!("dataset {}", report.location);
         match &report.manifest {
             Some(m) => {
-                println!("  schema version {}", m.schema_version);
+                println!(
+                    "  schema version {}, images and masks stored {}",
+                    m.schema_version, m.image_codec
+                );
                 if let Some(g) = &m.generator {
                     println!("  generator: preset {}, seed {}", g.preset, g.seed);
                 }
@@ -180,11 +187,13 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
             None => println!("  (no manifest.json)"),
         }
         for (name, s) in &report.splits {
+            let views: u64 = s.image_sizes.values().sum();
             println!(
-                "  {name}: {} scenes, {} files ({:.1} MiB), {} row groups",
+                "  {name}: {} scenes, {} files ({:.1} MiB, {:.0} bytes per view), {} row groups",
                 s.scenes,
                 s.files,
                 s.bytes as f64 / (1 << 20) as f64,
+                s.bytes as f64 / views.max(1) as f64,
                 s.row_groups
             );
             println!("    image sizes: {:?}", s.image_sizes);

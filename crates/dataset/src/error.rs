@@ -35,7 +35,7 @@ pub enum DatasetError {
     #[error("{path} is not an osrt scene file: {reason}")]
     Schema { path: String, reason: String },
 
-    #[error("{path} has scene schema version {found}, this build reads version {expected}")]
+    #[error("{path} has scene schema version {found}, this build reads versions 1 to {expected}")]
     SchemaVersion {
         path: String,
         found: String,

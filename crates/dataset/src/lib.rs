@@ -12,6 +12,7 @@
 pub mod batch;
 pub mod bench;
 pub mod camera;
+pub mod codec;
 pub mod error;
 #[cfg(feature = "test-support")]
 pub mod faulty;
@@ -34,6 +35,6 @@ pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scen
 pub use manifest::{MANIFEST_FILE, Manifest, SplitInfo};
 pub use reader::{ReadStats, RowGroupRef, SplitReader, load_split};
 pub use scene::{ObjectMeta, Scene, View};
-pub use schema::{Columns, SCHEMA_VERSION};
+pub use schema::{Columns, ImageCodec, SCHEMA_VERSION};
 pub use store::Location;
 pub use writer::{SplitWriter, WriterOptions};

@@ -2,7 +2,7 @@
 //! dataset holds, so tools can plan without opening Parquet files.
 
 use crate::error::{DatasetError, Result};
-use crate::schema::SCHEMA_VERSION;
+use crate::schema::{ImageCodec, SCHEMA_VERSION};
 use crate::store::Location;
 use object_store::ObjectStoreExt;
 use serde::{Deserialize, Serialize};
@@ -38,6 +38,9 @@ pub struct Manifest {
     /// Fewest and most objects per scene.
     pub objects_per_scene: [u32; 2],
     pub has_masks: bool,
+    /// How images and masks are stored (absent: raw).
+    #[serde(default, skip_serializing_if = "ImageCodec::is_raw")]
+    pub image_codec: ImageCodec,
     pub generator: Option<GeneratorInfo>,
     pub splits: BTreeMap<String, SplitInfo>,
 }
@@ -45,14 +48,22 @@ pub struct Manifest {
 impl Manifest {
     pub fn new(image_size: [u32; 2], views: [u32; 2], objects: [u32; 2]) -> Self {
         Self {
-            schema_version: SCHEMA_VERSION,
+            schema_version: ImageCodec::Raw.schema_version(),
             image_size,
             views_per_scene: views,
             objects_per_scene: objects,
             has_masks: true,
+            image_codec: ImageCodec::Raw,
             generator: None,
             splits: BTreeMap::new(),
         }
+    }
+
+    /// The manifest of a dataset stored in `codec`.
+    pub fn with_codec(mut self, codec: ImageCodec) -> Self {
+        self.image_codec = codec;
+        self.schema_version = codec.schema_version();
+        self
     }
 
     pub async fn write(&self, dataset: &Location) -> Result<()> {
@@ -82,7 +93,7 @@ impl Manifest {
             path: shown.clone(),
             reason: e.to_string(),
         })?;
-        if m.schema_version != SCHEMA_VERSION {
+        if !(1..=SCHEMA_VERSION).contains(&m.schema_version) {
             return Err(DatasetError::Manifest {
                 path: shown,
                 reason: format!(

@@ -4,7 +4,9 @@
 
 use crate::error::{DatasetError, Result};
 use crate::scene::Scene;
-use crate::schema::{Columns, batch_to_scenes, check_schema, check_version, projection};
+use crate::schema::{
+    Columns, ImageCodec, batch_to_scenes_with, check_schema, check_version, projection,
+};
 use crate::store::Location;
 use bytes::Bytes;
 use futures::future::BoxFuture;
@@ -178,7 +180,7 @@ impl SplitReader {
         &self,
         file: &SplitFile,
         stats: Arc<ReadStats>,
-    ) -> Result<ParquetRecordBatchStreamBuilder<StoreReader>> {
+    ) -> Result<(ParquetRecordBatchStreamBuilder<StoreReader>, ImageCodec)> {
         let shown = self.split.describe(&self.split.path(&file.name));
         let reader = StoreReader {
             store: self.split.store.clone(),
@@ -188,19 +190,19 @@ impl SplitReader {
         let builder = ParquetRecordBatchStreamBuilder::new(reader)
             .await
             .map_err(|e| DatasetError::parquet(&shown, e))?;
-        check_version(
+        let codec = check_version(
             &shown,
             builder.metadata().file_metadata().key_value_metadata(),
         )?;
         check_schema(&shown, builder.schema())?;
-        Ok(builder)
+        Ok((builder, codec))
     }
 
     /// Every row group of every file, in file then row-group order. Reads footers only.
     pub async fn row_groups(&self) -> Result<Vec<RowGroupRef>> {
         let mut out = Vec::new();
         for f in &self.files {
-            let b = self.builder(f, Arc::default()).await?;
+            let (b, _) = self.builder(f, Arc::default()).await?;
             for (index, rg) in b.metadata().row_groups().iter().enumerate() {
                 // A footer is data like any other: a negative count, or more rows than the
                 // file has bytes, is a damaged or crafted file, never an allocation size.
@@ -241,7 +243,7 @@ impl SplitReader {
     ) -> Result<Vec<Scene>> {
         let file = self.file(&rg.file)?;
         let shown = self.split.describe(&self.split.path(&file.name));
-        let builder = self.builder(file, stats).await?;
+        let (builder, codec) = self.builder(file, stats).await?;
         let n = builder.metadata().num_row_groups();
         if rg.index >= n {
             return Err(DatasetError::schema(
@@ -262,7 +264,7 @@ impl SplitReader {
             .map_err(|e| DatasetError::parquet(&shown, e))?;
         let mut scenes = Vec::with_capacity(rg.num_rows.min(MAX_BATCH_ROWS) as usize);
         for b in &batches {
-            scenes.extend(batch_to_scenes(b, &shown)?);
+            scenes.extend(batch_to_scenes_with(b, &shown, codec)?);
         }
         if scenes.len() as u64 != rg.num_rows {
             // The listing and the file disagree (a file replaced since it was listed, or

@@ -4,7 +4,7 @@
 use crate::error::{DatasetError, Result};
 use crate::manifest::SplitInfo;
 use crate::scene::Scene;
-use crate::schema::{SCHEMA_VERSION, VERSION_KEY, arrow_schema, scenes_to_batch};
+use crate::schema::{CODEC_KEY, ImageCodec, VERSION_KEY, arrow_schema, scenes_to_batch_with};
 use crate::store::Location;
 use object_store::buffered::BufWriter;
 use parquet::arrow::AsyncArrowWriter;
@@ -18,6 +18,8 @@ pub struct WriterOptions {
     pub scenes_per_row_group: usize,
     /// Row groups per file; a new file starts when one is full.
     pub row_groups_per_file: usize,
+    /// How images and masks are stored.
+    pub codec: ImageCodec,
 }
 
 impl Default for WriterOptions {
@@ -25,11 +27,17 @@ impl Default for WriterOptions {
         Self {
             scenes_per_row_group: 32,
             row_groups_per_file: 32,
+            codec: ImageCodec::Raw,
         }
     }
 }
 
-fn properties(rows: usize) -> WriterProperties {
+fn properties(rows: usize, codec: ImageCodec) -> WriterProperties {
+    let version = codec.schema_version();
+    let mut kv = vec![KeyValue::new(VERSION_KEY.to_string(), version.to_string())];
+    if !codec.is_raw() {
+        kv.push(KeyValue::new(CODEC_KEY.to_string(), codec.to_string()));
+    }
     WriterProperties::builder()
         .set_compression(Compression::ZSTD(
             ZstdLevel::try_new(3).expect("valid level"),
@@ -40,11 +48,8 @@ fn properties(rows: usize) -> WriterProperties {
         .set_statistics_enabled(EnabledStatistics::None)
         .set_max_row_group_row_count(Some(rows))
         // A fixed writer string keeps files byte-identical across builds of this version.
-        .set_created_by(format!("osrt scene schema v{SCHEMA_VERSION}"))
-        .set_key_value_metadata(Some(vec![KeyValue::new(
-            VERSION_KEY.to_string(),
-            SCHEMA_VERSION.to_string(),
-        )]))
+        .set_created_by(format!("osrt scene schema v{version}"))
+        .set_key_value_metadata(Some(kv))
         .build()
 }
 
@@ -113,7 +118,7 @@ impl SplitWriter {
             let w = AsyncArrowWriter::try_new(
                 obj,
                 arrow_schema(),
-                Some(properties(self.opts.scenes_per_row_group)),
+                Some(properties(self.opts.scenes_per_row_group, self.opts.codec)),
             )
             .map_err(|e| DatasetError::parquet(self.split.describe(&path), e))?;
             self.current = Some((w, 0));
@@ -122,7 +127,7 @@ impl SplitWriter {
         }
         let shown = self.split.display.clone();
         let (w, groups) = self.current.as_mut().expect("opened above");
-        let batch = scenes_to_batch(scenes)?;
+        let batch = scenes_to_batch_with(scenes, self.opts.codec)?;
         w.write(&batch)
             .await
             .map_err(|e| DatasetError::parquet(&shown, e))?;

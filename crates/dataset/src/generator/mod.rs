@@ -495,7 +495,8 @@ pub async fn generate_dataset(
         ProgressBar::hidden()
     };
     let views = cfg.cameras.num_views() as u32;
-    let mut manifest = Manifest::new([cfg.image_size; 2], [views, views], cfg.objects);
+    let mut manifest =
+        Manifest::new([cfg.image_size; 2], [views, views], cfg.objects).with_codec(opts.codec);
     manifest.generator = Some(GeneratorInfo {
         preset: cfg.preset.clone(),
         seed,

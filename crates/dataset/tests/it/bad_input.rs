@@ -126,7 +126,7 @@ async fn file_of_another_version() {
     let batch = scenes_to_batch(&tiny_scenes(1, 8)).unwrap();
     let msg = read_error("version", parquet_bytes(&batch, Some("99"))).await;
     assert!(
-        msg.contains("schema version 99") && msg.contains("reads version 1"),
+        msg.contains("schema version 99") && msg.contains("reads versions 1 to 2"),
         "{msg}"
     );
 }
@@ -328,4 +328,83 @@ async fn footers_that_lie_about_their_row_count() {
             "{e}"
         );
     }
+}
+
+/// A PNG file whose pictures do not fit their rows (another size, RGB where a grey mask
+/// belongs, bytes that are no PNG) is refused naming the file, scene and view.
+#[tokio::test]
+async fn png_views_that_do_not_fit_their_rows_are_refused() {
+    use osrt_dataset::ImageCodec;
+    use osrt_dataset::schema::{CODEC_KEY, scenes_to_batch_with};
+    let png_file = |scenes: &[Scene], raw: bool| {
+        let batch = if raw {
+            scenes_to_batch(scenes).unwrap()
+        } else {
+            scenes_to_batch_with(scenes, ImageCodec::Png).unwrap()
+        };
+        let props = WriterProperties::builder()
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new(VERSION_KEY.into(), "2".to_string()),
+                KeyValue::new(CODEC_KEY.into(), "png".to_string()),
+            ]))
+            .build();
+        let mut buf = Vec::new();
+        let mut w = ArrowWriter::try_new(&mut buf, batch.schema(), Some(props)).unwrap();
+        w.write(&batch).unwrap();
+        w.close().unwrap();
+        buf
+    };
+    let scenes = tiny_scenes(2, 8);
+    // Raw bytes where PNGs belong.
+    let msg = read_error("png-raw", png_file(&scenes, true)).await;
+    assert!(
+        msg.contains("not a readable PNG") && msg.contains("scene"),
+        "{msg}"
+    );
+    // Rows whose bytes are PNGs (written as they are), one of them not fitting.
+    let as_png = |scenes: &[Scene]| -> Vec<Scene> {
+        let mut out = scenes.to_vec();
+        for v in out.iter_mut().flat_map(|s| s.views.iter_mut()) {
+            let (image, mask) = osrt_dataset::codec::encode_view(v).unwrap();
+            (v.image, v.mask) = (image, mask);
+        }
+        out
+    };
+    let mut other = scenes[1].views[0].clone();
+    (other.width, other.height) = (4, 16);
+    let mut sized = as_png(&scenes);
+    sized[1].views[0].image = osrt_dataset::codec::encode_view(&other).unwrap().0;
+    let msg = read_error("png-size", png_file(&sized, true)).await;
+    assert!(
+        msg.contains("image PNG is 4x16, the view is 8x8") && msg.contains("scene 1"),
+        "{msg}"
+    );
+    let mut rgb_mask = as_png(&scenes);
+    rgb_mask[0].views[1].mask = Some(rgb_mask[0].views[1].image.clone());
+    let msg = read_error("png-mask", png_file(&rgb_mask, true)).await;
+    assert!(msg.contains("expected 8-bit grey"), "{msg}");
+    assert_eq!(
+        SplitReader::open(split_of("png-good", png_file(&as_png(&scenes), true)).await)
+            .await
+            .unwrap()
+            .read_all(Columns::ALL)
+            .await
+            .unwrap(),
+        scenes,
+        "the same rows with fitting PNGs read back"
+    );
+    // The version-1 file that names a codec is refused too.
+    let batch = scenes_to_batch(&scenes).unwrap();
+    let props = WriterProperties::builder()
+        .set_key_value_metadata(Some(vec![
+            KeyValue::new(VERSION_KEY.into(), "1".to_string()),
+            KeyValue::new(CODEC_KEY.into(), "png".to_string()),
+        ]))
+        .build();
+    let mut buf = Vec::new();
+    let mut w = ArrowWriter::try_new(&mut buf, batch.schema(), Some(props)).unwrap();
+    w.write(&batch).unwrap();
+    w.close().unwrap();
+    let msg = read_error("png-v1", buf).await;
+    assert!(msg.contains("version 1 has no image codec"), "{msg}");
 }

@@ -241,6 +241,7 @@ async fn same_seed_same_bytes_different_seed_different_bytes() {
     let opts = WriterOptions {
         scenes_per_row_group: 4,
         row_groups_per_file: 2,
+        ..Default::default()
     };
     let dirs: Vec<_> = (0..3).map(|_| tempfile::tempdir().unwrap()).collect();
     for (d, seed) in dirs.iter().zip([5, 5, 6]) {
