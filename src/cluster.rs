@@ -31,7 +31,7 @@ pub struct CoordinatorArgs {
     #[arg(long, env = "OSRT_CONFIG")]
     pub config: Option<PathBuf>,
     /// Named job preset when no --config is given: clevr-lite-cpu, clevr-lite-gpu, tiny,
-    /// paper.
+    /// paper, clevr3d, msn-hard (the paper's settings for those datasets).
     #[arg(long, env = "OSRT_PRESET", default_value = "clevr-lite-cpu")]
     pub preset: String,
     /// Dataset directory or URL (read by the workers).

@@ -20,7 +20,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Named job preset when no --config is given: clevr-lite-cpu, clevr-lite-gpu, tiny,
-    /// paper.
+    /// paper, clevr3d, msn-hard (the paper's settings for those datasets).
     #[arg(long, default_value = "clevr-lite-cpu")]
     pub preset: String,
     /// Dataset directory or URL; the default ./data is generated (clevr-lite) if absent.
@@ -404,6 +404,7 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
             "run {} (step {step}) on {data}/{} ({} scenes)",
             a.run, a.split, r.scenes
         );
+        println!("  protocol    {}", r.protocol);
         println!(
             "  PSNR        {:.2} dB (mean-colour baseline {:.2} dB)",
             r.psnr, r.baseline_psnr

@@ -71,6 +71,10 @@ pub enum DatasetError {
 
     #[error("image {path}: {reason}")]
     Image { path: String, reason: String },
+
+    /// A foreign dataset that cannot be imported as it is: which file, what is wrong.
+    #[error("import {path}: {reason}")]
+    Import { path: String, reason: String },
 }
 
 impl DatasetError {

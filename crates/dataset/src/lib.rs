@@ -17,6 +17,7 @@ pub mod error;
 #[cfg(feature = "test-support")]
 pub mod faulty;
 pub mod generator;
+pub mod import;
 pub mod inspect;
 pub mod manifest;
 pub mod math;

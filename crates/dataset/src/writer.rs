@@ -82,6 +82,13 @@ impl SplitWriter {
         }
     }
 
+    /// Numbers this writer's files from `index` (`part-{index:05}.parquet`, …): parts of
+    /// a split written one writer each.
+    pub fn with_first_file(mut self, index: usize) -> Self {
+        self.file_index = index;
+        self
+    }
+
     /// Validates and buffers scenes; full row groups are written out.
     pub async fn push(&mut self, scenes: Vec<Scene>) -> Result<()> {
         for s in &scenes {

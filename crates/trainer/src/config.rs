@@ -159,6 +159,37 @@ impl JobConfig {
                     ..TrainConfig::reference()
                 },
             ),
+            // The paper's CLEVR-3D setting on an imported CLEVR-3D (`osrt data import`):
+            // view 0 in, rays sampled from the two other views, 6 slots, batch 256 of
+            // 8,192 rays, the reference schedule.
+            "clevr3d" => (
+                osrt_model::Config::paper(),
+                TrainConfig {
+                    batch_size: 256,
+                    rays_per_scene: 8192,
+                    input_views: 1,
+                    input_selection: InputSelection::First,
+                    target_views: TargetViews::NonInput,
+                    ..TrainConfig::reference()
+                },
+            ),
+            // The paper's MSN-Hard setting (OSRT(5)): 5 input views, the 5 others as
+            // targets, 32 slots, batch 256 of 2,304 rays.
+            "msn-hard" => (
+                {
+                    let mut m = osrt_model::Config::paper();
+                    m.slot_attention.num_slots = 32;
+                    m
+                },
+                TrainConfig {
+                    batch_size: 256,
+                    rays_per_scene: 2304,
+                    input_views: 5,
+                    input_selection: InputSelection::First,
+                    target_views: TargetViews::NonInput,
+                    ..TrainConfig::reference()
+                },
+            ),
             "tiny" => (
                 osrt_model::Config::tiny(),
                 TrainConfig {
@@ -175,7 +206,8 @@ impl JobConfig {
                 return Err(TrainError::Config {
                     path: format!("preset `{other}`"),
                     reason:
-                        "unknown preset: expected clevr-lite-cpu, clevr-lite-gpu, paper or tiny"
+                        "unknown preset: expected clevr-lite-cpu, clevr-lite-gpu, paper, clevr3d, \
+                         msn-hard or tiny"
                             .into(),
                 });
             }
@@ -288,7 +320,14 @@ mod tests {
 
     #[test]
     fn presets_validate() {
-        for name in ["clevr-lite-cpu", "clevr-lite-gpu", "paper", "tiny"] {
+        for name in [
+            "clevr-lite-cpu",
+            "clevr-lite-gpu",
+            "paper",
+            "clevr3d",
+            "msn-hard",
+            "tiny",
+        ] {
             JobConfig::preset(name).unwrap().validate().unwrap();
         }
     }

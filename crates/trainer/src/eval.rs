@@ -30,6 +30,25 @@ pub struct EvalResult {
     pub segmentation: bool,
     /// FG-ARI per number of objects in the scene (ascending), where segmentation is scored.
     pub by_objects: Vec<ObjectCountScore>,
+    /// The protocol the scores follow, in words: input views, targets, what FG-ARI pools.
+    pub protocol: String,
+}
+
+/// The evaluation protocol of `opts`, in words.
+pub fn protocol(opts: &EvalOptions) -> String {
+    let inputs = match opts.input_views {
+        1 => "view 0".to_string(),
+        k => format!("views 0..{}", k - 1),
+    };
+    let targets = match opts.target_views {
+        TargetViews::NonInput => "every pixel of every other view",
+        _ => "every pixel of every view, the input ones included",
+    };
+    format!(
+        "input: {inputs}{}; targets: {targets}; PSNR per scene, averaged; FG-ARI over all \
+         target pixels of a scene (background excluded), averaged over scenes",
+        if opts.grayscale { " (grey)" } else { "" }
+    )
 }
 
 /// Segmentation scores of the scenes with one object count.
@@ -144,6 +163,7 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
             0.0
         },
         segmentation,
+        protocol: protocol(opts),
         by_objects: if segmentation {
             seg_by_objects
                 .into_iter()

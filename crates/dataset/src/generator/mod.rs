@@ -469,6 +469,23 @@ pub fn generate_scene(cfg: &GeneratorConfig, seed: u64, split: &str, index: u64)
     )))
 }
 
+/// A bar of `total` `unit` with their rate and the time left (hidden when `shown` is
+/// false): dataset generation and imports.
+pub fn progress_bar(total: u64, shown: bool, unit: &str) -> ProgressBar {
+    if !shown {
+        return ProgressBar::hidden();
+    }
+    let b = ProgressBar::new(total);
+    b.set_style(
+        ProgressStyle::with_template(&format!(
+            "{{msg:>6}} [{{bar:30}}] {{pos}}/{{len}} {unit} {{per_sec}} ETA {{eta}}"
+        ))
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    b
+}
+
 /// Generates all splits into `dataset` and writes `manifest.json` last, so a dataset with
 /// a manifest is complete. Parallel over scenes (rayon), with a progress bar.
 pub async fn generate_dataset(
@@ -481,19 +498,7 @@ pub async fn generate_dataset(
 ) -> Result<Manifest> {
     cfg.validate()?;
     let total: u64 = sizes.iter().map(|(_, n)| n).sum();
-    let bar = if progress {
-        let b = ProgressBar::new(total);
-        b.set_style(
-            ProgressStyle::with_template(
-                "{msg:>6} [{bar:30}] {pos}/{len} scenes {per_sec} ETA {eta}",
-            )
-            .expect("valid template")
-            .progress_chars("=> "),
-        );
-        b
-    } else {
-        ProgressBar::hidden()
-    };
+    let bar = progress_bar(total, progress, "scenes");
     let views = cfg.cameras.num_views() as u32;
     let mut manifest =
         Manifest::new([cfg.image_size; 2], [views, views], cfg.objects).with_codec(opts.codec);

@@ -1,0 +1,277 @@
+//! NumPy's `.npy` arrays and `.npz` archives (a zip of `.npy` files, stored or deflated),
+//! read into f64 or text: the metadata of the ObSuRF releases. Format: the magic
+//! `\x93NUMPY`, a version, a little-endian header length (u16 in version 1, u32 in 2 and
+//! 3), a Python-literal header dict `{'descr': '<f8', 'fortran_order': False, 'shape':
+//! (S, V, 3), }`, then the C-order data.
+
+use crate::error::{DatasetError, Result};
+use std::collections::BTreeMap;
+use std::io::Read;
+
+/// One array: its shape and values, numbers as f64 (integers and booleans exactly, up to
+/// 2^53) or text.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Array {
+    pub shape: Vec<usize>,
+    pub values: Values,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Values {
+    Numbers(Vec<f64>),
+    Text(Vec<String>),
+}
+
+impl Array {
+    /// Elements per entry along the first axis (a scene's share).
+    pub fn row_len(&self) -> usize {
+        self.shape.iter().skip(1).product()
+    }
+
+    /// The numbers of row `i` (first axis), or `None` for text arrays.
+    pub fn number_row(&self, i: usize) -> Option<&[f64]> {
+        let n = self.row_len();
+        match &self.values {
+            Values::Numbers(v) => v.get(i * n..(i + 1) * n),
+            Values::Text(_) => None,
+        }
+    }
+
+    /// Element `j` of row `i` as text (numbers printed as integers where they are).
+    pub fn text_at(&self, i: usize, j: usize) -> Option<String> {
+        let k = i * self.row_len() + j;
+        match &self.values {
+            Values::Numbers(v) => v.get(k).map(|x| {
+                if x.fract() == 0.0 && x.abs() < 1e15 {
+                    format!("{}", *x as i64)
+                } else {
+                    format!("{x}")
+                }
+            }),
+            Values::Text(v) => v.get(k).cloned(),
+        }
+    }
+}
+
+fn bad(path: &str, reason: impl Into<String>) -> DatasetError {
+    DatasetError::Import {
+        path: path.to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// The value of `'key': …` in a header dict, up to the next top-level comma or brace.
+fn header_field<'a>(header: &'a str, key: &str) -> Option<&'a str> {
+    let at = header.find(&format!("'{key}'"))? + key.len() + 2;
+    let rest = header[at..].trim_start().strip_prefix(':')?.trim_start();
+    let end = if rest.starts_with('(') {
+        rest.find(')')? + 1
+    } else {
+        rest.find([',', '}'])?
+    };
+    Some(rest[..end].trim())
+}
+
+/// Parses one `.npy` file's bytes; `path` names it in errors.
+pub fn parse_npy(bytes: &[u8], path: &str) -> Result<Array> {
+    let rest = bytes
+        .strip_prefix(b"\x93NUMPY")
+        .ok_or_else(|| bad(path, "not a .npy file (no \\x93NUMPY magic)"))?;
+    let (major, rest) = rest
+        .split_first()
+        .and_then(|(m, r)| Some((*m, r.split_first()?.1)))
+        .ok_or_else(|| bad(path, "truncated header"))?;
+    let (len, rest) = match major {
+        1 if rest.len() >= 2 => (u16::from_le_bytes([rest[0], rest[1]]) as usize, &rest[2..]),
+        2 | 3 if rest.len() >= 4 => (
+            u32::from_le_bytes([rest[0], rest[1], rest[2], rest[3]]) as usize,
+            &rest[4..],
+        ),
+        _ => {
+            return Err(bad(
+                path,
+                format!("unknown .npy version {major} or truncated header"),
+            ));
+        }
+    };
+    let header = rest
+        .get(..len)
+        .and_then(|h| std::str::from_utf8(h).ok())
+        .ok_or_else(|| bad(path, "truncated or non-text header"))?;
+    let data = &rest[len..];
+    let descr = header_field(header, "descr")
+        .map(|d| d.trim_matches(|c| c == '\'' || c == '"'))
+        .ok_or_else(|| bad(path, format!("no 'descr' in header {header}")))?;
+    let fortran = header_field(header, "fortran_order") == Some("True");
+    let shape: Vec<usize> = header_field(header, "shape")
+        .ok_or_else(|| bad(path, format!("no 'shape' in header {header}")))?
+        .trim_matches(|c| c == '(' || c == ')')
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            s.parse()
+                .map_err(|_| bad(path, format!("bad shape entry `{s}`")))
+        })
+        .collect::<Result<_>>()?;
+    if fortran && shape.iter().filter(|&&d| d > 1).count() > 1 {
+        return Err(bad(
+            path,
+            "Fortran-order arrays are not read; save it in C order",
+        ));
+    }
+    let n: usize = shape.iter().product();
+    let values = decode(descr, data, n).map_err(|e| bad(path, e))?;
+    Ok(Array { shape, values })
+}
+
+/// `n` elements of dtype `descr` from `data`.
+fn decode(descr: &str, data: &[u8], n: usize) -> std::result::Result<Values, String> {
+    let (order, kind) = descr.split_at(1.min(descr.len()));
+    if order == ">" {
+        return Err(format!("big-endian dtype {descr} is not read"));
+    }
+    let kind_char = kind.chars().next().unwrap_or(' ');
+    let width: usize = kind[1..]
+        .parse()
+        .map_err(|_| format!("unknown dtype {descr}"))?;
+    let need = if kind_char == 'U' {
+        n * width * 4
+    } else {
+        n * width
+    };
+    let data = data
+        .get(..need)
+        .ok_or_else(|| format!("{} data bytes, {need} needed for {n} × {descr}", data.len()))?;
+    if kind_char == 'U' {
+        let text = data
+            .chunks(width * 4)
+            .map(|c| {
+                c.chunks(4)
+                    .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .take_while(|&u| u != 0)
+                    .map(|u| char::from_u32(u).unwrap_or('\u{fffd}'))
+                    .collect()
+            })
+            .collect();
+        return Ok(Values::Text(text));
+    }
+    let num = |c: &[u8]| -> f64 {
+        match (kind_char, width) {
+            ('f', 4) => f32::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('f', 8) => f64::from_le_bytes(c.try_into().unwrap()),
+            ('i', 1) => c[0] as i8 as f64,
+            ('i', 2) => i16::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('i', 4) => i32::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('i', 8) => i64::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('u' | 'b', 1) => c[0] as f64,
+            ('u', 2) => u16::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('u', 4) => u32::from_le_bytes(c.try_into().unwrap()) as f64,
+            ('u', 8) => u64::from_le_bytes(c.try_into().unwrap()) as f64,
+            _ => f64::NAN,
+        }
+    };
+    if !matches!(
+        (kind_char, width),
+        ('f', 4 | 8) | ('i', 1 | 2 | 4 | 8) | ('u', 1 | 2 | 4 | 8) | ('b', 1)
+    ) {
+        return Err(format!("dtype {descr} is not read"));
+    }
+    Ok(Values::Numbers(data.chunks(width).map(num).collect()))
+}
+
+/// Every array of an `.npz` archive, by name (without `.npy`).
+pub fn read_npz(bytes: &[u8], path: &str) -> Result<BTreeMap<String, Array>> {
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes))
+        .map_err(|e| bad(path, format!("not a readable .npz (zip) archive: {e}")))?;
+    let mut out = BTreeMap::new();
+    for i in 0..zip.len() {
+        let mut f = zip
+            .by_index(i)
+            .map_err(|e| bad(path, format!("archive entry {i}: {e}")))?;
+        let name = f
+            .name()
+            .map_err(|e| bad(path, format!("archive entry {i}: {e}")))?
+            .to_string();
+        let Some(key) = name.strip_suffix(".npy") else {
+            continue;
+        };
+        let mut data = Vec::with_capacity(f.size() as usize);
+        f.read_to_end(&mut data)
+            .map_err(|e| bad(path, format!("{name}: {e}")))?;
+        out.insert(
+            key.to_string(),
+            parse_npy(&data, &format!("{path}:{name}"))?,
+        );
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn npy(descr: &str, shape: &str, data: &[u8], version: u8) -> Vec<u8> {
+        let header =
+            format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}\n");
+        let mut out = b"\x93NUMPY".to_vec();
+        out.extend([version, 0]);
+        match version {
+            1 => out.extend((header.len() as u16).to_le_bytes()),
+            _ => out.extend((header.len() as u32).to_le_bytes()),
+        }
+        out.extend(header.as_bytes());
+        out.extend(data);
+        out
+    }
+
+    #[test]
+    fn numbers_text_and_shapes_are_read() {
+        let f: Vec<u8> = [1.5f64, -2.0, 3.25]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        let a = parse_npy(&npy("<f8", "(3,)", &f, 1), "a.npy").unwrap();
+        assert_eq!(a.shape, vec![3]);
+        assert_eq!(a.values, Values::Numbers(vec![1.5, -2.0, 3.25]));
+        let i: Vec<u8> = [7i64, -1, 0, 4]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        let b = parse_npy(&npy("<i8", "(2, 2)", &i, 2), "b.npy").unwrap();
+        assert_eq!(b.shape, vec![2, 2]);
+        assert_eq!(b.number_row(1), Some(&[0.0, 4.0][..]));
+        assert_eq!(b.text_at(0, 1).as_deref(), Some("-1"));
+        let mut u = Vec::new();
+        for s in ["red", "blue"] {
+            let mut cps: Vec<u32> = s.chars().map(u32::from).collect();
+            cps.resize(4, 0);
+            u.extend(cps.iter().flat_map(|c| c.to_le_bytes()));
+        }
+        let t = parse_npy(&npy("<U4", "(2,)", &u, 1), "t.npy").unwrap();
+        assert_eq!(t.text_at(1, 0).as_deref(), Some("blue"));
+        let s = parse_npy(&npy("|u1", "()", &[9], 1), "s.npy").unwrap();
+        assert_eq!((s.shape.len(), s.values), (0, Values::Numbers(vec![9.0])));
+    }
+
+    #[test]
+    fn bad_files_name_the_problem() {
+        let cases: [(&[u8], &str); 5] = [
+            (b"PK\x03\x04", "magic"),
+            (&npy("<f8", "(3,)", &[0; 8], 1), "data bytes"),
+            (&npy(">f8", "(1,)", &[0; 8], 1), "big-endian"),
+            (&npy("<c16", "(1,)", &[0; 16], 1), "not read"),
+            (&npy("<f8", "(x,)", &[0; 8], 1), "bad shape"),
+        ];
+        for (bytes, want) in cases {
+            let e = parse_npy(bytes, "m.npy").unwrap_err().to_string();
+            assert!(e.contains("m.npy") && e.contains(want), "{want}: {e}");
+        }
+        assert!(
+            read_npz(b"not a zip", "meta.npz")
+                .unwrap_err()
+                .to_string()
+                .contains("meta.npz")
+        );
+    }
+}

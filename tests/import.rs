@@ -1,0 +1,248 @@
+//! `osrt data import` on a dataset in ObSuRF's release format written by an independent
+//! writer (tests/python/make_obsurf.py: numpy and Pillow), read back with osrt's reader,
+//! pyarrow and Pillow, then trained on and evaluated.
+
+mod common;
+
+use common::osrt;
+use osrt_dataset::import::npy::{Values, read_npz};
+use osrt_dataset::{Columns, Location, Scene, load_split};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The release folder the Python writer makes, with `scenes` scenes.
+fn release(dir: &Path, scenes: usize) -> PathBuf {
+    let src = dir.join("release");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/make_obsurf.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(&src)
+        .arg(scenes.to_string())
+        .output()
+        .expect("python3 runs (.ci/run installs numpy and Pillow)");
+    assert!(
+        out.status.success(),
+        "make_obsurf.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    src
+}
+
+fn import(src: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "data",
+        "import",
+        "--format",
+        "clevr3d",
+        src.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--split",
+        "train=0..8,val=8..10,test=10..12",
+        "--scenes-per-part",
+        "3",
+    ];
+    args.extend(extra);
+    Command::new(common::bin()).args(&args).output().unwrap()
+}
+
+fn read(data: &Path, split: &str) -> Vec<Scene> {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let loc = Location::parse(data.to_str().unwrap()).unwrap();
+    rt.block_on(load_split(&loc, split, Columns::ALL, None))
+        .unwrap()
+}
+
+fn numbers(v: &Values) -> &[f64] {
+    match v {
+        Values::Numbers(n) => n,
+        Values::Text(_) => panic!("numbers expected"),
+    }
+}
+
+/// Pixels, masks, cameras (positions, intrinsics, every pixel's ray against the Python
+/// writer's own rays, the centre ray through the origin), objects and the split
+/// assignment by scene index all come through; CLEVR-3D's default filter leaves out the
+/// 7-object scene.
+#[test]
+fn an_obsurf_release_imports_with_its_pixels_cameras_and_objects() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = release(dir.path(), 12);
+    let data = dir.path().join("data");
+    let out = import(&src, &data, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let meta = read_npz(
+        &std::fs::read(src.join("metadata.npz")).unwrap(),
+        "metadata",
+    )
+    .unwrap();
+    let camera_pos = numbers(&meta["camera_pos"].values);
+    let coords = numbers(&meta["3d_coords"].values);
+    let shape = numbers(&meta["shape"].values);
+    let rays = read_npz(&zip_of(&src.join("expected_rays.npy")), "rays").unwrap();
+    let rays = numbers(&rays["expected_rays"].values);
+    let (w, h) = (32usize, 24usize);
+    for (split, ids) in [
+        ("train", vec![0, 1, 2, 3, 4, 6, 7]),
+        ("val", vec![8, 9]),
+        ("test", vec![10, 11]),
+    ] {
+        let scenes = read(&data, split);
+        assert_eq!(
+            scenes.iter().map(|s| s.id).collect::<Vec<_>>(),
+            ids,
+            "{split}"
+        );
+        for s in &scenes {
+            let id = s.id as usize;
+            assert_eq!(s.views.len(), 3);
+            for (v, view) in s.views.iter().enumerate() {
+                let png = image::open(src.join(format!("images/img_{id}_{v}.png"))).unwrap();
+                assert_eq!(
+                    view.image,
+                    png.into_rgb8().into_raw(),
+                    "scene {id} view {v}"
+                );
+                let spelling = if id == 3 { "mask" } else { "masks" };
+                let mask = image::open(src.join(format!("masks/{spelling}_{id}_{v}.png")))
+                    .unwrap()
+                    .into_luma8()
+                    .into_raw();
+                assert_eq!(view.mask.as_ref(), Some(&mask), "scene {id} view {v}");
+                let c = &view.camera;
+                let p = &camera_pos[(id * 3 + v) * 3..(id * 3 + v) * 3 + 3];
+                for (ours, theirs) in c.position.iter().zip(p) {
+                    assert!((*ours as f64 - theirs).abs() < 1e-5);
+                }
+                let k = c.intrinsics;
+                assert_eq!((k.fx, k.fy, k.cx, k.cy), (35.0, 35.0, 16.0, 12.0));
+                // The optical axis (the ray through the principal point) hits the origin.
+                // (atan2 of |a × b| and a · b: acos near 1 would lose the precision.)
+                let a = [c.rotation[0][2], c.rotation[1][2], c.rotation[2][2]].map(f64::from);
+                let b = [-p[0], -p[1], -p[2]];
+                let cross = [
+                    a[1] * b[2] - a[2] * b[1],
+                    a[2] * b[0] - a[0] * b[2],
+                    a[0] * b[1] - a[1] * b[0],
+                ];
+                let sin = cross.iter().map(|x| x * x).sum::<f64>().sqrt();
+                let cos: f64 = (0..3).map(|i| a[i] * b[i]).sum();
+                let angle = sin.atan2(cos);
+                assert!(
+                    angle < 1e-4,
+                    "scene {id} view {v}: the axis misses by {angle} rad"
+                );
+                let ours = osrt_dataset::rays::view_rays(c, w as u32, h as u32);
+                let base = (id * 3 + v) * h * w * 3;
+                let theirs = &rays[base..base + h * w * 3];
+                let worst = ours
+                    .directions
+                    .iter()
+                    .zip(theirs)
+                    .map(|(a, b)| (*a as f64 - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(worst < 1e-5, "scene {id} view {v}: rays differ by {worst}");
+            }
+            let objects = s.objects.as_ref().unwrap();
+            let present = shape[id * 8..id * 8 + 8]
+                .iter()
+                .filter(|&&x| x > 0.0)
+                .count();
+            assert_eq!(objects.len(), present, "scene {id}");
+            for (k, o) in objects.iter().enumerate() {
+                for j in 0..3 {
+                    let want = coords[(id * 8 + k) * 3 + j];
+                    assert!((o.position[j] as f64 - want).abs() < 1e-5);
+                }
+                assert!(["rubber", "metal"].contains(&o.material.as_str()), "{o:?}");
+                assert_eq!(o.shape, format!("{}", shape[id * 8 + k] as i64));
+            }
+        }
+    }
+}
+
+/// `expected_rays.npy` wrapped as a one-entry .npz (stored), for `read_npz`.
+fn zip_of(npy: &Path) -> Vec<u8> {
+    use std::io::Write;
+    let mut buf = std::io::Cursor::new(Vec::new());
+    let mut z = zip::ZipWriter::new(&mut buf);
+    let opts =
+        zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    z.start_file("expected_rays.npy", opts).unwrap();
+    z.write_all(&std::fs::read(npy).unwrap()).unwrap();
+    z.finish().unwrap();
+    buf.into_inner()
+}
+
+/// An interrupted import re-run with the same options writes only the missing parts
+/// (byte for byte what a whole run writes); other options are refused; pyarrow reads the
+/// PNG split and Pillow decodes it to the source pixels; the data trains and evaluates.
+#[test]
+fn an_import_resumes_reads_in_pyarrow_and_trains() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = release(dir.path(), 12);
+    let data = dir.path().join("data");
+    assert!(import(&src, &data, &[]).status.success());
+    let part = data.join("train/part-00001.parquet");
+    let whole = std::fs::read(&part).unwrap();
+    let kept = data.join("train/part-00000.parquet");
+    let written_at = std::fs::metadata(&kept).unwrap().modified().unwrap();
+    std::fs::remove_file(&part).unwrap();
+    assert!(import(&src, &data, &[]).status.success());
+    assert_eq!(
+        std::fs::read(&part).unwrap(),
+        whole,
+        "the missing part is written again"
+    );
+    let after = std::fs::metadata(&kept).unwrap().modified().unwrap();
+    assert_eq!(after, written_at, "a finished part is kept, not rewritten");
+    let other = import(&src, &data, &["--max-objects", "3"]);
+    assert!(!other.status.success());
+    let err = String::from_utf8_lossy(&other.stderr);
+    assert!(
+        err.contains("import.json") && err.contains("other options"),
+        "{err}"
+    );
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/check_png_split.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .args([data.to_str().unwrap(), "train", src.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "pyarrow/Pillow check failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("\"views\": 21"));
+
+    let run = dir.path().join("run");
+    osrt(&[
+        "train",
+        "--preset",
+        "tiny",
+        "--data",
+        data.to_str().unwrap(),
+        "--run",
+        run.to_str().unwrap(),
+        "--max-steps",
+        "20",
+        "--workers",
+        "1",
+    ]);
+    let out = osrt(&["eval", "--run", run.to_str().unwrap(), "--json"]);
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(r["psnr"].as_f64().unwrap().is_finite(), "{r}");
+    assert_eq!(r["scenes"], 2, "the imported test split: {r}");
+    let protocol = r["protocol"].as_str().unwrap();
+    assert!(
+        protocol.contains("input: view 0;") && protocol.contains("every pixel of every other view"),
+        "{protocol}"
+    );
+}
