@@ -114,15 +114,25 @@ pub struct BenchDataArgs {
     /// Generator preset to benchmark.
     #[arg(long, default_value = "clevr-lite")]
     pub preset: String,
-    /// Scenes to generate, write and read.
-    #[arg(long, default_value_t = 256)]
+    /// Scenes to generate, write and read per case.
+    #[arg(long, default_value_t = 64)]
     pub scenes: usize,
-    /// Image size (default: the preset's).
-    #[arg(long)]
-    pub image_size: Option<u32>,
+    /// Image sizes WxH (W ≥ H: square renders cropped to H rows), one case each.
+    #[arg(long, value_delimiter = ',', default_value = "128x128,320x240")]
+    pub sizes: Vec<String>,
+    /// Storage codecs, one case each.
+    #[arg(long, value_delimiter = ',', default_value = "raw,png")]
+    pub codecs: Vec<ImageCodec>,
     /// Read passes; the median is reported.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 3)]
     pub repeats: usize,
+    /// What training consumes: scenes per step …
+    #[arg(long, default_value_t = 256)]
+    pub step_batch: usize,
+    /// … and milliseconds per step (default: the `paper` preset's bf16 step in PyTorch
+    /// on one H200, 125 ms).
+    #[arg(long, default_value_t = 125.0)]
+    pub step_ms: f64,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -280,34 +290,67 @@ async fn inspect_cmd(a: InspectArgs) -> Result<()> {
 }
 
 pub async fn bench(a: BenchDataArgs) -> Result<()> {
-    let cfg = preset(&a.preset, a.image_size, None, None, None)?;
-    let scratch = Location::parse("memory://bench-data/split")?;
-    let r = osrt_dataset::bench::bench_data(&cfg, a.scenes, a.repeats, scratch).await?;
-    let json = crate::bench::save_json(&a.out, &serde_json::to_value(&r)?)?;
+    let mut cases = Vec::new();
+    for size in &a.sizes {
+        let (w, h) = size
+            .split_once('x')
+            .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+            .filter(|&(w, h)| w >= h && h > 0)
+            .with_context(|| format!("--sizes: `{size}` is not WxH with W >= H > 0"))?;
+        let mut cfg = preset(&a.preset, Some(w), Some(1), None, None)?;
+        cfg.antialias = 1;
+        for &codec in &a.codecs {
+            let scratch = Location::parse(&format!("memory://bench-data/{size}-{codec}"))?;
+            eprintln!("{size} {codec}: {} scenes…", a.scenes);
+            let r = osrt_dataset::bench::bench_data(
+                &cfg,
+                a.scenes,
+                a.repeats,
+                scratch,
+                (codec, Some(h)),
+            )
+            .await?;
+            cases.push(r);
+        }
+    }
+    let need = a.step_batch as f64 / (a.step_ms / 1e3);
+    let report = serde_json::json!({
+        "cases": cases,
+        "training_consumes_scenes_per_s": need,
+        "step_batch": a.step_batch,
+        "step_ms": a.step_ms,
+    });
+    let json = crate::bench::save_json(&a.out, &report)?;
     if a.json {
         println!("{json}");
-    } else {
-        println!(
-            "data bench: {} {}x{}, {} scenes, {} threads",
-            r.preset, r.image_size, r.image_size, r.scenes, r.threads
-        );
-        println!(
-            "  generate          {:>9.1} scenes/s",
-            r.generate_scenes_per_s
-        );
-        println!(
-            "  write (Parquet)   {:>9.1} scenes/s  ({} bytes)",
-            r.write_scenes_per_s, r.file_bytes
-        );
-        println!(
-            "  read + decode     {:>9.1} scenes/s with masks    ({} bytes fetched)",
-            r.read_with_masks.scenes_per_s, r.read_with_masks.data_bytes
-        );
-        println!(
-            "  read + decode     {:>9.1} scenes/s without masks ({} bytes fetched)",
-            r.read_without_masks.scenes_per_s, r.read_without_masks.data_bytes
-        );
-        println!("  saved to {}", a.out.display());
+        return Ok(());
     }
+    println!(
+        "data bench: {}, {} scenes per case, {} threads; training consumes {need:.0} scenes/s \
+         ({} scenes per {} ms step)",
+        a.preset,
+        a.scenes,
+        cases.first().map_or(0, |c| c.threads),
+        a.step_batch,
+        a.step_ms
+    );
+    println!(
+        "  size     codec  bytes/view  write/s  read+decode/s (masks)  (no masks)  vs training"
+    );
+    for r in &cases {
+        let views = r.views.max(1) as f64;
+        println!(
+            "  {:>3}x{:<4} {:<5} {:>10.0} {:>8.1} {:>22.1} {:>11.1} {:>10.2}x",
+            r.image_size,
+            r.image_height,
+            r.codec.to_string(),
+            r.file_bytes as f64 / views,
+            r.write_scenes_per_s,
+            r.read_with_masks.scenes_per_s,
+            r.read_without_masks.scenes_per_s,
+            r.read_without_masks.scenes_per_s / need
+        );
+    }
+    println!("  saved to {}", a.out.display());
     Ok(())
 }

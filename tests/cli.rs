@@ -396,3 +396,52 @@ fn local_writes_are_synced() {
         "{syncs} syncs for 4 files and their folders:\n{text}"
     );
 }
+
+/// `osrt bench data` times write and read+decode per image size and codec (cropped
+/// renders for non-square sizes) and sets them against what training consumes.
+#[test]
+fn bench_data_covers_every_size_and_codec() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_json = dir.path().join("data.json");
+    osrt(&[
+        "bench",
+        "data",
+        "--scenes",
+        "2",
+        "--repeats",
+        "1",
+        "--sizes",
+        "16x12,8x8",
+        "--out",
+        out_json.to_str().unwrap(),
+    ]);
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+    let cases = v["cases"].as_array().unwrap();
+    let seen: Vec<(u64, u64, &str)> = cases
+        .iter()
+        .map(|c| {
+            (
+                c["image_size"].as_u64().unwrap(),
+                c["image_height"].as_u64().unwrap(),
+                c["codec"].as_str().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        seen,
+        [
+            (16, 12, "raw"),
+            (16, 12, "png"),
+            (8, 8, "raw"),
+            (8, 8, "png")
+        ],
+        "{v}"
+    );
+    assert!(
+        cases
+            .iter()
+            .all(|c| c["read_with_masks"]["scenes_per_s"].as_f64().unwrap() > 0.0)
+    );
+    assert_eq!(v["training_consumes_scenes_per_s"], 2048.0);
+}

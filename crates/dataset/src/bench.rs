@@ -5,7 +5,8 @@
 use crate::error::Result;
 use crate::generator::{GeneratorConfig, generate_scene};
 use crate::reader::{ReadStats, SplitReader};
-use crate::schema::Columns;
+use crate::scene::Scene;
+use crate::schema::{Columns, ImageCodec};
 use crate::store::Location;
 use crate::writer::{SplitWriter, WriterOptions};
 use rayon::prelude::*;
@@ -24,7 +25,13 @@ pub struct ReadFigures {
 pub struct DataBench {
     pub preset: String,
     pub image_size: u32,
+    /// Rows kept of each square render (`image_size` wide), centred: 240 of 320 gives
+    /// CLEVR-3D's 320×240.
+    pub image_height: u32,
+    pub codec: ImageCodec,
     pub scenes: usize,
+    /// Views over all scenes.
+    pub views: usize,
     pub threads: usize,
     pub generate_scenes_per_s: f64,
     pub write_scenes_per_s: f64,
@@ -39,28 +46,54 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Generates `scenes` scenes, writes them to `store` (a scratch location), then reads the
-/// split back `repeats` times each way. Reported figures are medians.
+/// The middle `height` rows of a scene's square views (camera intrinsics follow).
+fn crop_rows(mut scene: Scene, height: u32) -> Scene {
+    for v in &mut scene.views {
+        if height >= v.height {
+            continue;
+        }
+        let top = ((v.height - height) / 2) as usize;
+        let w = v.width as usize;
+        v.image = v.image[top * w * 3..(top + height as usize) * w * 3].to_vec();
+        if let Some(m) = &mut v.mask {
+            *m = m[top * w..(top + height as usize) * w].to_vec();
+        }
+        v.camera.intrinsics.cy -= top as f32;
+        v.height = height;
+    }
+    scene
+}
+
+/// Generates `scenes` scenes (cropped to `height` rows), writes them to `store` (a
+/// scratch location) with `codec`, then reads the split back `repeats` times each way.
+/// Reported figures are medians.
 pub async fn bench_data(
     cfg: &GeneratorConfig,
     scenes: usize,
     repeats: usize,
     store: Location,
+    (codec, height): (ImageCodec, Option<u32>),
 ) -> Result<DataBench> {
     let t = Instant::now();
     let cfg2 = cfg.clone();
+    let height = height.unwrap_or(cfg.image_size).min(cfg.image_size);
     let generated = tokio::task::spawn_blocking(move || {
         (0..scenes as u64)
             .into_par_iter()
-            .map(|i| generate_scene(&cfg2, 0, "bench", i))
+            .map(|i| generate_scene(&cfg2, 0, "bench", i).map(|s| crop_rows(s, height)))
             .collect::<Result<Vec<_>>>()
     })
     .await
     .expect("generator task")?;
     let gen_s = t.elapsed().as_secs_f64();
+    let views = generated.iter().map(|s| s.views.len()).sum();
 
     let t = Instant::now();
-    let mut w = SplitWriter::new(store.clone(), WriterOptions::default());
+    let opts = WriterOptions {
+        codec,
+        ..WriterOptions::default()
+    };
+    let mut w = SplitWriter::new(store.clone(), opts);
     w.push(generated).await?;
     w.finish().await?;
     let write_s = t.elapsed().as_secs_f64();
@@ -104,7 +137,10 @@ pub async fn bench_data(
     Ok(DataBench {
         preset: cfg.preset.clone(),
         image_size: cfg.image_size,
+        image_height: height,
+        codec,
         scenes,
+        views,
         threads: rayon::current_num_threads(),
         generate_scenes_per_s: scenes as f64 / gen_s,
         write_scenes_per_s: scenes as f64 / write_s,
