@@ -1,10 +1,11 @@
 //! `osrt data …` and `osrt bench data`: argument types and their calls into osrt-dataset.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use osrt_dataset::generator::GeneratorConfig;
+use osrt_dataset::import::kubric::KubricSource;
 use osrt_dataset::import::obsurf::ObsurfSource;
-use osrt_dataset::import::{Format, ImportOptions, Splits, import};
+use osrt_dataset::import::{Format, ImportOptions, Source, Splits, import};
 use osrt_dataset::{
     Columns, ImageCodec, Location, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
 };
@@ -16,17 +17,19 @@ pub enum DataCommand {
     Generate(GenerateArgs),
     /// Print what a dataset holds; optionally draw a contact sheet.
     Inspect(InspectArgs),
-    /// Import one of the paper's datasets (ObSuRF's CLEVR-3D or MSN-Easy folder) into the
-    /// osrt layout; a re-run with the same options finishes an interrupted import.
+    /// Import one of the paper's datasets (ObSuRF's CLEVR-3D or MSN-Easy folder, Kubric's
+    /// MSN-Hard shards) into the osrt layout; a re-run with the same options finishes an
+    /// interrupted import.
     Import(ImportArgs),
 }
 
 #[derive(Args)]
 pub struct ImportArgs {
-    /// Source format: clevr3d or msn-easy (ObSuRF's release folders).
+    /// Source format: clevr3d or msn-easy (ObSuRF's release folders), msn-hard (Kubric's
+    /// TFDS TFRecord shards).
     #[arg(long)]
     pub format: Format,
-    /// The source folder (holding metadata.npz, images/, masks/).
+    /// The source folder (metadata.npz, images/, masks/; or the *.tfrecord-* shards).
     pub src: std::path::PathBuf,
     /// Output dataset directory or URL.
     #[arg(long)]
@@ -223,7 +226,20 @@ async fn import_cmd(a: ImportArgs) -> Result<()> {
     opts.limit = a.limit;
     opts.codec = a.codec;
     opts.scenes_per_part = a.scenes_per_part.max(1);
-    let src = std::sync::Arc::new(ObsurfSource::open(&a.src)?);
+    let src: std::sync::Arc<dyn Source> = match a.format {
+        Format::Clevr3d | Format::MsnEasy => std::sync::Arc::new(ObsurfSource::open(&a.src)?),
+        Format::MsnHard => {
+            if a.split.is_some() || a.max_objects.is_some() {
+                bail!(
+                    "msn-hard: the shards are split already and the records hold no object \
+                     counts; --split and --max-objects do not apply (--limit takes a sample)"
+                );
+            }
+            let src = KubricSource::open(&a.src)?;
+            opts.splits = src.splits();
+            std::sync::Arc::new(src)
+        }
+    };
     let out = Location::parse(&a.out)?;
     let t = std::time::Instant::now();
     let m = import(src, &out, &opts, std::io::stderr().is_terminal()).await?;

@@ -246,3 +246,126 @@ fn an_import_resumes_reads_in_pyarrow_and_trains() {
         "{protocol}"
     );
 }
+
+/// The shards the Python writer makes (MSN-Hard's TFDS layout), and its expected values.
+fn kubric_release(dir: &Path) -> PathBuf {
+    let src = dir.join("kubric");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/make_kubric.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(&src)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "make_kubric.py failed (.ci/run installs protobuf and crc32c): {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    src
+}
+
+fn npy_numbers(path: &Path) -> Vec<f64> {
+    let a =
+        osrt_dataset::import::npy::parse_npy(&std::fs::read(path).unwrap(), "expected").unwrap();
+    numbers(&a.values).to_vec()
+}
+
+/// MSN-Hard shards import with the shards' own splits, every camera's pixels, masks
+/// (`clip(instance, 1, 34) − 1`), position (`−Rᵀt`) and ray against the Python writer's;
+/// depth and category images are left alone; a flipped payload byte is an error naming
+/// the shard and the record, and `--split` does not apply.
+#[test]
+fn msn_hard_shards_import_with_their_cameras_and_checksums() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = kubric_release(dir.path());
+    let data = dir.path().join("data");
+    let run = |src: &Path, out: &Path, extra: &[&str]| {
+        let mut args = vec!["data", "import", "--format", "msn-hard"];
+        args.push(src.to_str().unwrap());
+        args.extend(["--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        Command::new(common::bin()).args(&args).output().unwrap()
+    };
+    let out = run(&src, &data, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let images = npy_numbers(&src.join("expected_images.npy"));
+    let masks = npy_numbers(&src.join("expected_masks.npy"));
+    let positions = npy_numbers(&src.join("expected_positions.npy"));
+    let rays = npy_numbers(&src.join("expected_rays.npy"));
+    let (w, h, px) = (20usize, 16usize, 320usize);
+    for (split, ids) in [
+        ("train", vec![0, 1, 2, 3, 4]),
+        ("val", vec![5]),
+        ("test", vec![6, 7]),
+    ] {
+        let scenes = read(&data, split);
+        assert_eq!(
+            scenes.iter().map(|s| s.id).collect::<Vec<_>>(),
+            ids,
+            "{split}"
+        );
+        for s in &scenes {
+            assert_eq!(s.views.len(), 10);
+            for (k, v) in s.views.iter().enumerate() {
+                let at = s.id as usize * 10 + k;
+                assert_eq!((v.width, v.height), (w as u32, h as u32));
+                let want: Vec<u8> = images[at * px * 3..(at + 1) * px * 3]
+                    .iter()
+                    .map(|&x| x as u8)
+                    .collect();
+                assert_eq!(v.image, want, "scene {} camera {k}", s.id);
+                let want: Vec<u8> = masks[at * px..(at + 1) * px]
+                    .iter()
+                    .map(|&x| x as u8)
+                    .collect();
+                assert_eq!(v.mask.as_ref(), Some(&want), "scene {} camera {k}", s.id);
+                for j in 0..3 {
+                    let d = (v.camera.position[j] as f64 - positions[at * 3 + j]).abs();
+                    assert!(d < 1e-4, "scene {} camera {k}: position off by {d}", s.id);
+                }
+                let ours = osrt_dataset::rays::view_rays(&v.camera, w as u32, h as u32);
+                let worst = ours
+                    .directions
+                    .iter()
+                    .zip(&rays[at * px * 3..(at + 1) * px * 3])
+                    .map(|(a, b)| (*a as f64 - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(
+                    worst < 1e-5,
+                    "scene {} camera {k}: rays off by {worst}",
+                    s.id
+                );
+            }
+        }
+    }
+    let limited = run(&src, &dir.path().join("sample"), &["--limit", "2"]);
+    assert!(limited.status.success());
+    assert_eq!(read(&dir.path().join("sample"), "train").len(), 2);
+    let split = run(&src, &dir.path().join("x"), &["--split", "train=0..2"]);
+    assert!(
+        String::from_utf8_lossy(&split.stderr).contains("--split"),
+        "split refused"
+    );
+
+    let broken = dir.path().join("broken");
+    std::fs::create_dir(&broken).unwrap();
+    for f in std::fs::read_dir(&src).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, broken.join(f.file_name().unwrap())).unwrap();
+    }
+    let shard = broken.join("msn-train.tfrecord-00001-of-00002");
+    let mut bytes = std::fs::read(&shard).unwrap();
+    bytes[100] ^= 0x40;
+    std::fs::write(&shard, bytes).unwrap();
+    let out = run(&broken, &dir.path().join("y"), &[]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("msn-train.tfrecord-00001-of-00002") && err.contains("CRC-32C"),
+        "{err}"
+    );
+}

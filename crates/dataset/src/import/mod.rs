@@ -1,6 +1,7 @@
 //! Importers of the paper's datasets into the osrt layout (`manifest.json` and
 //! `{train,val,test}/part-NNNNN.parquet`), so every other command works on them unchanged.
-//! One file per source format: [`obsurf`] (CLEVR-3D and MSN-Easy, the ObSuRF release).
+//! One file per source format: [`obsurf`] (CLEVR-3D and MSN-Easy, the ObSuRF release) and
+//! [`kubric`] (MSN-Hard, TFDS TFRecord shards).
 //!
 //! The import streams: each split's scenes (by index range, filtered and limited) are cut
 //! into parts of [`ImportOptions::scenes_per_part`] scenes, decoded in parallel over the
@@ -11,8 +12,10 @@
 //! import re-run with the same options keeps the finished parts and writes the rest;
 //! `import.json` records the options and a re-run with others is refused.
 
+pub mod kubric;
 pub mod npy;
 pub mod obsurf;
+pub mod tfrecord;
 
 use crate::error::{DatasetError, Result};
 use crate::manifest::{Manifest, SplitInfo};
@@ -38,6 +41,8 @@ pub enum Format {
     Clevr3d,
     /// ObSuRF's MultiShapeNet-Easy.
     MsnEasy,
+    /// Kubric's MultiShapeNet-Hard (TFDS TFRecord shards; splits are the shards').
+    MsnHard,
 }
 
 impl std::str::FromStr for Format {
@@ -46,20 +51,23 @@ impl std::str::FromStr for Format {
         match s {
             "clevr3d" => Ok(Self::Clevr3d),
             "msn-easy" => Ok(Self::MsnEasy),
-            "msn-hard" => Err("msn-hard (Kubric TFRecord shards) is not importable yet: \
-                               clevr3d and msn-easy are"
-                .into()),
+            "msn-hard" => Ok(Self::MsnHard),
             other => Err(format!(
-                "unknown format `{other}`: expected clevr3d or msn-easy"
+                "unknown format `{other}`: expected clevr3d, msn-easy or msn-hard"
             )),
         }
     }
 }
 
 impl Format {
-    /// The public loaders' splits by scene index.
+    /// The public loaders' splits by scene index (MSN-Hard: none; its shards are split).
     pub fn default_splits(self) -> Splits {
         match self {
+            Self::MsnHard => Splits {
+                train: 0..0,
+                val: 0..0,
+                test: 0..0,
+            },
             Self::Clevr3d => Splits {
                 train: 0..70_000,
                 val: 70_000..75_000,
@@ -155,8 +163,8 @@ impl ImportOptions {
 pub trait Source: Send + Sync {
     /// Scenes in the source (indices `0..n`).
     fn num_scenes(&self) -> u64;
-    /// Views and objects of scene `index`, from metadata (no image is read).
-    fn counts(&self, index: u64) -> (usize, usize);
+    /// Views and objects (where the metadata says) of scene `index`; no image is read.
+    fn counts(&self, index: u64) -> (usize, Option<usize>);
     /// Scene `index` with its pixels, masks, cameras and objects.
     fn scene(&self, index: u64) -> Result<Scene>;
     /// Image `[width, height]` of the views.
@@ -170,7 +178,10 @@ pub trait Source: Send + Sync {
 fn split_indices(src: &dyn Source, range: &Range<u64>, opts: &ImportOptions) -> Vec<u64> {
     let end = range.end.min(src.num_scenes());
     (range.start.min(end)..end)
-        .filter(|&i| opts.max_objects.is_none_or(|m| src.counts(i).1 <= m))
+        .filter(|&i| {
+            opts.max_objects
+                .is_none_or(|m| src.counts(i).1.is_none_or(|n| n <= m))
+        })
         .take(opts.limit.map_or(usize::MAX, |l| l as usize))
         .collect()
 }
@@ -231,7 +242,9 @@ pub async fn import(
         for &i in indices {
             let (v, o) = src.counts(i);
             views = [views[0].min(v as u32), views[1].max(v as u32)];
-            objects = [objects[0].min(o as u32), objects[1].max(o as u32)];
+            if let Some(o) = o {
+                objects = [objects[0].min(o as u32), objects[1].max(o as u32)];
+            }
         }
         for (p, part) in indices.chunks(per_part).enumerate() {
             let file = format!("part-{p:05}.parquet");
@@ -273,6 +286,12 @@ pub async fn import(
             reason: "no scene falls in the split ranges (after the object-count filter)".into(),
         });
     }
+    // Sources without object counts (MSN-Hard) record [0, 0].
+    let objects = if objects[0] > objects[1] {
+        [0, 0]
+    } else {
+        objects
+    };
     let mut m = Manifest::new(src.image_size()?, views, objects).with_codec(opts.codec);
     m.has_masks = src.has_masks();
     m.splits = manifest_splits;
@@ -312,11 +331,12 @@ mod tests {
         for bad in ["train=5", "dev=0..1", "val=3..1", "test=a..2"] {
             assert!(Splits::parse(bad, base.clone()).is_err(), "{bad}");
         }
+        assert_eq!("msn-hard".parse::<Format>(), Ok(Format::MsnHard));
         assert!(
-            "msn-hard"
+            "msn-medium"
                 .parse::<Format>()
                 .unwrap_err()
-                .contains("not importable yet")
+                .contains("msn-hard")
         );
     }
 }

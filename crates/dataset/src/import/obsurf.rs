@@ -194,9 +194,9 @@ impl Source for ObsurfSource {
         self.shape.shape[0] as u64
     }
 
-    fn counts(&self, index: u64) -> (usize, usize) {
+    fn counts(&self, index: u64) -> (usize, Option<usize>) {
         let row = self.shape.number_row(index as usize).unwrap_or(&[]);
-        (self.views, row.iter().filter(|&&x| x > 0.0).count())
+        (self.views, Some(row.iter().filter(|&&x| x > 0.0).count()))
     }
 
     fn scene(&self, index: u64) -> Result<Scene> {

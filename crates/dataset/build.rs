@@ -1,0 +1,14 @@
+//! Generates the `tf.train.Example` messages (`proto/tensorflow/example.proto`) with the
+//! protoc binary vendored by `protoc-bin-vendored`, so no system protoc is needed.
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../proto");
+    let file = root.join("tensorflow/example.proto");
+    println!("cargo:rerun-if-changed={}", file.display());
+    let mut config = prost_build::Config::new();
+    config.protoc_executable(protoc_bin_vendored::protoc_bin_path()?);
+    // Images arrive as `Bytes` slices of the record, not copies.
+    config.bytes(["."]);
+    config.compile_protos(&[file], &[root])?;
+    Ok(())
+}
