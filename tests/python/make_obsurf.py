@@ -1,7 +1,7 @@
 """Writes a small dataset in ObSuRF's release format (CLEVR-3D / MSN-Easy), independently
 of osrt, for the importer's tests (tests/import.rs).
 
-    python3 make_obsurf.py OUT [SCENES]
+    python3 make_obsurf.py OUT [SCENES [WIDTH HEIGHT]]
 
 OUT/metadata.npz (np.savez_compressed): camera_pos [S, 3, 3], shape [S, 8] (codes > 0
 where an object is, packed first), 3d_coords [S, 8, 3], color [S, 8] (int codes),
@@ -40,8 +40,11 @@ def rays_of(pos):
 
 
 def main():
+    global W, H
     out = sys.argv[1]
     scenes = int(sys.argv[2]) if len(sys.argv) > 2 else 12
+    if len(sys.argv) > 4:
+        W, H = int(sys.argv[3]), int(sys.argv[4])
     rng = np.random.default_rng(3)
     os.makedirs(os.path.join(out, "images"), exist_ok=True)
     os.makedirs(os.path.join(out, "masks"), exist_ok=True)
