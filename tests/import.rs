@@ -10,22 +10,29 @@ use osrt_dataset::{Columns, Location, Scene, load_split};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// The release folder the Python writer makes, with `scenes` scenes.
-fn release(dir: &Path, scenes: usize) -> PathBuf {
-    let src = dir.join("release");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/make_obsurf.py");
+/// Runs the Python writer `script` (tests/python/) into `dir/name`; returns that folder.
+fn python_fixture(script: &str, dir: &Path, name: &str, args: &[&str]) -> PathBuf {
+    let src = dir.join(name);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/python")
+        .join(script);
     let out = Command::new("python3")
-        .arg(&script)
+        .arg(&path)
         .arg(&src)
-        .arg(scenes.to_string())
+        .args(args)
         .output()
-        .expect("python3 runs (.ci/run installs numpy and Pillow)");
+        .expect("python3 runs");
     assert!(
         out.status.success(),
-        "make_obsurf.py failed: {}",
+        "{script} failed (.ci/run installs numpy, Pillow, protobuf and crc32c): {}",
         String::from_utf8_lossy(&out.stderr)
     );
     src
+}
+
+/// The release folder the Python writer makes, with `scenes` scenes.
+fn release(dir: &Path, scenes: usize) -> PathBuf {
+    python_fixture("make_obsurf.py", dir, "release", &[&scenes.to_string()])
 }
 
 fn import(src: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
@@ -249,19 +256,7 @@ fn an_import_resumes_reads_in_pyarrow_and_trains() {
 
 /// The shards the Python writer makes (MSN-Hard's TFDS layout), and its expected values.
 fn kubric_release(dir: &Path) -> PathBuf {
-    let src = dir.join("kubric");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/make_kubric.py");
-    let out = Command::new("python3")
-        .arg(&script)
-        .arg(&src)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "make_kubric.py failed (.ci/run installs protobuf and crc32c): {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    src
+    python_fixture("make_kubric.py", dir, "kubric", &[])
 }
 
 fn npy_numbers(path: &Path) -> Vec<f64> {

@@ -336,7 +336,8 @@ async fn footers_that_lie_about_their_row_count() {
 async fn png_views_that_do_not_fit_their_rows_are_refused() {
     use osrt_dataset::ImageCodec;
     use osrt_dataset::schema::{CODEC_KEY, scenes_to_batch_with};
-    let png_file = |scenes: &[Scene], raw: bool| {
+    // A file of `scenes` (raw bytes, or PNG-coded) that names a codec in version `v`.
+    let coded = |scenes: &[Scene], raw: bool, v: &str| {
         let batch = if raw {
             scenes_to_batch(scenes).unwrap()
         } else {
@@ -344,7 +345,7 @@ async fn png_views_that_do_not_fit_their_rows_are_refused() {
         };
         let props = WriterProperties::builder()
             .set_key_value_metadata(Some(vec![
-                KeyValue::new(VERSION_KEY.into(), "2".to_string()),
+                KeyValue::new(VERSION_KEY.into(), v.to_string()),
                 KeyValue::new(CODEC_KEY.into(), "png".to_string()),
             ]))
             .build();
@@ -354,6 +355,7 @@ async fn png_views_that_do_not_fit_their_rows_are_refused() {
         w.close().unwrap();
         buf
     };
+    let png_file = |scenes: &[Scene], raw: bool| coded(scenes, raw, "2");
     let scenes = tiny_scenes(2, 8);
     // Raw bytes where PNGs belong.
     let msg = read_error("png-raw", png_file(&scenes, true)).await;
@@ -394,17 +396,7 @@ async fn png_views_that_do_not_fit_their_rows_are_refused() {
         "the same rows with fitting PNGs read back"
     );
     // The version-1 file that names a codec is refused too.
-    let batch = scenes_to_batch(&scenes).unwrap();
-    let props = WriterProperties::builder()
-        .set_key_value_metadata(Some(vec![
-            KeyValue::new(VERSION_KEY.into(), "1".to_string()),
-            KeyValue::new(CODEC_KEY.into(), "png".to_string()),
-        ]))
-        .build();
-    let mut buf = Vec::new();
-    let mut w = ArrowWriter::try_new(&mut buf, batch.schema(), Some(props)).unwrap();
-    w.write(&batch).unwrap();
-    w.close().unwrap();
+    let buf = coded(&scenes, true, "1");
     let msg = read_error("png-v1", buf).await;
     assert!(msg.contains("version 1 has no image codec"), "{msg}");
 }
