@@ -7,7 +7,13 @@
 //! had on disk, so files written before the types existed read the same. A record needs
 //! its `step` and its kind's defining field (`loss` or `psnr`); the rest default.
 
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
+
+/// A float that may be written as `null`: JSON has no NaN, and serde_json writes a
+/// non-finite float as `null` (a skipped step's loss, a failed evaluation).
+fn nan_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Option::<f64>::deserialize(d).map(|v| v.unwrap_or(f64::NAN))
+}
 
 /// Training progress over the last `log_every` steps (rank 0).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -16,23 +22,24 @@ pub struct TrainRecord {
     #[serde(default)]
     pub epoch: u64,
     /// Mean training loss over the window.
+    #[serde(deserialize_with = "nan_if_null")]
     pub loss: f64,
     /// Learning rate of the window's last step.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub lr: f64,
     /// The worker's peak resident memory so far (where the OS tells).
     #[serde(default)]
     pub peak_rss_mb: Option<f64>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub scenes_per_s: f64,
     /// Steps skipped for a non-finite loss or gradient, since the start.
     #[serde(default)]
     pub skipped: u64,
     pub step: u64,
     /// Seconds spent in train steps and in the whole job, up to this step.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub train_s: f64,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub wall_s: f64,
     #[serde(default)]
     pub workers: usize,
@@ -52,16 +59,17 @@ pub struct EvalRecord {
     pub fg_ari: Option<f64>,
     #[serde(default)]
     pub fg_ari_2d: Option<f64>,
+    #[serde(deserialize_with = "nan_if_null")]
     pub psnr: f64,
     #[serde(default)]
     pub ratio: Option<f64>,
     /// Target views rendered per second of decoding.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub render_fps: f64,
     pub step: u64,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub train_s: f64,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "nan_if_null")]
     pub wall_s: f64,
 }
 
@@ -166,6 +174,23 @@ mod tests {
         assert!(
             matches!(e, Some(MetricsRecord::Eval(r)) if r.ari.is_none() && r.eval_scenes == 32)
         );
+    }
+
+    /// Non-finite figures (a skipped step's loss, a failed evaluation) are written as
+    /// `null` and read back as NaN: such a record is still a record.
+    #[test]
+    fn non_finite_figures_round_trip_as_null() {
+        let train = r#"{"epoch":0,"loss":null,"lr":0.001,"peak_rss_mb":null,"scenes_per_s":3.0,"skipped":4,"step":9,"train_s":1.0,"wall_s":null,"workers":2}"#;
+        let Some(MetricsRecord::Train(t)) = MetricsRecord::parse(train) else {
+            panic!("a train record")
+        };
+        assert!(t.loss.is_nan() && t.wall_s.is_nan());
+        assert_eq!(MetricsRecord::Train(t).to_line(), train);
+        let eval = r#"{"psnr":null,"step":4}"#;
+        let Some(MetricsRecord::Eval(e)) = MetricsRecord::parse(eval) else {
+            panic!("an eval record")
+        };
+        assert!(e.psnr.is_nan());
     }
 
     #[test]

@@ -103,6 +103,8 @@ impl RunSummary {
                         s.peak_rss_mb = Some(s.peak_rss_mb.map_or(m, |p: f64| p.max(m)));
                     }
                 }
+                // A failed evaluation (`null` PSNR) has no point on the curve.
+                MetricsRecord::Eval(r) if !r.psnr.is_finite() => {}
                 MetricsRecord::Eval(r) => s.evaluations.push(CurvePoint {
                     step: r.step,
                     wall_s: r.wall_s,
