@@ -36,11 +36,15 @@ fn release(dir: &Path, scenes: usize) -> PathBuf {
 }
 
 fn import(src: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    import_as("clevr3d", src, out, extra)
+}
+
+fn import_as(format: &str, src: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec![
         "data",
         "import",
         "--format",
-        "clevr3d",
+        format,
         src.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
@@ -207,6 +211,11 @@ fn an_import_resumes_reads_in_pyarrow_and_trains() {
     );
     let after = std::fs::metadata(&kept).unwrap().modified().unwrap();
     assert_eq!(after, written_at, "a finished part is kept, not rewritten");
+    // MSN-Easy reads the same release format without CLEVR-3D's 6-object filter.
+    let easy = dir.path().join("easy");
+    assert!(import_as("msn-easy", &src, &easy, &[]).status.success());
+    let ids: Vec<u64> = read(&easy, "train").iter().map(|s| s.id).collect();
+    assert_eq!(ids, (0..8).collect::<Vec<_>>(), "scene 5 (7 objects) kept");
     let other = import(&src, &data, &["--max-objects", "3"]);
     assert!(!other.status.success());
     let err = String::from_utf8_lossy(&other.stderr);
