@@ -1,5 +1,7 @@
-//! A sweep file: a base job (preset or job config) plus axes. The points are the
-//! Cartesian product of the axes, in the fixed axis order of [`Axes`], first axis
+//! A sweep file: a base job (preset or job config), optional explicit points
+//! (`[[points]]`, each a table of axis settings: rows that are no product, like a paper's
+//! table) and axes. The points are the explicit ones (or the base job alone) crossed with
+//! the Cartesian product of the axes, in the fixed axis order of [`Axes`], first axis
 //! slowest; each point is named by its settings (`decoder=slot_mixer,slots=6`), which is
 //! also its run folder's name.
 
@@ -41,8 +43,49 @@ pub struct SweepFile {
     /// Evaluate at most this many scenes of it (default: all).
     #[serde(default)]
     pub eval_scenes: Option<usize>,
+    /// Explicit points, each a table of axis settings (`input_views = 3`,
+    /// `decoder = "transformer"`, …), crossed with the axes.
+    #[serde(default)]
+    pub points: Vec<toml::Table>,
     #[serde(default)]
     pub axes: Axes,
+}
+
+/// The settings a point may make, in the order names list them.
+const AXES: [&str; 9] = [
+    "decoder",
+    "input_views",
+    "slots",
+    "iterations",
+    "slot_init",
+    "ray_input",
+    "targets",
+    "seed",
+    "lr",
+];
+
+/// An explicit point's settings as text, in [`AXES`] order; `i` names it in errors.
+fn explicit_point(table: &toml::Table, i: usize) -> std::result::Result<Point, String> {
+    if let Some(k) = table.keys().find(|k| !AXES.contains(&k.as_str())) {
+        return Err(format!(
+            "points[{i}]: unknown setting `{k}` (expected one of {AXES:?})"
+        ));
+    }
+    let mut settings = Vec::new();
+    for axis in AXES {
+        let Some(v) = table.get(axis) else { continue };
+        let text = match v {
+            toml::Value::String(s) => s.clone(),
+            toml::Value::Integer(n) => n.to_string(),
+            toml::Value::Float(x) => x.to_string(),
+            other => return Err(format!("points[{i}].{axis}: `{other}` is not a value")),
+        };
+        settings.push((axis.to_string(), text));
+    }
+    if settings.is_empty() {
+        return Err(format!("points[{i}] sets nothing"));
+    }
+    Ok(Point { settings })
 }
 
 fn default_preset() -> String {
@@ -229,6 +272,15 @@ impl SweepFile {
         if file.workers == 0 {
             return Err(err("workers must be at least 1".into()));
         }
+        for (i, t) in file.points.iter().enumerate() {
+            let p = explicit_point(t, i).map_err(err)?;
+            if file.axes.listed().iter().any(|(a, _)| p.get(a).is_some()) {
+                return Err(err(format!(
+                    "points[{i}] sets a setting the axes vary too: {}",
+                    p.name()
+                )));
+            }
+        }
         Ok(file)
     }
 
@@ -244,11 +296,20 @@ impl SweepFile {
         }
     }
 
-    /// Every grid point, first axis slowest.
+    /// Every point: the explicit ones (or the base job) crossed with the axes, first
+    /// axis slowest.
     pub fn points(&self) -> Vec<Point> {
-        let mut points = vec![Point {
-            settings: Vec::new(),
-        }];
+        let mut points: Vec<Point> = match self.points.is_empty() {
+            true => vec![Point {
+                settings: Vec::new(),
+            }],
+            false => self
+                .points
+                .iter()
+                .enumerate()
+                .map(|(i, t)| explicit_point(t, i).expect("checked when parsed"))
+                .collect(),
+        };
         for (axis, values) in self.axes.listed() {
             points = points
                 .into_iter()
@@ -381,6 +442,69 @@ targets = ["novel", "input"]
         assert!(
             e.contains("input_views=5") && e.contains("only 3 views"),
             "{e}"
+        );
+    }
+
+    /// Explicit points (rows of a table) come in file order, crossed with the axes; an
+    /// unknown setting, a point setting nothing and a setting the axes vary are refused.
+    #[test]
+    fn explicit_points_cross_the_axes() {
+        let text = "name = \"t\"\npreset = \"tiny\"\nmax_steps = 1\n\
+                    [[points]]\ninput_views = 2\n\
+                    [[points]]\ndecoder = \"transformer\"\ninput_views = 1\n\
+                    [axes]\nseed = [0, 1]\n";
+        let f = SweepFile::parse(text, "t.toml").unwrap();
+        let names: Vec<String> = f.points().iter().map(Point::name).collect();
+        assert_eq!(
+            names,
+            [
+                "input_views=2,seed=0",
+                "input_views=2,seed=1",
+                "decoder=transformer,input_views=1,seed=0",
+                "decoder=transformer,input_views=1,seed=1",
+            ]
+        );
+        let base = JobConfig::preset("tiny").unwrap();
+        let job = f.points()[2].apply(&base).unwrap();
+        assert_eq!(job.train.input_views, 1);
+        for (bad, want) in [
+            ("[[points]]\nwidth = 3\n", "unknown setting `width`"),
+            ("[[points]]\n", "sets nothing"),
+            (
+                "[[points]]\nseed = 3\n[axes]\nseed = [1]\n",
+                "the axes vary too",
+            ),
+            ("[[points]]\nseed = [3]\n", "is not a value"),
+        ] {
+            let text = format!("name = \"t\"\nmax_steps = 1\n{bad}");
+            let e = SweepFile::parse(&text, "t.toml").unwrap_err().to_string();
+            assert!(e.contains(want), "{bad}: {e}");
+        }
+    }
+
+    /// The shipped Table 4 sweep: its six rows, each a valid job on 6-view scenes.
+    #[test]
+    fn the_table4_sweep_has_the_papers_rows() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../configs/sweeps/table4.toml");
+        let f = SweepFile::load(&path).unwrap();
+        let base = f.base_job(path.parent().unwrap()).unwrap();
+        let points = f.check(&base, 6).unwrap();
+        let names: Vec<String> = points.iter().map(|(p, _)| p.name()).collect();
+        assert_eq!(
+            names,
+            [
+                "input_views=1",
+                "input_views=3",
+                "input_views=5",
+                "decoder=spatial_broadcast,input_views=5",
+                "decoder=transformer,input_views=5",
+                "input_views=5,targets=input",
+            ]
+        );
+        assert!(
+            f.check(&base, 4).is_err(),
+            "5 input views need more than 4 views"
         );
     }
 }
