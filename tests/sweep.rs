@@ -500,24 +500,7 @@ fn ood_scenes_are_evaluated_with_more_slots() {
 fn the_table4_sweep_runs_every_row() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data-6v");
-    osrt(&[
-        "data",
-        "generate",
-        "--out",
-        data.to_str().unwrap(),
-        "--views",
-        "6",
-        "--train",
-        "8",
-        "--val",
-        "4",
-        "--test",
-        "4",
-        "--image-size",
-        "8",
-        "--antialias",
-        "1",
-    ]);
+    common::tiny_dataset_with(data.to_str().unwrap(), 8, &["--views", "6"], &[]);
     let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/sweeps/table4.toml");
     let text = std::fs::read_to_string(shipped).unwrap();
     let mut tiny = String::new();

@@ -37,27 +37,32 @@ pub fn tiny_dataset(dir: &Path, train: usize) -> PathBuf {
 
 /// The same at any location (`s3://…` with the server's variables in `env`).
 pub fn tiny_dataset_at(out: &str, train: usize, env: &[(String, String)]) {
-    osrt_env(
-        &[
-            "data",
-            "generate",
-            "--out",
-            out,
-            "--train",
-            &train.to_string(),
-            "--val",
-            "4",
-            "--test",
-            "4",
-            "--image-size",
-            "8",
-            "--antialias",
-            "1",
-            "--scenes-per-row-group",
-            "8",
-        ],
-        env,
-    );
+    tiny_dataset_with(out, train, &[], env);
+}
+
+/// [`tiny_dataset_at`] with more `osrt data generate` arguments (`--views 6`, …).
+pub fn tiny_dataset_with(out: &str, train: usize, extra: &[&str], env: &[(String, String)]) {
+    let train = train.to_string();
+    let mut args = vec![
+        "data",
+        "generate",
+        "--out",
+        out,
+        "--train",
+        &train,
+        "--val",
+        "4",
+        "--test",
+        "4",
+        "--image-size",
+        "8",
+        "--antialias",
+        "1",
+        "--scenes-per-row-group",
+        "8",
+    ];
+    args.extend(extra);
+    osrt_env(&args, env);
 }
 
 /// Trains the `tiny` preset for `steps` steps on one single-threaded worker into `run`,
