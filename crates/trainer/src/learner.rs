@@ -398,6 +398,7 @@ pub fn eval_record(step: u64, wall_s: f64, train_s: f64, r: &EvalResult) -> Eval
     }
 }
 
+/// The train split's row groups, listed once per generation.
 async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
     Ok(SplitReader::open(data.join("train"))
         .await?

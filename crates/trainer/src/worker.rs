@@ -451,7 +451,8 @@ fn spawn_heartbeat(
     })
 }
 
-/// The train split's row groups, listed once per generation.
+/// One generation of `plan`: heartbeats and the ring around the learner's loop, the
+/// step's reports and the checkpoint commits.
 async fn run_generation(
     opts: &WorkerOptions,
     client: &mut Client,

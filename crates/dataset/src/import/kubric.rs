@@ -23,7 +23,10 @@
 //!
 //! Facts gathered from the public sunds builder (frames_builder.py, utils.py), TFDS's
 //! example serializer (images as PNG bytes, float tensors as flat float lists) and the
-//! public OSRT loader (osrt/data/multishapenet.py).
+//! public OSRT loader (osrt/data/multishapenet.py). The public builder's snapshot has no
+//! `multi_shapenet_conditional` configuration (the loaders say 128×128 and 10 cameras):
+//! the camera count and image size are read from the records themselves, and intrinsics
+//! come from each camera's `K`.
 
 use super::tfrecord::{RecordRef, index_file, read_record};
 use super::{Source, Splits};
