@@ -101,7 +101,7 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let mut renders = Vec::new();
     let slots: &[usize] = if a.step_only { &[] } else { &a.slots };
     for &k in slots {
-        for d in ["slot_mixer", "spatial_broadcast", "transformer"] {
+        for d in osrt_trainer::bench::RENDER_DECODERS {
             let kernels = a.kernels.unwrap_or_default();
             renders.push(osrt_kernels::with_kernels(kernels, || {
                 bench_render(&model, d, k, a.image_size, 5, &device)
@@ -271,6 +271,12 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
                     "  Slot Mixer / spatial broadcast at {k} slots: {:.1}×",
                     sm / sb
                 );
+            }
+            if let (Some(sm), Some(v)) = (fps("slot_mixer"), fps("volumetric")) {
+                println!("  Slot Mixer / volumetric at {k} slots: {:.1}×", sm / v);
+            }
+            if let (Some(v), Some(all)) = (fps("volumetric"), fps("volumetric_no_cull")) {
+                println!("  box culling: volumetric {:.2}× as fast with it", v / all);
             }
         }
     }

@@ -104,13 +104,24 @@ fn absolute_local(data: &str) -> Result<String> {
 }
 
 /// The job with the command line's overrides applied.
-pub fn spec(
-    job: JobConfig,
+/// The job as the coordinator receives it; a volumetric decoder's scene box, unless the
+/// job sets one, is read from the dataset's manifest here, so the run's saved config
+/// carries it.
+pub async fn spec(
+    mut job: JobConfig,
     data: &str,
     run: &str,
     max_steps: Option<u64>,
     max_minutes: Option<f64>,
 ) -> Result<JobSpec> {
+    if let osrt_model::decoder::Config::Volumetric(v) = &job.model.decoder
+        && v.bounds.is_none()
+    {
+        let manifest = osrt_dataset::Manifest::read(&osrt_dataset::Location::parse(data)?)
+            .await
+            .with_context(|| format!("reading the manifest of {data} for the scene's box"))?;
+        job.resolve_scene_bounds(&manifest, data)?;
+    }
     job.validate()?;
     Ok(JobSpec {
         job_id: job_id(),
@@ -139,7 +150,7 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     if a.max_steps.is_none() && a.max_minutes.is_none() && !a.resume {
         bail!("give the job a limit: --max-steps N and/or --max-minutes M");
     }
-    let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes)?;
+    let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes).await?;
     spec.cluster_overrides = overrides;
     let coord = Coordinator::open(spec, a.resume).await?;
     let listener = tokio::net::TcpListener::bind(a.listen)

@@ -8,7 +8,7 @@ use osrt_model::{add_slot, drop_slot};
 use osrt_sweep::pictures::{
     rgb_image, rgb8_image, segmentation_image, strip, write_gif, write_png,
 };
-use osrt_trainer::render::{encode_scene, orbit, render_view};
+use osrt_trainer::render::{encode_scene, orbit, render_view, scene_camera};
 use osrt_trainer::{DeviceSpec, LoadedRun, load_run, load_run_on};
 use serde_json::json;
 use std::io::IsTerminal;
@@ -174,7 +174,8 @@ fn render_frames(
         }
         for (s, tally) in [(Some(&slots), true), (edited.as_ref(), false)] {
             let Some(s) = s else { continue };
-            let f = render_view(model, s, camera, size.0, size.1)?;
+            let camera = scene_camera(model, scene, camera);
+            let f = render_view(model, s, &camera, size.0, size.1)?;
             panels.push(rgb_image(f.width, f.height, &f.decoded.rgb));
             match &f.decoded.labels {
                 Some(l) => {
@@ -338,7 +339,8 @@ pub async fn report_strip(
             rgb8_image(v.width, v.height, v.image.clone())
                 .context("a dataset view's image does not match its size")?,
         );
-        let f = render_view(model, &slots, &v.camera, v.width, v.height)?;
+        let camera = scene_camera(model, scene, &v.camera);
+        let f = render_view(model, &slots, &camera, v.width, v.height)?;
         panels.push(rgb_image(f.width, f.height, &f.decoded.rgb));
         if let Some(l) = &f.decoded.labels {
             panels.push(segmentation_image(f.width, f.height, l));

@@ -132,7 +132,7 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
         );
         let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
         let threads = file.threads.unwrap_or((cores / file.workers).max(1));
-        let spec = crate::cluster::spec(job, &file.data, &run, file.max_steps, max_minutes)?;
+        let spec = crate::cluster::spec(job, &file.data, &run, file.max_steps, max_minutes).await?;
         crate::cluster::run_local(crate::cluster::LocalJob {
             spec,
             workers: file.workers,

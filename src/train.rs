@@ -61,7 +61,8 @@ pub struct TrainArgs {
     /// Share of target rays drawn from salient pixels (0 = uniform, the paper's setting).
     #[arg(long)]
     pub salient_fraction: Option<f32>,
-    /// Override the decoder: slot_mixer, spatial_broadcast, transformer.
+    /// Override the decoder: slot_mixer, spatial_broadcast, transformer, volumetric
+    /// (V-OSRT; samples inside the dataset manifest's scene box).
     #[arg(long)]
     pub decoder: Option<String>,
     /// Override the number of slots.
@@ -77,6 +78,10 @@ pub struct TrainArgs {
     /// option beyond the paper: RGB-only CNN plus a ray-patch embedding).
     #[arg(long)]
     pub ray_input: Option<String>,
+    /// Input poses: absolute (OSRT) or unposed (Up-OSRT: camera-ID and 2D position
+    /// embeddings, target rays relative to the first input camera).
+    #[arg(long)]
+    pub poses: Option<String>,
     /// Where the workers compute: cpu, cuda or cuda:N (worker k takes GPU k; needs a
     /// build with the `cuda` feature).
     #[arg(long)]
@@ -166,11 +171,17 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(d) = &a.decoder {
         job.model = job.model.clone().with_decoder(d).with_context(|| {
-            format!("unknown decoder `{d}`: expected slot_mixer, spatial_broadcast or transformer")
+            format!(
+                "unknown decoder `{d}`: expected slot_mixer, spatial_broadcast, transformer or \
+                 volumetric"
+            )
         })?;
     }
     if let Some(v) = &a.ray_input {
         job.model.encoder.ray_input = v.parse().map_err(anyhow::Error::msg)?;
+    }
+    if let Some(v) = &a.poses {
+        job.model.encoder.poses = v.parse().map_err(anyhow::Error::msg)?;
     }
     let sa = &mut job.model.slot_attention;
     if let Some(v) = a.slots {
@@ -286,7 +297,7 @@ pub async fn train(a: TrainArgs) -> Result<()> {
             ""
         },
     );
-    let mut spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes)?;
+    let mut spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes).await?;
     spec.cluster_overrides = overrides;
     let status = crate::cluster::run_local(crate::cluster::LocalJob {
         spec,

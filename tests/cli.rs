@@ -300,7 +300,8 @@ fn train_then_eval_a_tiny_run() {
     assert_eq!(r["scenes"], 3);
 }
 
-/// `osrt bench model --render-only` times the three decoders' renders and no train step
+/// `osrt bench model --render-only` times the decoders' renders (the volumetric one with
+/// and without box culling) and no train step
 /// (the loop for render A/B runs); with `--step-only` as well it is refused.
 #[test]
 fn bench_model_render_only_times_renders_alone() {
@@ -328,7 +329,13 @@ fn bench_model_render_only_times_renders_alone() {
         .collect();
     assert_eq!(
         decoders,
-        ["slot_mixer", "spatial_broadcast", "transformer"],
+        [
+            "slot_mixer",
+            "spatial_broadcast",
+            "transformer",
+            "volumetric",
+            "volumetric_no_cull"
+        ],
         "{v}"
     );
     assert!(

@@ -493,9 +493,9 @@ fn ood_scenes_are_evaluated_with_more_slots() {
     );
 }
 
-/// The shipped Table 4 sweep (explicit points, one per row of the paper's table) runs end
-/// to end at a tiny budget: every row trained, evaluated and tabulated, the decoders
-/// without slot weights left without segmentation scores.
+/// The shipped Table 4 sweep (explicit points, one per row of the paper's table, Up-OSRT
+/// and V-OSRT included) runs end to end at a tiny budget: every row trained, evaluated
+/// and tabulated, the decoder without slot weights left without segmentation scores.
 #[test]
 fn the_table4_sweep_runs_every_row() {
     let dir = tempfile::tempdir().unwrap();
@@ -532,21 +532,32 @@ fn the_table4_sweep_runs_every_row() {
     ]);
     let csv = std::fs::read_to_string(out_dir.join("results.csv")).unwrap();
     let rows: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
-    assert_eq!(rows.len(), 7, "a header and six rows: {csv}");
-    assert_eq!(
-        &rows[0][..3],
-        ["input_views", "decoder", "targets"],
-        "{csv}"
-    );
-    let fg = rows[0].iter().position(|c| *c == "fg_ari").unwrap();
-    let row = |views: &str, decoder: &str, targets: &str| {
-        rows.iter()
-            .find(|r| r[0] == views && r[1] == decoder && r[2] == targets)
-            .unwrap_or_else(|| panic!("no row {views},{decoder},{targets}: {csv}"))
+    assert_eq!(rows.len(), 9, "a header and eight rows: {csv}");
+    let col = |name: &str| {
+        rows[0]
+            .iter()
+            .position(|c| *c == name)
+            .unwrap_or_else(|| panic!("no column {name}: {csv}"))
     };
-    assert!(row("1", "", "")[fg].parse::<f64>().is_ok(), "{csv}");
-    assert!(row("5", "transformer", "")[fg].is_empty(), "{csv}");
-    row("3", "", "");
-    row("5", "spatial_broadcast", "");
-    row("5", "", "input");
+    let (v, d, p, t, fg) = (
+        col("input_views"),
+        col("decoder"),
+        col("poses"),
+        col("targets"),
+        col("fg_ari"),
+    );
+    let row = |views: &str, decoder: &str, poses: &str, targets: &str| {
+        rows.iter()
+            .find(|r| r[v] == views && r[d] == decoder && r[p] == poses && r[t] == targets)
+            .unwrap_or_else(|| panic!("no row {views},{decoder},{poses},{targets}: {csv}"))
+    };
+    assert!(row("1", "", "", "")[fg].parse::<f64>().is_ok(), "{csv}");
+    assert!(row("5", "transformer", "", "")[fg].is_empty(), "{csv}");
+    row("3", "", "", "");
+    row("5", "spatial_broadcast", "", "");
+    row("5", "", "", "input");
+    for (decoder, poses) in [("", "unposed"), ("volumetric", "")] {
+        let r = row("5", decoder, poses, "");
+        assert!(r[fg].parse::<f64>().is_ok(), "{decoder}{poses}: {csv}");
+    }
 }

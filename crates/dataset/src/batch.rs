@@ -3,6 +3,7 @@
 //! wrapped as tensors. Nothing is padded: every scene of a batch must have the same input
 //! image size and the same number of target rays, and a mismatch is an error.
 
+use crate::camera::Camera;
 use crate::error::{DatasetError, Result};
 use crate::rays::{pixel_ray, view_rays};
 use crate::scene::Scene;
@@ -21,6 +22,29 @@ pub enum TargetViews {
     NonInput,
     /// Only the input views: 2D reconstruction training (paper §4.2).
     Input,
+}
+
+/// The coordinate frame of every ray of a batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum RayFrame {
+    /// The dataset's world frame (posed models).
+    #[default]
+    World,
+    /// The frame of the scene's first chosen input camera (Up-OSRT): every camera is
+    /// [`crate::Camera::relative_to`] it before its rays are derived, so a rigid motion
+    /// of the whole scene leaves the batch unchanged.
+    FirstInput,
+}
+
+impl RayFrame {
+    /// `camera` in this frame, where `reference` is the scene's first input camera.
+    pub fn express(self, camera: &Camera, reference: &Camera) -> Camera {
+        match self {
+            RayFrame::World => *camera,
+            RayFrame::FirstInput => camera.relative_to(reference),
+        }
+    }
 }
 
 /// How input views are chosen.
@@ -51,6 +75,9 @@ pub struct BatchConfig {
     /// uses only the images (never masks).
     #[serde(default)]
     pub salient_fraction: f32,
+    /// The frame rays are expressed in (inputs and targets alike).
+    #[serde(default)]
+    pub ray_frame: RayFrame,
 }
 
 /// Summed absolute RGB difference (in `[0, 3]`) from the view's median colour above which
@@ -236,6 +263,8 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
     };
     for (si, scene) in scenes.iter().enumerate() {
         let inputs = choose_inputs(scene, cfg, rng)?;
+        let reference = scene.views[inputs[0]].camera;
+        let camera = |vi: usize| cfg.ray_frame.express(&scene.views[vi].camera, &reference);
         for &vi in &inputs {
             let view = &scene.views[vi];
             if (view.width as usize, view.height as usize) != (w0, h0) {
@@ -247,7 +276,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
             batch
                 .input_images
                 .extend(view.image.iter().map(|&p| p as f32 / 255.0));
-            let rays = view_rays(&view.camera, view.width, view.height);
+            let rays = view_rays(&camera(vi), view.width, view.height);
             batch.input_origins.extend(rays.origins);
             batch.input_directions.extend(rays.directions);
         }
@@ -295,7 +324,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
                 (rest % view.width as usize) as u32,
                 (rest / view.width as usize) as u32,
             );
-            let (o, d) = pixel_ray(&view.camera, u, row);
+            let (o, d) = pixel_ray(&camera(vi), u, row);
             batch.target_origins.extend_from_slice(&o);
             batch.target_directions.extend_from_slice(&d);
             batch.target_rgb.extend(

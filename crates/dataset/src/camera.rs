@@ -111,6 +111,27 @@ impl Camera {
         Vec3::from_f32(self.position)
     }
 
+    /// This camera expressed in `reference`'s camera frame: position `Rᵣᵀ(p − pᵣ)`,
+    /// rotation `Rᵣᵀ R`. The rays of the result are this camera's rays seen from the
+    /// reference camera, so moving every camera of a scene by one rigid motion leaves them
+    /// unchanged (what an unposed model relies on).
+    pub fn relative_to(&self, reference: &Camera) -> Camera {
+        let axes = [reference.axis(0), reference.axis(1), reference.axis(2)];
+        let p = self.position() - reference.position();
+        let position = Vec3::new(axes[0].dot(p), axes[1].dot(p), axes[2].dot(p)).to_f32();
+        let mut rotation = [[0f32; 3]; 3];
+        for (i, row) in rotation.iter_mut().enumerate() {
+            for (j, r) in row.iter_mut().enumerate() {
+                *r = axes[i].dot(self.axis(j)) as f32;
+            }
+        }
+        Camera {
+            position,
+            rotation,
+            intrinsics: self.intrinsics,
+        }
+    }
+
     /// Unit world-space direction through continuous image coordinates `(x, y)` in pixels
     /// (pixel centres are at half-integers).
     pub fn direction_at(&self, x: f64, y: f64) -> Vec3 {
@@ -217,6 +238,31 @@ mod tests {
             tl.z > c.axis(2).z,
             "row 0 must look higher in the world than the centre"
         );
+    }
+
+    /// A camera relative to itself sits at the origin looking along +z; relative poses
+    /// do not change when both cameras move by one rigid motion.
+    #[test]
+    fn relative_cameras_ignore_a_shared_rigid_motion() {
+        let a = cam(16, 12);
+        let k = a.intrinsics;
+        let b = Camera::look_at(Vec3::new(-3.0, 8.0, 2.0), Vec3::new(0.5, 0.0, 0.0), k).unwrap();
+        let own = a.relative_to(&a);
+        assert!(own.position().norm() < 1e-5);
+        assert!((own.axis(2) - Vec3::new(0.0, 0.0, 1.0)).norm() < 1e-6);
+        // Rotate the world 70° about z and shift it: the same scene, elsewhere.
+        let (s, c) = 70f64.to_radians().sin_cos();
+        let moved = |cam: &Camera| {
+            let m = |v: Vec3| Vec3::new(c * v.x - s * v.y, s * v.x + c * v.y, v.z);
+            let p = m(cam.position()) + Vec3::new(4.0, -2.0, 1.5);
+            Camera::look_at(p, p + m(cam.axis(2)), k).unwrap()
+        };
+        let (before, after) = (b.relative_to(&a), moved(&b).relative_to(&moved(&a)));
+        assert!((before.position() - after.position()).norm() < 1e-4);
+        for j in 0..3 {
+            assert!((before.axis(j) - after.axis(j)).norm() < 1e-5);
+        }
+        after.validate().unwrap();
     }
 
     #[test]

@@ -29,7 +29,7 @@ pub mod schema;
 pub mod store;
 pub mod writer;
 
-pub use batch::{Batch, BatchConfig, InputSelection, TargetViews, build_batch};
+pub use batch::{Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch};
 pub use camera::{Camera, Intrinsics};
 pub use error::{DatasetError, Result};
 pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};

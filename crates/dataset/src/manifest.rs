@@ -43,6 +43,12 @@ pub struct Manifest {
     pub image_codec: ImageCodec,
     pub generator: Option<GeneratorInfo>,
     pub splits: BTreeMap<String, SplitInfo>,
+    /// `[min, max]` corners of an axis-aligned box, in world coordinates, that holds
+    /// everything a ray can meet besides the background (objects and the floor beneath
+    /// them): what a volumetric decoder samples. Absent: unknown (generated datasets
+    /// from before it was recorded derive it from their generator settings).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene_bounds: Option<[[f32; 3]; 2]>,
 }
 
 impl Manifest {
@@ -56,6 +62,7 @@ impl Manifest {
             image_codec: ImageCodec::Raw,
             generator: None,
             splits: BTreeMap::new(),
+            scene_bounds: None,
         }
     }
 
@@ -64,6 +71,15 @@ impl Manifest {
         self.image_codec = codec;
         self.schema_version = codec.schema_version();
         self
+    }
+
+    /// The scene box: recorded, or derived from the generator's settings.
+    pub fn scene_bounds(&self) -> Option<[[f32; 3]; 2]> {
+        self.scene_bounds.or_else(|| {
+            let g = self.generator.as_ref()?;
+            let cfg: crate::GeneratorConfig = serde_json::from_value(g.settings.clone()).ok()?;
+            Some(cfg.scene_bounds())
+        })
     }
 
     pub async fn write(&self, dataset: &Location) -> Result<()> {

@@ -2,6 +2,11 @@
 //! encoding, the feature maps of all views flattened into one token set, then a pre-norm
 //! self-attention transformer. Its output is the Set-Latent Scene Representation (SLSR).
 //!
+//! Up-OSRT (paper §4.3, appendix "Poses"): with `poses = "unposed"` the CNN reads RGB
+//! only, and each token gets a learned camera-ID embedding (the reference camera — the
+//! first input view, whose frame the target rays are expressed in — or any other) and
+//! learned row and column embeddings of its place in the feature grid, as in UpSRT.
+//!
 //! Paper sizes: 3 blocks of [conv3×3 s1 → ReLU → conv3×3 s2 → ReLU] without biases,
 //! 183 → 96 → 192 → 384 → 768 channels, total stride 8, a 1×1 conv to the token width,
 //! and 5 transformer layers of width 768 (12 heads × 64, MLP 1536).
@@ -44,6 +49,39 @@ impl std::str::FromStr for RayInput {
     }
 }
 
+/// Whether the encoder sees the input views' poses.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Poses {
+    /// OSRT: every input pixel's ray, in the world frame, enters the CNN (`ray_input`).
+    #[default]
+    Absolute,
+    /// Up-OSRT: no input rays (`ray_input` is unused); camera-ID and 2D position
+    /// embeddings instead, and target rays relative to the first input camera (the batch
+    /// builder's `RayFrame::FirstInput`).
+    Unposed,
+}
+
+impl std::str::FromStr for Poses {
+    type Err = String;
+
+    /// The names the configs use: `absolute`, `unposed`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "absolute" => Ok(Self::Absolute),
+            "unposed" => Ok(Self::Unposed),
+            other => Err(format!(
+                "unknown poses `{other}`: expected absolute or unposed"
+            )),
+        }
+    }
+}
+
+/// Rows and columns of the largest token grid the unposed position embeddings cover.
+fn default_max_grid() -> usize {
+    128
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Config {
     /// Width of the first conv of each block; the block's stride-2 conv doubles it.
@@ -54,6 +92,13 @@ pub struct Config {
     /// How the ray encoding enters (absent in older configs: the paper's `concat`).
     #[serde(default)]
     pub ray_input: RayInput,
+    /// Posed (OSRT) or unposed (Up-OSRT) inputs (absent in older configs: posed).
+    #[serde(default)]
+    pub poses: Poses,
+    /// Unposed only: the position embeddings' rows and columns (feature-grid sides up to
+    /// this; 128 covers 512 × 512 inputs at stride 4).
+    #[serde(default = "default_max_grid")]
+    pub max_grid: usize,
 }
 
 impl Config {
@@ -68,6 +113,8 @@ impl Config {
                 mlp_hidden: 1536,
             },
             ray_input: RayInput::Concat,
+            poses: Poses::Absolute,
+            max_grid: default_max_grid(),
         }
     }
 
@@ -83,8 +130,18 @@ pub struct Encoder {
     project: Conv2d,
     /// `RayInput::Add` only: ray-encoding patch embedding, kernel = stride = CNN stride.
     ray_embed: Option<Conv2d>,
+    /// `Poses::Unposed` only: camera-ID `[2, dim]` (reference, other), row and column
+    /// position embeddings `[max_grid, dim]`.
+    unposed: Option<UnposedEmbeddings>,
     transformer: Transformer,
     cfg: Config,
+}
+
+#[derive(Debug, Clone)]
+struct UnposedEmbeddings {
+    camera: Tensor,
+    row: Tensor,
+    col: Tensor,
 }
 
 impl Encoder {
@@ -98,9 +155,9 @@ impl Encoder {
             stride: 2,
             ..Default::default()
         };
-        let mut c_in = match cfg.ray_input {
-            RayInput::Concat => 3 + ray_dim,
-            RayInput::Add => 3,
+        let mut c_in = match (cfg.poses, cfg.ray_input) {
+            (Poses::Unposed, _) | (Poses::Absolute, RayInput::Add) => 3,
+            (Poses::Absolute, RayInput::Concat) => 3 + ray_dim,
         };
         let mut convs = Vec::new();
         for (i, &c) in cfg.conv_channels.iter().enumerate() {
@@ -112,9 +169,9 @@ impl Encoder {
         }
         let project =
             candle_nn::conv2d_no_bias(c_in, cfg.dim, 1, Default::default(), vb.pp("project"))?;
-        let ray_embed = match cfg.ray_input {
-            RayInput::Concat => None,
-            RayInput::Add => Some(candle_nn::conv2d_no_bias(
+        let ray_embed = match (cfg.poses, cfg.ray_input) {
+            (Poses::Unposed, _) | (Poses::Absolute, RayInput::Concat) => None,
+            (Poses::Absolute, RayInput::Add) => Some(candle_nn::conv2d_no_bias(
                 ray_dim,
                 cfg.dim,
                 cfg.stride(),
@@ -122,12 +179,29 @@ impl Encoder {
                 vb.pp("ray_embed"),
             )?),
         };
+        let unposed = match cfg.poses {
+            Poses::Absolute => None,
+            Poses::Unposed => {
+                // Small random values, as a ViT's learned position embedding starts.
+                let init = candle_nn::Init::Randn {
+                    mean: 0.0,
+                    stdev: 0.02,
+                };
+                let vb = vb.pp("unposed");
+                Some(UnposedEmbeddings {
+                    camera: vb.get_with_hints((2, cfg.dim), "camera", init)?,
+                    row: vb.get_with_hints((cfg.max_grid, cfg.dim), "row", init)?,
+                    col: vb.get_with_hints((cfg.max_grid, cfg.dim), "col", init)?,
+                })
+            }
+        };
         let transformer =
             Transformer::new(cfg.dim, cfg.dim, &cfg.transformer, vb.pp("transformer"))?;
         Ok(Self {
             convs,
             project,
             ray_embed,
+            unposed,
             transformer,
             cfg: cfg.clone(),
         })
@@ -135,7 +209,8 @@ impl Encoder {
 
     /// # Shapes
     /// `images: [b, v, h, w, 3]` in `[0, 1]`, `origins`/`directions: [b, v, h, w, 3]`
-    /// → SLSR `[b, v·(h/s)·(w/s), dim]` with `s` = [`Config::stride`].
+    /// (unused when unposed) → SLSR `[b, v·(h/s)·(w/s), dim]` with `s` =
+    /// [`Config::stride`].
     pub fn forward(
         &self,
         rays: &RayEncoding,
@@ -143,6 +218,10 @@ impl Encoder {
         origins: &Tensor,
         directions: &Tensor,
     ) -> Result<Tensor> {
+        if let Some(e) = &self.unposed {
+            let tokens = self.unposed_tokens(e, images)?;
+            return self.transformer.forward(&tokens, None);
+        }
         let (b, v, h, w, _) = images.dims5()?;
         let enc = rays.forward(origins, directions)?; // [b, v, h, w, r]
         let r = rays.dim();
@@ -172,6 +251,43 @@ impl Encoder {
         let (_, h2, w2, d) = x.dims4()?;
         let tokens = x.reshape((b, v * h2 * w2, d))?;
         self.transformer.forward(&tokens, None)
+    }
+
+    /// Up-OSRT's tokens: the CNN over RGB, plus camera-ID and row/column embeddings.
+    ///
+    /// # Shapes
+    /// `images: [b, v, h, w, 3]` → `[b, v·h'·w', dim]`
+    fn unposed_tokens(&self, e: &UnposedEmbeddings, images: &Tensor) -> Result<Tensor> {
+        let (b, v, h, w, _) = images.dims5()?;
+        let mut x = images.reshape((b * v, h, w, 3))?;
+        for (a, s2) in &self.convs {
+            x = relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
+            x = relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
+        }
+        let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        let (_, h2, w2, d) = x.dims4()?;
+        let g = self.cfg.max_grid;
+        if h2 > g || w2 > g {
+            candle_core::bail!(
+                "encoder: the unposed position embeddings cover {g}×{g} tokens, the \
+                 feature grid of {h}×{w} inputs is {h2}×{w2} (raise model.encoder.max_grid)"
+            );
+        }
+        let pos = e
+            .row
+            .narrow(0, 0, h2)?
+            .unsqueeze(1)?
+            .broadcast_add(&e.col.narrow(0, 0, w2)?.unsqueeze(0)?)?; // [h', w', d]
+        // View 0 is the reference camera; the other views are an unordered set and share
+        // one embedding, so permuting them permutes the tokens and nothing else.
+        let ids: Vec<u32> = (0..v).map(|i| u32::from(i > 0)).collect();
+        let ids = Tensor::from_vec(ids, v, images.device())?;
+        let cam = e.camera.index_select(&ids, 0)?.reshape((1, v, 1, d))?; // [1, v, 1, d]
+        let x = x
+            .reshape((b, v, h2 * w2, d))?
+            .broadcast_add(&pos.reshape((1, 1, h2 * w2, d))?)?
+            .broadcast_add(&cam)?;
+        x.reshape((b, v * h2 * w2, d))
     }
 
     pub fn config(&self) -> &Config {

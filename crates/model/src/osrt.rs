@@ -53,6 +53,8 @@ impl Config {
                 dim: 128,
                 transformer: small,
                 ray_input: encoder::RayInput::Add,
+                poses: encoder::Poses::Absolute,
+                max_grid: 64,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 7,
@@ -95,6 +97,8 @@ impl Config {
                 dim: 8,
                 transformer: t.clone(),
                 ray_input: encoder::RayInput::Concat,
+                poses: encoder::Poses::Absolute,
+                max_grid: 16,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 3,
@@ -122,7 +126,8 @@ impl Config {
         }
     }
 
-    /// The same model with another decoder kind (sizes taken from `like`'s widths).
+    /// The same model with another decoder kind (`slot_mixer`, `spatial_broadcast`,
+    /// `transformer`, `volumetric`), widths taken from the current decoder's.
     pub fn with_decoder(mut self, kind: &str) -> Option<Self> {
         let (query_hidden, alloc, render) = match &self.decoder {
             decoder::Config::SlotMixer(c) => (
@@ -133,6 +138,11 @@ impl Config {
             decoder::Config::Transformer(c) => (
                 c.query_hidden,
                 c.transformer.clone(),
+                c.render_hidden.clone(),
+            ),
+            decoder::Config::Volumetric(c) => (
+                c.query_hidden,
+                c.allocation.clone(),
                 c.render_hidden.clone(),
             ),
             decoder::Config::SpatialBroadcast(c) => {
@@ -160,6 +170,16 @@ impl Config {
                 query_hidden,
                 transformer: alloc,
                 render_hidden: render,
+            }),
+            // 16 points per ray: the light field's one decoder pass becomes 16 (the
+            // paper's 64 are `volumetric::Config::paper`); the box comes from the data.
+            "volumetric" => decoder::Config::Volumetric(decoder::volumetric::Config {
+                samples: 16,
+                query_hidden,
+                allocation: alloc,
+                render_hidden: render,
+                bounds: None,
+                cull: true,
             }),
             _ => return None,
         };
@@ -236,7 +256,8 @@ impl Osrt {
         self.slot_attention.forward(&slsr, noise)
     }
 
-    /// Slots and target rays → colours (and slot weights).
+    /// Slots and target rays → colours (and slot weights); a volumetric decoder samples
+    /// the centres of its depth bins (deterministic: evaluation and rendering).
     ///
     /// # Shapes
     /// `slots: [b, k, slot_dim]`, `origins`, `directions: [b, r, 3]` → rgb `[b, r, 3]`,
@@ -247,7 +268,38 @@ impl Osrt {
         origins: &Tensor,
         directions: &Tensor,
     ) -> Result<DecoderOutput> {
-        self.decoder.forward(&self.rays, slots, origins, directions)
+        self.decode_with(slots, origins, directions, None)
+    }
+
+    /// [`Self::decode`] with a volumetric decoder's stratification offsets (training).
+    ///
+    /// # Shapes
+    /// as [`Self::decode`], `offsets: [b, r, samples]` in `[0, 1)`
+    pub fn decode_with(
+        &self,
+        slots: &Tensor,
+        origins: &Tensor,
+        directions: &Tensor,
+        offsets: Option<&Tensor>,
+    ) -> Result<DecoderOutput> {
+        self.decoder
+            .forward(&self.rays, slots, origins, directions, offsets)
+    }
+
+    /// Uniform stratification offsets `[b, r, samples]` for a volumetric decoder, drawn
+    /// from the caller's seeded RNG; `None` (and nothing drawn) for the other decoders.
+    pub fn ray_offsets(
+        &self,
+        b: usize,
+        r: usize,
+        rng: &mut impl rand::Rng,
+    ) -> Result<Option<Tensor>> {
+        let decoder::Config::Volumetric(c) = &self.cfg.decoder else {
+            return Ok(None);
+        };
+        let n = b * r * c.samples;
+        let u: Vec<f32> = (0..n).map(|_| rng.random::<f32>()).collect();
+        Ok(Some(Tensor::from_vec(u, (b, r, c.samples), self.device())?))
     }
 }
 

@@ -40,6 +40,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         rays_per_scene: Some(t.rays_per_scene),
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let trainer = Trainer::new(job.clone(), Device::Cpu)?;

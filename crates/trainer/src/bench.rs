@@ -81,6 +81,7 @@ fn bench_data(job: &JobConfig, image_size: u32) -> Result<(Vec<Scene>, BatchConf
         rays_per_scene: Some(job.train.rays_per_scene),
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: crate::config::ray_frame(&job.model),
     };
     Ok((scenes, cfg))
 }
@@ -163,8 +164,19 @@ fn gradient_round_trip(n: usize, device: &Device) -> Result<f64> {
     Ok(s)
 }
 
+/// The decoders `osrt bench model` renders with: the paper's three, and the volumetric
+/// decoder with and without its box culling.
+pub const RENDER_DECODERS: [&str; 5] = [
+    "slot_mixer",
+    "spatial_broadcast",
+    "transformer",
+    "volumetric",
+    "volumetric_no_cull",
+];
+
 /// Median time to decode one whole `image_size²` view from `slots` slots (encoding
-/// excluded: rendering novel views reuses the slots).
+/// excluded: rendering novel views reuses the slots). `decoder` is one of
+/// [`RENDER_DECODERS`]; the volumetric ones sample inside the bench scenes' box.
 pub fn bench_render(
     model_cfg: &Config,
     decoder: &str,
@@ -173,10 +185,22 @@ pub fn bench_render(
     repeats: usize,
     device: &Device,
 ) -> Result<RenderFigures> {
-    let mut cfg = model_cfg
-        .clone()
-        .with_decoder(decoder)
-        .expect("known decoder");
+    let (kind, cull) = match decoder {
+        "volumetric_no_cull" => ("volumetric", false),
+        other => (other, true),
+    };
+    let mut cfg =
+        model_cfg
+            .clone()
+            .with_decoder(kind)
+            .ok_or_else(|| crate::TrainError::Config {
+                path: "bench".into(),
+                reason: format!("unknown decoder `{decoder}`: expected one of {RENDER_DECODERS:?}"),
+            })?;
+    if let osrt_model::decoder::Config::Volumetric(v) = &mut cfg.decoder {
+        v.bounds = Some(GeneratorConfig::clevr_lite().scene_bounds());
+        v.cull = cull;
+    }
     cfg.slot_attention.num_slots = slots;
     let params = Params::new(0);
     let model = Osrt::new(&cfg, params.var_builder(device))?;
@@ -188,6 +212,7 @@ pub fn bench_render(
         rays_per_scene: None,
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: crate::config::ray_frame(&cfg),
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;
     let t = BatchTensors::new(&batch, device)?;

@@ -4,7 +4,9 @@
 
 use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
-use osrt_dataset::{InputSelection, TargetViews};
+use osrt_dataset::{InputSelection, Manifest, RayFrame, TargetViews};
+use osrt_model::decoder::Config as DecoderConfig;
+use osrt_model::encoder::Poses;
 use osrt_model::{Kernels, Precision};
 pub use osrt_run::{ClusterConfig, ClusterOverrides};
 use serde::{Deserialize, Serialize};
@@ -102,6 +104,15 @@ impl TrainConfig {
                     .decay_rate
                     .powf((step - self.warmup_steps) as f64 / self.decay_steps)
         }
+    }
+}
+
+/// The frame a model's rays are expressed in: the world for posed models, the first input
+/// camera's for Up-OSRT (unposed).
+pub fn ray_frame(model: &osrt_model::Config) -> RayFrame {
+    match model.encoder.poses {
+        Poses::Absolute => RayFrame::World,
+        Poses::Unposed => RayFrame::FirstInput,
     }
 }
 
@@ -247,6 +258,25 @@ impl JobConfig {
         toml::to_string_pretty(self).expect("config serialises")
     }
 
+    /// Fills a volumetric decoder's unset scene box from the dataset's manifest (a box
+    /// set in the job is kept); other decoders need none. `data` names the dataset in
+    /// the error when the manifest records no box.
+    pub fn resolve_scene_bounds(&mut self, manifest: &Manifest, data: &str) -> Result<()> {
+        if let DecoderConfig::Volumetric(v) = &mut self.model.decoder
+            && v.bounds.is_none()
+        {
+            v.bounds = Some(manifest.scene_bounds().ok_or_else(|| TrainError::Config {
+                path: "model.decoder.bounds".into(),
+                reason: format!(
+                    "the volumetric decoder samples inside the scene's box, and the manifest \
+                     of {data} records none (scene_bounds): set model.decoder.bounds = \
+                     [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the job config"
+                ),
+            })?);
+        }
+        Ok(())
+    }
+
     /// Rejects settings that cannot train.
     pub fn validate(&self) -> Result<()> {
         let t = &self.train;
@@ -306,6 +336,20 @@ impl JobConfig {
                  kernels are f32"
                     .into(),
             );
+        }
+        if self.model.encoder.poses == Poses::Unposed
+            && matches!(self.model.decoder, DecoderConfig::Volumetric(_))
+        {
+            return bad(
+                "an unposed encoder (Up-OSRT) sees rays relative to its first input camera, \
+                 the volumetric decoder's box is in world coordinates: use one or the other"
+                    .into(),
+            );
+        }
+        if let DecoderConfig::Volumetric(v) = &self.model.decoder
+            && v.samples == 0
+        {
+            return bad("model.decoder.samples must be positive".into());
         }
         if self.model.slot_attention.num_slots == 0 {
             return bad("num_slots must be positive".into());

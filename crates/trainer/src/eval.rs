@@ -97,6 +97,7 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
             .iter()
             .all(|s| s.views.iter().all(|v| v.mask.is_some())),
         salient_fraction: 0.0,
+        ray_frame: crate::config::ray_frame(&model.cfg),
     };
     for scene in scenes {
         // Scenes with fewer views than needed for novel views fall back to all views.

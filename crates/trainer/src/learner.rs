@@ -189,6 +189,7 @@ impl Learner {
             rays_per_scene: Some(t.rays_per_scene),
             with_masks: false,
             salient_fraction: t.salient_fraction,
+            ray_frame: crate::config::ray_frame(&job.model),
         };
         let eval_opts = crate::run::eval_options(&job);
         let now = Instant::now();

@@ -104,6 +104,7 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
         rays_per_scene: Some(1),
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: crate::config::ray_frame(&model.cfg),
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let batch = build_batch(&[scene], &cfg, &mut rng)?;
@@ -119,6 +120,13 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
     Ok(out.slots)
 }
 
+/// `camera` in the frame `model` takes its rays in, for a scene encoded by
+/// [`encode_scene`]: itself for posed models, relative to the scene's first view for
+/// Up-OSRT (whose slots know the scene only as seen from that camera).
+pub fn scene_camera(model: &Osrt, scene: &Scene, camera: &Camera) -> Camera {
+    crate::config::ray_frame(&model.cfg).express(camera, &scene.views[0].camera)
+}
+
 /// One rendered image.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
@@ -127,7 +135,8 @@ pub struct Frame {
     pub decoded: Decoded,
 }
 
-/// Every pixel of `camera` at `width × height`, decoded from `slots: [1, k, d]`.
+/// Every pixel of `camera` at `width × height`, decoded from `slots: [1, k, d]`; the
+/// camera is in the model's frame ([`scene_camera`]).
 pub fn render_view(
     model: &Osrt,
     slots: &Tensor,

@@ -170,12 +170,19 @@ impl Trainer {
     fn gradients_here(&self, batch: &Batch, rng: &mut impl Rng) -> Result<StepGradients> {
         let t = BatchTensors::new(batch, &self.device)?;
         let noise = self.slot_noise(batch.batch_size, rng)?;
+        // Drawn after the slot noise; nothing is drawn for decoders that do not sample.
+        let offsets = self
+            .model
+            .ray_offsets(batch.batch_size, batch.rays_per_scene, rng)?;
         let slots = self
             .model
             .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?;
-        let out = self
-            .model
-            .decode(&slots.slots, &t.target_origins, &t.target_directions)?;
+        let out = self.model.decode_with(
+            &slots.slots,
+            &t.target_origins,
+            &t.target_directions,
+            offsets.as_ref(),
+        )?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
         let grads = loss.backward()?;
         let flat = if crate::device::is_cpu(&self.device) {

@@ -73,6 +73,7 @@ async fn two_half_batches_step_like_one_full_batch() {
         rays_per_scene: Some(32),
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     // Uneven shares (3 + 1 scenes) check the weighting by real sample counts.
     for (step, share) in [(0u64, 2usize), (1, 3), (2, 1), (3, 2)] {

@@ -28,6 +28,7 @@ fn batch(scenes: &[Scene], seed: u64) -> osrt_dataset::Batch {
         rays_per_scene: Some(32),
         with_masks: false,
         salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
 }

@@ -197,6 +197,15 @@ impl GeneratorConfig {
 
     pub const PRESETS: [&'static str; 3] = ["clevr-lite", "hard-lite", "ood"];
 
+    /// The box every object of a scene lies in, with the floor under it: footprints reach
+    /// `extent` plus the largest object's reach (a cube's corner, `r·√2`), objects stand
+    /// up to `2r` tall, and a 0.25 slab below `z = 0` holds the floor's surface.
+    pub fn scene_bounds(&self) -> [[f32; 3]; 2] {
+        let r = SIZES.iter().map(|s| s.1).fold(0.0, f64::max);
+        let xy = (self.extent + r * std::f64::consts::SQRT_2) as f32;
+        [[-xy, -xy, -0.25], [xy, xy, (2.0 * r + 0.1) as f32]]
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(DatasetError::Generator(m));
         if self.image_size == 0 || self.image_size > 4096 {
@@ -502,6 +511,7 @@ pub async fn generate_dataset(
     let views = cfg.cameras.num_views() as u32;
     let mut manifest =
         Manifest::new([cfg.image_size; 2], [views, views], cfg.objects).with_codec(opts.codec);
+    manifest.scene_bounds = Some(cfg.scene_bounds());
     manifest.generator = Some(GeneratorInfo {
         preset: cfg.preset.clone(),
         seed,

@@ -179,6 +179,7 @@ async fn rays_and_batches_from_read_scenes() {
         rays_per_scene: Some(50),
         with_masks: true,
         salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let b = build_batch(&refs, &cfg, &mut rng).unwrap();
@@ -215,6 +216,7 @@ async fn rays_and_batches_from_read_scenes() {
         rays_per_scene: None,
         with_masks: true,
         salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     let e = build_batch(&refs, &eval, &mut rng).unwrap();
     assert_eq!(e.rays_per_scene, 2 * 64);
@@ -245,6 +247,7 @@ fn salient_sampling_draws_more_object_rays_without_reading_masks() {
         rays_per_scene: Some(200),
         with_masks: true,
         salient_fraction: f,
+        ray_frame: osrt_dataset::RayFrame::World,
     };
     let share = |f: f32| {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);

@@ -73,7 +73,9 @@ impl SlotMixer {
     pub fn forward(&self, slots: &Tensor, rays: &Tensor) -> Result<DecoderOutput> {
         let query = self.query_mlp.forward(rays)?; // [b, r, ray_dim]
         let allocated = self.allocation.forward(&query, Some(slots))?; // [b, r, ray_dim]
-        let (mixed, weights) = self.mix(&allocated, slots)?; // [b, r, ds], [b, r, k]
+        let scale = 1.0 / (self.slot_dim as f64).sqrt();
+        // [b, r, ds], [b, r, k]
+        let (mixed, weights) = mix(&allocated, slots, &self.mix_q, &self.mix_k, scale)?;
         // The render MLP of (mixed ⊕ query), without materialising the concatenation.
         let rgb = candle_nn::ops::sigmoid(&self.render.forward_cat(&mixed, &query)?)?;
         Ok(DecoderOutput {
@@ -81,24 +83,30 @@ impl SlotMixer {
             weights: Some(weights),
         })
     }
+}
 
-    /// The mixing block (eq. 5): weights `w = softmax_k((x W_qᵀ)(S W_kᵀ)ᵀ / √ds)` over the
-    /// slots for each ray and the mixed slot `wᵀS`; one graph node where the fused kernel
-    /// applies (`osrt_kernels::slot_mix`), else composed here.
-    ///
-    /// # Shapes
-    /// `x: [b, r, ray_dim]` (the allocation transformer's output), `slots: [b, k, ds]` →
-    /// mixed `[b, r, ds]`, weights `[b, r, k]`
-    fn mix(&self, x: &Tensor, slots: &Tensor) -> Result<(Tensor, Tensor)> {
-        let (w_q, w_k) = (self.mix_q.weight(), self.mix_k.weight());
-        let scale = 1.0 / (self.slot_dim as f64).sqrt();
-        if let Some(out) = osrt_kernels::slot_mix(x, slots, w_q, w_k, scale)? {
-            return Ok(out);
-        }
-        let q = osrt_kernels::linear(x, w_q, None)?; // [b, r, ds]
-        let k = osrt_kernels::linear(slots, w_k, None)?; // [b, k, ds]
-        let logits = (osrt_kernels::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
-        let weights = osrt_kernels::softmax(&logits, D::Minus1)?;
-        Ok((osrt_kernels::matmul(&weights, slots)?, weights))
+/// The mixing block (eq. 5): weights `w = softmax_k((x W_qᵀ)(S W_kᵀ)ᵀ / √ds)` over the
+/// slots for each ray and the mixed slot `wᵀS`; one graph node where the fused kernel
+/// applies (`osrt_kernels::slot_mix`), else composed here. Shared with the volumetric
+/// decoder, which mixes per point.
+///
+/// # Shapes
+/// `x: [b, r, ray_dim]` (the allocation transformer's output), `slots: [b, k, ds]` →
+/// mixed `[b, r, ds]`, weights `[b, r, k]`
+pub(crate) fn mix(
+    x: &Tensor,
+    slots: &Tensor,
+    mix_q: &Linear,
+    mix_k: &Linear,
+    scale: f64,
+) -> Result<(Tensor, Tensor)> {
+    let (w_q, w_k) = (mix_q.weight(), mix_k.weight());
+    if let Some(out) = osrt_kernels::slot_mix(x, slots, w_q, w_k, scale)? {
+        return Ok(out);
     }
+    let q = osrt_kernels::linear(x, w_q, None)?; // [b, r, ds]
+    let k = osrt_kernels::linear(slots, w_k, None)?; // [b, k, ds]
+    let logits = (osrt_kernels::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
+    let weights = osrt_kernels::softmax(&logits, D::Minus1)?;
+    Ok((osrt_kernels::matmul(&weights, slots)?, weights))
 }

@@ -1,8 +1,12 @@
 //! Model-level tests: parameter counts, gradient flow, finite-difference gradient checks
-//! (in f64) and extreme inputs.
+//! (in f64) and extreme inputs. The paper's variants (Up-OSRT, V-OSRT) have their own
+//! checks in [`variants`].
 
+mod variants;
+
+use crate::decoder;
 use crate::decoder::DecoderOutput;
-use crate::encoder::RayInput;
+use crate::encoder::{Poses, RayInput};
 use crate::nn::{Block, TransformerConfig};
 use crate::params::{Params, normal_samples};
 use crate::ray_encoding::RayEncoding;
@@ -96,21 +100,46 @@ fn run(model: &Osrt, x: &Inputs) -> Result<(DecoderOutput, Tensor)> {
     Ok((out, loss))
 }
 
+/// A box that holds every camera of [`inputs`] at distance ≤ 3: every ray hits it.
+const TEST_BOUNDS: decoder::volumetric::Bounds = [[-4.0; 3], [4.0; 3]];
+
+/// The model with a volumetric decoder of 4 points per ray in [`TEST_BOUNDS`].
+fn volumetric(base: Config) -> Config {
+    let mut c = base.with_decoder("volumetric").unwrap();
+    if let decoder::Config::Volumetric(v) = &mut c.decoder {
+        v.bounds = Some(TEST_BOUNDS);
+        v.samples = 4;
+    }
+    c
+}
+
+/// Every decoder with every slot init and ray input, then Up-OSRT (unposed encoder).
 fn decoder_variants(base: Config) -> Vec<(String, Config)> {
     let mut out = Vec::new();
-    for kind in ["slot_mixer", "spatial_broadcast", "transformer"] {
+    for kind in [
+        "slot_mixer",
+        "spatial_broadcast",
+        "transformer",
+        "volumetric",
+    ] {
         for (init, ray_input) in [
             (SlotInit::Learned, RayInput::Concat),
             (SlotInit::Random, RayInput::Concat),
             (SlotInit::Tokens, RayInput::Concat),
             (SlotInit::Learned, RayInput::Add),
         ] {
-            let mut c = base.clone().with_decoder(kind).unwrap();
+            let mut c = match kind {
+                "volumetric" => volumetric(base.clone()),
+                _ => base.clone().with_decoder(kind).unwrap(),
+            };
             c.slot_attention.init = init;
             c.encoder.ray_input = ray_input;
             out.push((format!("{kind}/{init:?}/{ray_input:?}"), c));
         }
     }
+    let mut unposed = base;
+    unposed.encoder.poses = Poses::Unposed;
+    out.push(("slot_mixer/unposed".into(), unposed));
     out
 }
 
@@ -305,7 +334,8 @@ fn gradcheck_slot_attention() {
 #[test]
 fn gradcheck_decoders_and_loss() {
     // The full model (encoder, slot attention, each decoder) under the MSE loss.
-    // Every third of the 12 variants: each decoder, slot init and ray input once.
+    // Every third of the 17 variants: each decoder, slot init and ray input once (the
+    // unposed encoder is checked in `variants`).
     for (name, cfg) in decoder_variants(Config::tiny()).into_iter().step_by(3) {
         let p = Params::new(4);
         let model = Osrt::new(&cfg, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
