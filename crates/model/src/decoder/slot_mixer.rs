@@ -49,9 +49,21 @@ pub struct SlotMixer {
 
 impl SlotMixer {
     pub fn new(cfg: &Config, ray_dim: usize, slot_dim: usize, vb: VarBuilder) -> Result<Self> {
+        Self::with_outputs(cfg, ray_dim, slot_dim, 3, vb)
+    }
+
+    /// The same decoder with `outputs` values per query from its render MLP (the
+    /// volumetric decoder's points: density and RGB).
+    pub(crate) fn with_outputs(
+        cfg: &Config,
+        ray_dim: usize,
+        slot_dim: usize,
+        outputs: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
         let mut render_dims = vec![slot_dim + ray_dim];
         render_dims.extend(&cfg.render_hidden);
-        render_dims.push(3);
+        render_dims.push(outputs);
         Ok(Self {
             query_mlp: Mlp::new(
                 &[ray_dim, cfg.query_hidden, ray_dim],
@@ -71,29 +83,37 @@ impl SlotMixer {
     /// `slots: [b, k, ds]`, `rays: [b, r, ray_dim]` (encoded) → rgb `[b, r, 3]`,
     /// weights `[b, r, k]`
     pub fn forward(&self, slots: &Tensor, rays: &Tensor) -> Result<DecoderOutput> {
-        let query = self.query_mlp.forward(rays)?; // [b, r, ray_dim]
+        let (out, weights) = self.forward_raw(slots, rays)?;
+        Ok(DecoderOutput {
+            rgb: candle_nn::ops::sigmoid(&out)?,
+            weights: Some(weights),
+        })
+    }
+
+    /// Query MLP, allocation, mixing and render MLP, before any output activation.
+    ///
+    /// # Shapes
+    /// `slots: [b, k, ds]`, `queries: [b, r, ray_dim]` (encoded) → render-MLP output
+    /// `[b, r, outputs]`, weights `[b, r, k]`
+    pub(crate) fn forward_raw(&self, slots: &Tensor, queries: &Tensor) -> Result<(Tensor, Tensor)> {
+        let query = self.query_mlp.forward(queries)?; // [b, r, ray_dim]
         let allocated = self.allocation.forward(&query, Some(slots))?; // [b, r, ray_dim]
         let scale = 1.0 / (self.slot_dim as f64).sqrt();
         // [b, r, ds], [b, r, k]
         let (mixed, weights) = mix(&allocated, slots, &self.mix_q, &self.mix_k, scale)?;
         // The render MLP of (mixed ⊕ query), without materialising the concatenation.
-        let rgb = candle_nn::ops::sigmoid(&self.render.forward_cat(&mixed, &query)?)?;
-        Ok(DecoderOutput {
-            rgb,
-            weights: Some(weights),
-        })
+        Ok((self.render.forward_cat(&mixed, &query)?, weights))
     }
 }
 
 /// The mixing block (eq. 5): weights `w = softmax_k((x W_qᵀ)(S W_kᵀ)ᵀ / √ds)` over the
 /// slots for each ray and the mixed slot `wᵀS`; one graph node where the fused kernel
-/// applies (`osrt_kernels::slot_mix`), else composed here. Shared with the volumetric
-/// decoder, which mixes per point.
+/// applies (`osrt_kernels::slot_mix`), else composed here.
 ///
 /// # Shapes
 /// `x: [b, r, ray_dim]` (the allocation transformer's output), `slots: [b, k, ds]` →
 /// mixed `[b, r, ds]`, weights `[b, r, k]`
-pub(crate) fn mix(
+fn mix(
     x: &Tensor,
     slots: &Tensor,
     mix_q: &Linear,

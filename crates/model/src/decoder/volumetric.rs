@@ -17,10 +17,10 @@
 //! sphere (NeRF's near/far), the comparison the render benchmark measures.
 
 use crate::decoder::DecoderOutput;
-use crate::decoder::slot_mixer::mix;
-use crate::nn::{Activation, Linear, Mlp, Transformer, TransformerConfig, linear};
+use crate::decoder::slot_mixer::{self, SlotMixer};
+use crate::nn::TransformerConfig;
 use crate::ray_encoding::RayEncoding;
-use candle_core::{D, DType, Device, Module, Result, Tensor};
+use candle_core::{D, DType, Device, Result, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
@@ -151,14 +151,10 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
 
 #[derive(Debug, Clone)]
 pub struct Volumetric {
-    query_mlp: Mlp,
-    allocation: Transformer,
-    mix_q: Linear,
-    mix_k: Linear,
-    render: Mlp,
+    /// The Slot Mixer over points, its render MLP giving (raw density, raw RGB).
+    points: SlotMixer,
     /// Raw background colour `[3]` (sigmoid → RGB).
     background: Tensor,
-    slot_dim: usize,
     cfg: Config,
 }
 
@@ -194,22 +190,14 @@ impl Volumetric {
         if cfg.samples == 0 {
             candle_core::bail!("volumetric decoder: samples must be positive");
         }
-        let mut render_dims = vec![slot_dim + ray_dim];
-        render_dims.extend(&cfg.render_hidden);
-        render_dims.push(4);
+        let sm = slot_mixer::Config {
+            query_hidden: cfg.query_hidden,
+            allocation: cfg.allocation.clone(),
+            render_hidden: cfg.render_hidden.clone(),
+        };
         Ok(Self {
-            query_mlp: Mlp::new(
-                &[ray_dim, cfg.query_hidden, ray_dim],
-                Activation::Relu,
-                true,
-                vb.pp("query_mlp"),
-            )?,
-            allocation: Transformer::new(ray_dim, slot_dim, &cfg.allocation, vb.pp("allocation"))?,
-            mix_q: linear(ray_dim, slot_dim, false, vb.pp("mix_q"))?,
-            mix_k: linear(slot_dim, slot_dim, false, vb.pp("mix_k"))?,
-            render: Mlp::new(&render_dims, Activation::LeakyRelu, true, vb.pp("render"))?,
+            points: SlotMixer::with_outputs(&sm, ray_dim, slot_dim, 4, vb.clone())?,
             background: vb.get_with_hints(3, "background", candle_nn::Init::Const(0.0))?,
-            slot_dim,
             cfg: cfg.clone(),
         })
     }
@@ -313,11 +301,7 @@ impl Volumetric {
             let points = tensor(plan.points, &[b, p, 3], dev)?;
             let dirs = tensor(plan.dirs, &[b, p, 3], dev)?;
             let enc = rays.forward(&points, &dirs)?; // [b, p, ray_dim]
-            let query = self.query_mlp.forward(&enc)?;
-            let allocated = self.allocation.forward(&query, Some(slots))?; // [b, p, ray_dim]
-            let scale = 1.0 / (self.slot_dim as f64).sqrt();
-            let (mixed, w) = mix(&allocated, slots, &self.mix_q, &self.mix_k, scale)?;
-            let out = self.render.forward_cat(&mixed, &query)?; // [b, p, 4]
+            let (out, w) = self.points.forward_raw(slots, &enc)?; // [b, p, 4], [b, p, k]
             let sigma = softplus(&out.narrow(D::Minus1, 0, 1)?.squeeze(D::Minus1)?)?;
             let colour = candle_nn::ops::sigmoid(&out.narrow(D::Minus1, 1, 3)?)?;
             let deltas = tensor(plan.deltas, &[m, n], dev)?;
