@@ -264,7 +264,12 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
     for (si, scene) in scenes.iter().enumerate() {
         let inputs = choose_inputs(scene, cfg, rng)?;
         let reference = scene.views[inputs[0]].camera;
-        let camera = |vi: usize| cfg.ray_frame.express(&scene.views[vi].camera, &reference);
+        // Each view's camera in the batch's frame, once per scene (not once per ray).
+        let cameras: Vec<Camera> = scene
+            .views
+            .iter()
+            .map(|v| cfg.ray_frame.express(&v.camera, &reference))
+            .collect();
         for &vi in &inputs {
             let view = &scene.views[vi];
             if (view.width as usize, view.height as usize) != (w0, h0) {
@@ -276,7 +281,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
             batch
                 .input_images
                 .extend(view.image.iter().map(|&p| p as f32 / 255.0));
-            let rays = view_rays(&camera(vi), view.width, view.height);
+            let rays = view_rays(&cameras[vi], view.width, view.height);
             batch.input_origins.extend(rays.origins);
             batch.input_directions.extend(rays.directions);
         }
@@ -324,7 +329,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
                 (rest % view.width as usize) as u32,
                 (rest / view.width as usize) as u32,
             );
-            let (o, d) = pixel_ray(&camera(vi), u, row);
+            let (o, d) = pixel_ray(&cameras[vi], u, row);
             batch.target_origins.extend_from_slice(&o);
             batch.target_directions.extend_from_slice(&d);
             batch.target_rgb.extend(
