@@ -230,6 +230,16 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
                 s["device"].as_str().unwrap_or(""),
                 s["precision"].as_str().unwrap_or(""),
             );
+            let gib = |k: &str| match s[k].as_f64() {
+                Some(g) => format!("{g:.2} GiB"),
+                None => "not counted".into(),
+            };
+            println!(
+                "    optimiser {:.1} ms median; peak heap {}, peak resident {}",
+                ms("median_optimizer_s"),
+                gib("peak_heap_gib"),
+                gib("peak_rss_gib"),
+            );
             if ms("median_gradient_transfer_s") > 0.0 {
                 println!(
                     "    gradient device → host → device: {:.2} ms median ({:.1} % of the step)",

@@ -10,6 +10,10 @@ mod sweep;
 mod train;
 
 use clap::{Parser, Subcommand};
+
+/// Counts heap bytes so that `osrt bench model` can state a step's peak allocation.
+#[global_allocator]
+static ALLOC: osrt_trainer::memory::CountingAlloc = osrt_trainer::memory::CountingAlloc;
 use tracing_subscriber::EnvFilter;
 
 #[derive(Parser)]

@@ -118,8 +118,7 @@ fn bad_arguments_are_clear_errors() {
     }
 }
 
-/// pyarrow reads what we wrote. CI installs pyarrow (`.ci/run`); elsewhere the test says
-/// it is skipped rather than failing a machine without it.
+/// pyarrow reads what we wrote (`scripts/test` installs pyarrow).
 #[test]
 fn pyarrow_reads_generated_splits() {
     let have = Command::new("python3")
@@ -127,14 +126,10 @@ fn pyarrow_reads_generated_splits() {
         .status()
         .map(|s| s.success())
         .unwrap_or(false);
-    if !have {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "CI must install pyarrow (.ci/run does)"
-        );
-        eprintln!("SKIPPED pyarrow_reads_generated_splits: python3 with pyarrow not found");
-        return;
-    }
+    assert!(
+        have,
+        "python3 has no pyarrow: run the tests with scripts/test, which installs it"
+    );
     let dir = tempfile::tempdir().unwrap();
     generate(dir.path());
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/check_parquet.py");
@@ -355,8 +350,8 @@ fn bench_model_render_only_times_renders_alone() {
 
 /// Writes to a local folder are synced before they count: `strace` sees an fsync for
 /// every file `osrt data generate` writes (three splits and the manifest), and for their
-/// folders. Where strace is missing or may not trace, the test says SKIPPED (.ci/run
-/// installs it).
+/// folders. Where strace is missing or may not trace, the test says SKIPPED (scripts/test
+/// installs it where it may).
 #[test]
 fn local_writes_are_synced() {
     // Installed, and allowed to trace here (containers may forbid ptrace).

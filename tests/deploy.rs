@@ -47,29 +47,25 @@ fn manifests() -> Vec<PathBuf> {
     v
 }
 
-/// `Some(output)`, or `None` when the validator is missing outside CI.
-fn validate(files: &[PathBuf]) -> Option<std::process::Output> {
+/// The strict validator's verdict on `files` (`scripts/test` installs kubernetes-validate).
+fn validate(files: &[PathBuf]) -> std::process::Output {
     let out = Command::new("python3")
         .args(["-m", "kubernetes_validate", "--strict"])
         .args(files)
         .output()
         .expect("python3");
-    if String::from_utf8_lossy(&out.stderr).contains("No module named kubernetes_validate") {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "kubernetes-validate missing in CI"
-        );
-        eprintln!("skipped: kubernetes-validate not installed");
-        return None;
-    }
-    Some(out)
+    assert!(
+        !String::from_utf8_lossy(&out.stderr).contains("No module named kubernetes_validate"),
+        "python3 has no kubernetes-validate: run the tests with scripts/test, which installs it"
+    );
+    out
 }
 
 #[test]
 fn manifests_validate_strictly_and_a_broken_one_is_rejected() {
     let files = manifests();
     assert!(files.len() >= 4, "{files:?}");
-    let Some(out) = validate(&files) else { return };
+    let out = validate(&files);
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
@@ -99,15 +95,15 @@ fn manifests_validate_strictly_and_a_broken_one_is_rejected() {
         assert_ne!(broken, workers, "{what}: the substitution applied");
         let path = dir.path().join("workers.yaml");
         std::fs::write(&path, broken).unwrap();
-        let out = validate(&[path]).unwrap();
+        let out = validate(&[path]);
         assert!(!out.status.success(), "{what} was accepted");
     }
 }
 
 /// `kubectl kustomize DIR`: the resources `kubectl apply -k DIR` creates, built by
 /// tests/python/kustomize_lite.py (checked against kubectl itself where it is installed)
-/// into `out`/built.yaml. `None` when PyYAML is missing outside CI.
-fn kustomize_build(dir: &Path, out: &Path) -> Option<PathBuf> {
+/// into `out`/built.yaml.
+fn kustomize_build(dir: &Path, out: &Path) -> PathBuf {
     let mut cmd = Command::new("python3");
     cmd.arg(python_helper("kustomize_lite.py")).arg(dir);
     let kubectl = Command::new("kubectl")
@@ -118,15 +114,11 @@ fn kustomize_build(dir: &Path, out: &Path) -> Option<PathBuf> {
         cmd.arg("--check-kubectl");
     }
     let built = cmd.output().expect("python3");
-    if built.status.code() == Some(77) {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "PyYAML missing in CI: {}",
-            output_text(&built)
-        );
-        eprintln!("skipped: PyYAML not installed");
-        return None;
-    }
+    assert_ne!(
+        built.status.code(),
+        Some(77),
+        "python3 has no PyYAML: run the tests with scripts/test, which installs it"
+    );
     assert!(
         built.status.success(),
         "building {}: {}",
@@ -135,7 +127,7 @@ fn kustomize_build(dir: &Path, out: &Path) -> Option<PathBuf> {
     );
     let path = out.join("built.yaml");
     std::fs::write(&path, &built.stdout).unwrap();
-    Some(path)
+    path
 }
 
 /// Copies the files (not subfolders) of `from` into a new folder `to`.
@@ -154,12 +146,7 @@ fn gpu_overlay_validates_strictly_and_a_broken_one_is_rejected() {
     // The base and the overlay, each as `kubectl apply -k` would create it.
     for dir in [k8s_dir(), k8s_gpu_dir()] {
         let tmp = tempfile::tempdir().unwrap();
-        let Some(built) = kustomize_build(&dir, tmp.path()) else {
-            return;
-        };
-        let Some(out) = validate(&[built]) else {
-            return;
-        };
+        let out = validate(&[kustomize_build(&dir, tmp.path())]);
         let text = output_text(&out);
         assert!(out.status.success(), "{}: {text}", dir.display());
         for kind in [
@@ -191,30 +178,25 @@ fn gpu_overlay_validates_strictly_and_a_broken_one_is_rejected() {
         copy_files(&k8s_dir(), &tmp.path().join("k8s"));
         copy_files(&k8s_gpu_dir(), &tmp.path().join("k8s-gpu"));
         std::fs::write(tmp.path().join("k8s-gpu/workers-gpu.yaml"), broken).unwrap();
-        let built = kustomize_build(&tmp.path().join("k8s-gpu"), tmp.path()).unwrap();
-        let out = validate(&[built]).unwrap();
+        let built = kustomize_build(&tmp.path().join("k8s-gpu"), tmp.path());
+        let out = validate(&[built]);
         assert!(!out.status.success(), "{what} was accepted");
     }
 }
 
-/// What the pods of the kustomization in `dir` run (tests/python/render_pods.py), or
-/// `None` when PyYAML is missing outside CI.
-fn render_pods(dir: &Path) -> Option<serde_json::Value> {
+/// What the pods of the kustomization in `dir` run (tests/python/render_pods.py).
+fn render_pods(dir: &Path) -> serde_json::Value {
     let out = Command::new("python3")
         .arg(python_helper("render_pods.py"))
         .arg(dir)
         .output()
         .unwrap();
-    if out.status.code() == Some(77) && std::env::var_os("CI").is_none() {
-        eprintln!("skipped: PyYAML not installed");
-        return None;
-    }
     assert!(
         out.status.success(),
-        "{}",
+        "{} (scripts/test installs PyYAML)",
         String::from_utf8_lossy(&out.stderr)
     );
-    Some(serde_json::from_slice(&out.stdout).unwrap())
+    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 /// The GPU overlay's workers are the CPU workers (whose command lines the test below
@@ -222,9 +204,7 @@ fn render_pods(dir: &Path) -> Option<serde_json::Value> {
 /// CPU one writing another run folder.
 #[test]
 fn gpu_workers_are_the_cpu_workers_with_one_gpu_each() {
-    let (Some(cpu), Some(gpu)) = (render_pods(&k8s_dir()), render_pods(&k8s_gpu_dir())) else {
-        return;
-    };
+    let (cpu, gpu) = (render_pods(&k8s_dir()), render_pods(&k8s_gpu_dir()));
     let (cw, gw) = (&cpu["worker"], &gpu["worker"]);
 
     // One GPU per pod, requested and limited; CPU and memory Guaranteed as well.
@@ -344,12 +324,8 @@ fn start_pod(rendered: &serde_json::Value, env: Vec<(String, String)>) -> Proc {
 
 #[test]
 fn the_pods_command_lines_run_the_job_against_s3() {
-    let Some(s3) = S3Server::start(&["osrt"]) else {
-        return;
-    };
-    let Some(pods) = render_pods(&k8s_dir()) else {
-        return;
-    };
+    let s3 = S3Server::start(&["osrt"]);
+    let pods = render_pods(&k8s_dir());
     let coord = &pods["coordinator"];
     let worker = &pods["worker"];
     let s3_env: BTreeMap<&str, String> = s3

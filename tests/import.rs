@@ -24,7 +24,7 @@ fn python_fixture(script: &str, dir: &Path, name: &str, args: &[&str]) -> PathBu
         .expect("python3 runs");
     assert!(
         out.status.success(),
-        "{script} failed (.ci/run installs numpy, Pillow, protobuf and crc32c): {}",
+        "{script} failed (scripts/test installs numpy, Pillow, protobuf and crc32c): {}",
         String::from_utf8_lossy(&out.stderr)
     );
     src

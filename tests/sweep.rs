@@ -182,7 +182,7 @@ fn page_check_in_chromium(dir: &Path) {
     let Some(chromium) = chromium else {
         eprintln!(
             "SKIPPED the report page check: Chromium is not installed \
-             (`apt-get install chromium`; .ci/run installs it where it can)"
+             (`apt-get install chromium`; scripts/test installs it where it may)"
         );
         return;
     };

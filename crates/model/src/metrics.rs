@@ -15,7 +15,8 @@
 /// PSNR of a perfect reconstruction (MSE below 1e-10).
 pub const PSNR_CAP_DB: f64 = 100.0;
 
-/// PSNR in dB of one scene; values in `[0, 1]`.
+/// PSNR in dB of one scene; values in `[0, 1]`. A prediction with a non-finite value
+/// scores NaN (not the cap: `NaN.min(cap)` is the cap), so nothing ranks it best.
 pub fn psnr(pred: &[f32], target: &[f32]) -> f64 {
     assert_eq!(pred.len(), target.len());
     let n = pred.len().max(1) as f64;
@@ -28,7 +29,9 @@ pub fn psnr(pred: &[f32], target: &[f32]) -> f64 {
         })
         .sum::<f64>()
         / n;
-    if mse < 1e-10 {
+    if !mse.is_finite() {
+        f64::NAN
+    } else if mse < 1e-10 {
         PSNR_CAP_DB
     } else {
         (-10.0 * mse.log10()).min(PSNR_CAP_DB)
@@ -186,6 +189,17 @@ mod tests {
         assert!((m.compute().unwrap() - 30.0).abs() < 1e-6);
         m.reset();
         assert_eq!(m.compute(), None);
+    }
+
+    #[test]
+    fn a_non_finite_prediction_scores_nan_not_the_cap() {
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            assert!(psnr(&[0.5, bad], &[0.5, 0.2]).is_nan(), "{bad}");
+            let mut m = Psnr::default();
+            m.update(&[0.1], &[0.2]);
+            m.update(&[bad], &[0.2]);
+            assert!(m.compute().is_none_or(|p| p.is_nan()), "{bad}");
+        }
     }
 
     #[test]

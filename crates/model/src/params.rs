@@ -13,6 +13,7 @@ use candle_nn::var_builder::SimpleBackend;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// The named variables of a model, in sorted-name order.
@@ -20,6 +21,9 @@ use std::sync::{Arc, Mutex};
 pub struct Params {
     seed: u64,
     vars: Arc<Mutex<BTreeMap<String, Var>>>,
+    /// Counts the loads below, so that a holder of facts about the values (the
+    /// optimiser's maxima) can tell they were replaced; see [`Params::version`].
+    version: Arc<AtomicU64>,
 }
 
 fn name_seed(seed: u64, name: &str) -> u64 {
@@ -84,7 +88,7 @@ impl Params {
     pub fn new(seed: u64) -> Self {
         Self {
             seed,
-            vars: Arc::default(),
+            ..Self::default()
         }
     }
 
@@ -106,6 +110,16 @@ impl Params {
             .iter()
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect()
+    }
+
+    /// Changes whenever a `load_*` method below replaces the values (not when an
+    /// optimiser updates them in place, nor through a `Var` taken from [`Params::vars`]).
+    pub fn version(&self) -> u64 {
+        self.version.load(Ordering::SeqCst)
+    }
+
+    fn replaced(&self) {
+        self.version.fetch_add(1, Ordering::SeqCst);
     }
 
     pub fn num_elements(&self) -> usize {
@@ -143,6 +157,8 @@ impl Params {
 
     /// Overwrites every parameter from a flat buffer in the fixed order.
     pub fn load_flat(&self, flat: &[f32]) -> Result<()> {
+        // First: a load that fails half-way has replaced values too.
+        self.replaced();
         let vars = self.vars();
         let total: usize = vars.iter().map(|(_, v)| v.elem_count()).sum();
         if flat.len() != total {
@@ -165,6 +181,8 @@ impl Params {
     /// Overwrites every parameter from a flat f32 tensor in the fixed order (on the
     /// parameters' device: nothing crosses to the host).
     pub fn load_flat_tensor(&self, flat: &Tensor) -> Result<()> {
+        // First: a load that fails half-way has replaced values too.
+        self.replaced();
         let vars = self.vars();
         let total: usize = vars.iter().map(|(_, v)| v.elem_count()).sum();
         if flat.dims() != [total] {
@@ -188,6 +206,8 @@ impl Params {
 
     /// Loads named tensors; every parameter must be present with its shape.
     pub fn load_tensors(&self, tensors: &std::collections::HashMap<String, Tensor>) -> Result<()> {
+        // First: a load that fails half-way has replaced values too.
+        self.replaced();
         for (name, v) in self.vars() {
             let t = tensors.get(&name).ok_or_else(|| {
                 candle_core::Error::Msg(format!("weights lack parameter `{name}`"))

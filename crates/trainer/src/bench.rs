@@ -36,7 +36,16 @@ pub struct StepFigures {
     /// On a GPU: a round trip of a gradient-sized f32 buffer, device → host → device, as
     /// the step makes it for the all-reduce (median; 0 on the CPU).
     pub median_gradient_transfer_s: f64,
+    /// Median time of [`Trainer::apply`]: the optimiser step with its clipping and checks.
+    pub median_optimizer_s: f64,
     pub scenes_per_s: f64,
+    /// The most heap bytes live at once during a timed step, weights and optimiser state
+    /// included (the CPU counterpart of `torch.cuda.max_memory_allocated`); `None` where
+    /// the process does not count its allocations ([`crate::memory::CountingAlloc`]).
+    pub peak_heap_gib: Option<f64>,
+    /// The process's peak resident memory during the timed steps (the figure
+    /// `bench/torch_step.py` reports for PyTorch on the CPU).
+    pub peak_rss_gib: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -112,8 +121,16 @@ pub fn bench_step(
     let mut step_s = Vec::new();
     let mut fb_s = Vec::new();
     let mut transfer_s = Vec::new();
+    let mut optimizer_s = Vec::new();
+    let mut peak_heap: Option<usize> = None;
     for i in 0..steps + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
+        if i == warmup {
+            // The peaks of the timed steps only (the warm-up's first allocations of
+            // optimiser state are not a step's).
+            crate::memory::reset_peak_rss();
+        }
+        crate::memory::reset_peak_heap();
         // Both halves end in a copy to the host (the gradient, the finiteness check), so
         // the clock reads a finished step on a GPU too.
         let t0 = Instant::now();
@@ -123,6 +140,8 @@ pub fn bench_step(
         if i >= warmup {
             step_s.push(t0.elapsed().as_secs_f64());
             fb_s.push((t1 - t0).as_secs_f64());
+            optimizer_s.push(t1.elapsed().as_secs_f64());
+            peak_heap = crate::memory::peak_heap_bytes().max(peak_heap);
             if !device.is_cpu() {
                 transfer_s.push(gradient_round_trip(trainer.num_parameters(), device)?);
             }
@@ -146,8 +165,15 @@ pub fn bench_step(
         } else {
             median(transfer_s)
         },
+        median_optimizer_s: median(optimizer_s),
         scenes_per_s: b as f64 / m,
+        peak_heap_gib: peak_heap.map(gib),
+        peak_rss_gib: crate::memory::peak_rss_mb().map(|mb| mb / 1024.0),
     })
+}
+
+fn gib(bytes: usize) -> f64 {
+    bytes as f64 / (1u64 << 30) as f64
 }
 
 /// Seconds for an `n`-float buffer to go device → host → device the way the step moves

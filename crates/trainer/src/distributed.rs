@@ -61,6 +61,21 @@ pub async fn reduce(
     g: StepGradients,
     signals: Signals,
 ) -> Result<Reduced> {
+    let Some(ring) = ring else {
+        // One worker: its gradient is the step's as it is, with nothing to weight or sum
+        // (and no pass over it but the finiteness check).
+        let bad = !g.loss.is_finite() || !crate::optim::GradSummary::of(&g.grads).finite();
+        return Ok(Reduced {
+            loss: g.loss,
+            samples: g.samples as f64,
+            grads: g.grads,
+            signals,
+            nonfinite: NonFiniteRanks {
+                count: u32::from(bad),
+                only: bad.then_some(rank),
+            },
+        });
+    };
     let n = g.samples as f32;
     let bad = !g.loss.is_finite() || g.grads.iter().any(|x| !x.is_finite());
     let mut buf = g.grads;
@@ -78,9 +93,7 @@ pub async fn reduce(
         f32::from(u8::from(bad)),
         if bad { (rank + 1) as f32 } else { 0.0 },
     ]);
-    if let Some(ring) = ring {
-        ring.all_reduce(seq, &mut buf).await?;
-    }
+    ring.all_reduce(seq, &mut buf).await?;
     let p = buf.len() - CONTROL_FLOATS;
     let (total, loss_sum, evaluate, stop) = (buf[p], buf[p + 1], buf[p + 2], buf[p + 3]);
     let (bad_count, bad_rank_sum) = (buf[p + 4] as u32, buf[p + 5] as usize);

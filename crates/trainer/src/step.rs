@@ -4,15 +4,15 @@
 //! over workers) and performs the optimiser step. A non-finite loss, gradient or updated
 //! weight skips the step: nothing non-finite ever reaches the weights.
 //!
-//! On the CPU the optimiser runs on the host over `Vec<f32>` buffers; on a GPU its
-//! moments stay on the device ([`DeviceAdamW`]) and only the flat gradient crosses to the
-//! host for the all-reduce and back. Matrix products run in the job's `precision`
+//! On the CPU the optimiser updates each parameter's storage in place from flat host
+//! moments; on a GPU its moments stay on the device ([`DeviceAdamW`]) and only the flat
+//! gradient crosses to the host for the all-reduce and back. Matrix products run in the job's `precision`
 //! (`train.precision`: f32, or bf16 on a GPU), weights and optimiser state in f32.
 
 use crate::config::JobConfig;
 use crate::error::Result;
-use crate::optim::{AdamW, DeviceAdamW, clip_global_norm};
-use candle_core::{Device, Tensor};
+use crate::optim::{AdamW, DeviceAdamW, GradSummary, Hyperparams, clip_scale};
+use candle_core::{CpuStorage, Device, Storage, Tensor, Var};
 use osrt_dataset::Batch;
 use osrt_model::{Osrt, Params};
 use rand::Rng;
@@ -75,7 +75,7 @@ impl Optimizer {
     pub fn t(&self) -> u64 {
         match self {
             Self::Host(o) => o.t,
-            Self::Device(o) => o.hyper.t,
+            Self::Device(o) => o.t,
         }
     }
 
@@ -90,15 +90,8 @@ impl Optimizer {
     /// Restores moments and step count (from a checkpoint).
     pub fn restore(&mut self, m: Vec<f32>, v: Vec<f32>, t: u64) -> Result<()> {
         match self {
-            Self::Host(o) => {
-                (o.m, o.v, o.t) = (m, v, t);
-            }
-            Self::Device(o) => {
-                let dev = o.m.device().clone();
-                o.m = Tensor::from_vec(m, o.m.dims1()?, &dev)?;
-                o.v = Tensor::from_vec(v, o.v.dims1()?, &dev)?;
-                o.hyper.t = t;
-            }
+            Self::Host(o) => o.restore(m, v, t),
+            Self::Device(o) => o.restore(m, v, t)?,
         }
         Ok(())
     }
@@ -125,10 +118,15 @@ impl Trainer {
         let model = Osrt::new(&cfg.model, params.var_builder(&device))?;
         let n = params.num_elements();
         let t = &cfg.train;
+        let hyper = Hyperparams {
+            beta1: t.beta1,
+            beta2: t.beta2,
+            eps: t.adam_eps,
+            weight_decay: t.weight_decay,
+        };
         let opt = if crate::device::is_cpu(&device) {
-            Optimizer::Host(AdamW::new(n, t.beta1, t.beta2, t.adam_eps, t.weight_decay))
+            Optimizer::Host(AdamW::new(n, hyper))
         } else {
-            let hyper = AdamW::new(0, t.beta1, t.beta2, t.adam_eps, t.weight_decay);
             Optimizer::Device(DeviceAdamW::new(n, hyper, &device)?)
         };
         Ok(Self {
@@ -185,11 +183,16 @@ impl Trainer {
         )?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
         let grads = loss.backward()?;
+        let mut grads = grads;
         let flat = if crate::device::is_cpu(&self.device) {
-            let mut flat = Vec::with_capacity(self.num_parameters());
+            // Room for the all-reduce's control values, so that appending them does not
+            // move the buffer.
+            let cap = self.num_parameters() + crate::distributed::CONTROL_FLOATS;
+            let mut flat = Vec::with_capacity(cap);
             for (_, var) in self.params.vars() {
-                match grads.get(var.as_tensor()) {
-                    Some(g) => flat.extend(g.flatten_all()?.to_vec1::<f32>()?),
+                // Taken out of the store: each gradient is freed once copied.
+                match grads.remove(var.as_tensor()) {
+                    Some(g) => extend_with(&mut flat, &g)?,
                     // A parameter the loss does not reach (e.g. unused init of another mode).
                     None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
                 }
@@ -216,8 +219,8 @@ impl Trainer {
     }
 
     /// Clips (if configured) and applies a flat gradient with AdamW, or skips the step if
-    /// the loss, the gradient, the resulting weights or the moments are not finite. Counts the step
-    /// either way.
+    /// the loss, the gradient, the resulting weights or the moments are not finite. Counts
+    /// the step either way.
     pub fn apply(&mut self, loss: f64, mut grads: Vec<f32>) -> Result<ApplyOutcome> {
         let step = self.step;
         self.step += 1;
@@ -235,41 +238,52 @@ impl Trainer {
         if !loss.is_finite() {
             return skip(self, "non-finite loss");
         }
-        if grads.iter().any(|g| !g.is_finite()) {
+        let mut summary = GradSummary::of(&grads);
+        if !summary.finite() {
             return skip(self, "non-finite gradient");
         }
-        let grad_norm = match self.cfg.train.clip_norm {
-            Some(max) => clip_global_norm(&mut grads, max),
-            None => crate::optim::global_norm(&grads),
-        };
+        let grad_norm = summary.norm();
+        let scale = clip_scale(grad_norm, self.cfg.train.clip_norm);
+        if scale != 1.0 {
+            grads.iter_mut().for_each(|x| *x *= scale);
+            summary = GradSummary::of(&grads);
+        }
         let lr = self.cfg.train.lr_at(step);
-        match &mut self.opt {
-            Optimizer::Host(opt) => {
-                let params = self.params.flatten()?;
-                let (new, m, v) = opt.propose(&params, &grads, lr);
-                if new.iter().any(|p| !p.is_finite()) {
-                    return skip(self, "non-finite updated weight");
-                }
-                // A huge finite gradient squares to ∞ in the second moment while the
-                // weights stay finite (m / √∞ = 0): the state must not keep it either.
-                if m.iter().chain(&v).any(|x| !x.is_finite()) {
-                    return skip(self, "non-finite optimizer moment");
-                }
-                self.params.load_flat(&new)?;
-                opt.commit(m, v);
-            }
+        let vars: Vec<Var> = self.params.vars().into_iter().map(|(_, v)| v).collect();
+        let version = self.params.version();
+        let applied = match &mut self.opt {
+            Optimizer::Host(opt) => opt.step(&vars, version, &grads, summary.max_abs, lr)?,
             Optimizer::Device(opt) => {
-                let params = self.params.flatten_tensor()?;
-                let grads = Tensor::from_vec(grads, params.dims1()?, &self.device)?;
-                let new = opt.propose(&params, &grads, lr)?;
-                if !new.finite {
-                    return skip(self, "non-finite updated weight or moment");
-                }
-                self.params.load_flat_tensor(&new.params)?;
-                opt.commit(new.m, new.v);
+                let grads = Tensor::from_vec(grads, self.num_parameters, &self.device)?;
+                opt.step(&vars, version, &grads, summary.max_abs, lr)?
             }
+        };
+        if !applied {
+            // A huge finite gradient can square to ∞ in the second moment while the
+            // weights stay finite (m / √∞ = 0): the state must not keep it either.
+            return skip(self, "non-finite updated weight or moment");
         }
         self.skipped_in_a_row = 0;
         Ok(ApplyOutcome::Applied { grad_norm, lr })
     }
+}
+
+/// Appends a gradient's values to `flat`: straight from a contiguous f32 CPU tensor's
+/// storage, through a copy otherwise.
+fn extend_with(flat: &mut Vec<f32>, g: &Tensor) -> candle_core::Result<()> {
+    {
+        let (storage, layout) = g.storage_and_layout();
+        if let (Storage::Cpu(CpuStorage::F32(data)), Some((a, b))) =
+            (&*storage, layout.contiguous_offsets())
+        {
+            flat.extend_from_slice(&data[a..b]);
+            return Ok(());
+        }
+    }
+    flat.extend(
+        g.flatten_all()?
+            .to_dtype(candle_core::DType::F32)?
+            .to_vec1::<f32>()?,
+    );
+    Ok(())
 }

@@ -142,7 +142,7 @@ fn a_gradient_that_overflows_the_second_moment_is_skipped() {
     assert_eq!(
         t.apply(g.loss, huge).unwrap(),
         ApplyOutcome::Skipped {
-            reason: "non-finite optimizer moment"
+            reason: "non-finite updated weight or moment"
         }
     );
     let (m, v) = t.opt.moments().unwrap();

@@ -227,6 +227,7 @@ pub async fn import(
     progress: bool,
 ) -> Result<Manifest> {
     claim(out, opts).await?;
+    let size = src.image_size()?;
     let per_part = opts.scenes_per_part.max(1);
     let splits: Vec<(&str, Vec<u64>)> = opts
         .splits
@@ -256,7 +257,7 @@ pub async fn import(
             let (src, part) = (src.clone(), part.to_vec());
             let scenes: Vec<Scene> = tokio::task::spawn_blocking(move || {
                 part.par_iter()
-                    .map(|&i| src.scene(i))
+                    .map(|&i| same_size(src.scene(i)?, i, size))
                     .collect::<Result<Vec<_>>>()
             })
             .await
@@ -298,6 +299,23 @@ pub async fn import(
     m.splits = manifest_splits;
     m.write(out).await?;
     Ok(m)
+}
+
+/// `scene` (source index `i`) if every view has the dataset's `[width, height]`: a view
+/// of another size is refused at import, not hours into training.
+fn same_size(scene: Scene, i: u64, size: [u32; 2]) -> Result<Scene> {
+    for (v, view) in scene.views.iter().enumerate() {
+        if [view.width, view.height] != size {
+            return Err(DatasetError::Import {
+                path: format!("source scene {i}"),
+                reason: format!(
+                    "view {v} is {}×{} pixels, the dataset's views are {}×{}",
+                    view.width, view.height, size[0], size[1]
+                ),
+            });
+        }
+    }
+    Ok(scene)
 }
 
 /// The counts of an imported split, from its files' footers.

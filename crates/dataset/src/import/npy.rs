@@ -72,8 +72,69 @@ fn header_field<'a>(header: &'a str, key: &str) -> Option<&'a str> {
     Some(rest[..end].trim())
 }
 
+/// A parsed `.npy` header: where the data starts, its dtype, shape and element count.
+struct Header<'a> {
+    data_start: usize,
+    descr: &'a str,
+    fortran: bool,
+    shape: Vec<usize>,
+    /// The shape's product (checked).
+    n: usize,
+}
+
+impl Header<'_> {
+    /// Bytes of the whole file the header announces (checked arithmetic: `None` past
+    /// `usize`).
+    fn file_len(&self) -> Option<usize> {
+        let (_, width) = dtype(self.descr).ok()?;
+        self.n.checked_mul(width)?.checked_add(self.data_start)
+    }
+}
+
+/// The element kind (`f`, `i`, `u`, `b`, `U`) and bytes per element of a dtype such as
+/// `<f8`, `|u1` or `<U4`.
+fn dtype(descr: &str) -> std::result::Result<(char, usize), String> {
+    if descr.starts_with('>') {
+        return Err(format!("big-endian dtype {descr} is not read"));
+    }
+    let kind = descr.strip_prefix(['<', '|', '=']).unwrap_or(descr);
+    let mut chars = kind.chars();
+    let kind_char = chars
+        .next()
+        .ok_or_else(|| format!("unknown dtype `{descr}`"))?;
+    let count: usize = chars
+        .as_str()
+        .parse()
+        .map_err(|_| format!("unknown dtype `{descr}`"))?;
+    let width = if kind_char == 'U' {
+        count.checked_mul(4)
+    } else {
+        Some(count)
+    };
+    match width {
+        Some(w) if w > 0 => Ok((kind_char, w)),
+        _ => Err(format!("dtype `{descr}` has no size")),
+    }
+}
+
 /// Parses one `.npy` file's bytes; `path` names it in errors.
 pub fn parse_npy(bytes: &[u8], path: &str) -> Result<Array> {
+    let h = parse_header(bytes, path)?;
+    if h.fortran && h.shape.iter().filter(|&&d| d > 1).count() > 1 {
+        return Err(bad(
+            path,
+            "Fortran-order arrays are not read; save it in C order",
+        ));
+    }
+    let values = decode(h.descr, &bytes[h.data_start..], h.n).map_err(|e| bad(path, e))?;
+    Ok(Array {
+        shape: h.shape,
+        values,
+    })
+}
+
+/// The header of a `.npy` file from its first bytes.
+fn parse_header<'a>(bytes: &'a [u8], path: &str) -> Result<Header<'a>> {
     let rest = bytes
         .strip_prefix(b"\x93NUMPY")
         .ok_or_else(|| bad(path, "not a .npy file (no \\x93NUMPY magic)"))?;
@@ -98,7 +159,7 @@ pub fn parse_npy(bytes: &[u8], path: &str) -> Result<Array> {
         .get(..len)
         .and_then(|h| std::str::from_utf8(h).ok())
         .ok_or_else(|| bad(path, "truncated or non-text header"))?;
-    let data = &rest[len..];
+    let data_start = bytes.len() - rest.len() + len;
     let descr = header_field(header, "descr")
         .map(|d| d.trim_matches(|c| c == '\'' || c == '"'))
         .ok_or_else(|| bad(path, format!("no 'descr' in header {header}")))?;
@@ -114,38 +175,36 @@ pub fn parse_npy(bytes: &[u8], path: &str) -> Result<Array> {
                 .map_err(|_| bad(path, format!("bad shape entry `{s}`")))
         })
         .collect::<Result<_>>()?;
-    if fortran && shape.iter().filter(|&&d| d > 1).count() > 1 {
-        return Err(bad(
-            path,
-            "Fortran-order arrays are not read; save it in C order",
-        ));
-    }
-    let n: usize = shape.iter().product();
-    let values = decode(descr, data, n).map_err(|e| bad(path, e))?;
-    Ok(Array { shape, values })
+    let n = shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .ok_or_else(|| {
+            bad(
+                path,
+                format!("shape {shape:?} has more elements than fit in memory"),
+            )
+        })?;
+    Ok(Header {
+        data_start,
+        descr,
+        fortran,
+        shape,
+        n,
+    })
 }
 
 /// `n` elements of dtype `descr` from `data`.
 fn decode(descr: &str, data: &[u8], n: usize) -> std::result::Result<Values, String> {
-    let (order, kind) = descr.split_at(1.min(descr.len()));
-    if order == ">" {
-        return Err(format!("big-endian dtype {descr} is not read"));
-    }
-    let kind_char = kind.chars().next().unwrap_or(' ');
-    let width: usize = kind[1..]
-        .parse()
-        .map_err(|_| format!("unknown dtype {descr}"))?;
-    let need = if kind_char == 'U' {
-        n * width * 4
-    } else {
-        n * width
-    };
+    let (kind_char, width) = dtype(descr)?;
+    let need = n
+        .checked_mul(width)
+        .ok_or_else(|| format!("{n} × {descr} is more bytes than fit in memory"))?;
     let data = data
         .get(..need)
         .ok_or_else(|| format!("{} data bytes, {need} needed for {n} × {descr}", data.len()))?;
     if kind_char == 'U' {
         let text = data
-            .chunks(width * 4)
+            .chunks(width)
             .map(|c| {
                 c.chunks(4)
                     .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
@@ -180,8 +239,24 @@ fn decode(descr: &str, data: &[u8], n: usize) -> std::result::Result<Values, Str
     Ok(Values::Numbers(data.chunks(width).map(num).collect()))
 }
 
-/// Every array of an `.npz` archive, by name (without `.npy`).
+/// The most bytes an `.npz` archive may decompress to, all entries together: far above
+/// any metadata file of the releases (tens of MB), far below what would exhaust memory.
+pub const MAX_NPZ_BYTES: u64 = 4 << 30;
+
+/// Bytes of an entry read before its header is known (`.npy` headers are padded to a
+/// multiple of 64 bytes and are short; 64 KiB covers any real one).
+const HEADER_PREFIX: u64 = 64 << 10;
+
+/// Every array of an `.npz` archive, by name (without `.npy`). Each entry is
+/// decompressed only as far as its own header announces (more is an error), and all
+/// together to at most [`MAX_NPZ_BYTES`]: a zip bomb ends in an error, not in memory
+/// exhaustion.
 pub fn read_npz(bytes: &[u8], path: &str) -> Result<BTreeMap<String, Array>> {
+    read_npz_within(bytes, path, MAX_NPZ_BYTES)
+}
+
+fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<String, Array>> {
+    let mut left = budget;
     let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes))
         .map_err(|e| bad(path, format!("not a readable .npz (zip) archive: {e}")))?;
     let mut out = BTreeMap::new();
@@ -196,13 +271,43 @@ pub fn read_npz(bytes: &[u8], path: &str) -> Result<BTreeMap<String, Array>> {
         let Some(key) = name.strip_suffix(".npy") else {
             continue;
         };
-        let mut data = Vec::with_capacity(f.size() as usize);
-        f.read_to_end(&mut data)
-            .map_err(|e| bad(path, format!("{name}: {e}")))?;
-        out.insert(
-            key.to_string(),
-            parse_npy(&data, &format!("{path}:{name}"))?,
-        );
+        let entry = format!("{path}:{name}");
+        let too_big = || {
+            bad(
+                &entry,
+                format!("decompresses to more than {budget} bytes (all entries together)"),
+            )
+        };
+        // The header first, then exactly the bytes it announces and one more, to tell a
+        // longer entry.
+        let mut data = Vec::new();
+        (&mut f)
+            .take(HEADER_PREFIX.min(left))
+            .read_to_end(&mut data)
+            .map_err(|e| bad(&entry, e.to_string()))?;
+        let want = parse_header(&data, &entry)?
+            .file_len()
+            .map(|n| n as u64)
+            .unwrap_or(u64::MAX);
+        if want > left {
+            return Err(too_big());
+        }
+        if (data.len() as u64) < want {
+            data.try_reserve_exact((want - data.len() as u64) as usize)
+                .map_err(|_| too_big())?;
+            (&mut f)
+                .take(want - data.len() as u64 + 1)
+                .read_to_end(&mut data)
+                .map_err(|e| bad(&entry, e.to_string()))?;
+        }
+        if data.len() as u64 > want {
+            return Err(bad(
+                &entry,
+                format!("holds more than the {want} bytes its header announces"),
+            ));
+        }
+        left -= want;
+        out.insert(key.to_string(), parse_npy(&data, &entry)?);
     }
     Ok(out)
 }
@@ -273,5 +378,65 @@ mod tests {
                 .to_string()
                 .contains("meta.npz")
         );
+    }
+
+    /// Headers a hostile or broken writer can produce end in errors naming the file,
+    /// never in a panic or an overflowed size.
+    #[test]
+    fn hostile_headers_are_errors() {
+        let cases: [(Vec<u8>, &str); 8] = [
+            (npy("<", "(1,)", &[0; 8], 1), "dtype"),
+            (npy("", "(1,)", &[0; 8], 1), "dtype"),
+            (npy("é8", "(1,)", &[0; 8], 1), "dtype"),
+            (npy("<U0", "(2,)", &[], 1), "no size"),
+            (npy("<f0", "(2,)", &[], 1), "no size"),
+            (
+                npy("<f8", "(4294967296, 4294967296, 16)", &[0; 8], 1),
+                "fit in memory",
+            ),
+            (
+                npy("<f8", "(2305843009213693952,)", &[0; 8], 1),
+                "fit in memory",
+            ),
+            (npy("<f8", "(2, 3)", &[0; 40], 1), "data bytes"),
+        ];
+        for (bytes, want) in cases {
+            let e = parse_npy(&bytes, "h.npy").unwrap_err().to_string();
+            assert!(e.contains("h.npy") && e.contains(want), "{want}: {e}");
+        }
+    }
+
+    fn npz(entries: &[(&str, Vec<u8>)]) -> Vec<u8> {
+        let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        let opts = zip::write::SimpleFileOptions::default()
+            .compression_method(zip::CompressionMethod::Deflated);
+        for (name, data) in entries {
+            zip.start_file(*name, opts).unwrap();
+            std::io::Write::write_all(&mut zip, data).unwrap();
+        }
+        zip.finish().unwrap().into_inner()
+    }
+
+    /// A zip bomb (an entry that inflates past the budget, used by the importer or not)
+    /// and an entry longer than its header are refused without inflating them whole.
+    #[test]
+    fn archives_decompress_only_what_their_headers_announce() {
+        let zeros = vec![0u8; 8 << 20];
+        let small = npy("<f8", "(2,)", &[0; 16], 1);
+        let big = npy("<f8", "(1048576,)", &zeros, 1);
+        let ok = npz(&[("a.npy", small.clone()), ("b.npy", big.clone())]);
+        assert_eq!(read_npz(&ok, "m.npz").unwrap().len(), 2);
+        // 8 MiB of zeros compress to a few KiB: over a 1 MiB budget it is refused.
+        let e = read_npz_within(&ok, "m.npz", 1 << 20)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("m.npz:b.npy") && e.contains("more than"), "{e}");
+        // A header announcing two values before 8 MiB of data.
+        let mut long = npy("<f8", "(2,)", &[0; 16], 1);
+        long.extend(&zeros);
+        let e = read_npz(&npz(&[("c.npy", long)]), "m.npz")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("m.npz:c.npy") && e.contains("announces"), "{e}");
     }
 }

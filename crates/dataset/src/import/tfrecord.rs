@@ -87,7 +87,9 @@ pub fn index_file(file: &Path) -> Result<Vec<RecordRef>> {
                 format!("{what}: the length's CRC-32C does not match"),
             ));
         }
-        if offset + 16 + len > size {
+        // Checked: a length near 2⁶⁴ with a valid checksum must not wrap past the test.
+        let room = size.saturating_sub(offset).saturating_sub(16);
+        if len > room {
             return Err(bad(
                 file,
                 format!("{what}: {len} bytes announced past the end"),
@@ -182,5 +184,26 @@ mod tests {
                 .to_string()
                 .contains("record 2")
         );
+    }
+
+    /// A length near 2⁶⁴ with a valid checksum is refused, not wrapped into a backward
+    /// seek (which looped forever).
+    #[test]
+    fn a_huge_length_with_a_valid_checksum_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("huge.tfrecord");
+        for len in [u64::MAX, u64::MAX - 15, u64::MAX - 40, 1 << 63] {
+            let mut bytes = record(b"first");
+            let l = len.to_le_bytes();
+            bytes.extend(l);
+            bytes.extend(masked_crc(&l).to_le_bytes());
+            bytes.extend(b"payload and crc");
+            std::fs::write(&file, &bytes).unwrap();
+            let e = index_file(&file).unwrap_err().to_string();
+            assert!(
+                e.contains("record 1") && e.contains("past the end"),
+                "{len}: {e}"
+            );
+        }
     }
 }

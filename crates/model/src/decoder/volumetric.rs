@@ -108,6 +108,10 @@ fn sphere_segment(o: [f64; 3], b: &Bounds) -> Segment {
     }
 }
 
+/// The largest σδ the quadrature takes: e^{−200} underflows to 0 in f32 and bf16, and
+/// `n` such terms still sum to a finite value.
+pub const SIGMA_DELTA_MAX: f64 = 200.0;
+
 /// The quadrature (module docs) over `n` points of each ray.
 ///
 /// # Shapes
@@ -121,6 +125,10 @@ pub fn composite(
 ) -> Result<(Tensor, Tensor)> {
     let n = sigma_delta.dim(1)?;
     let k = weights.dim(2)?;
+    // An infinite σδ (an overflowed density) would make the prefix-sum matmul's ∞·0 a NaN
+    // along the whole ray; past this bound e^{−σδ} is 0 in f32 anyway, so the point is
+    // opaque either way.
+    let sigma_delta = &sigma_delta.minimum(SIGMA_DELTA_MAX)?;
     // Exclusive prefix sums as one matmul with a strictly upper-triangular ones matrix.
     let upper: Vec<f64> = (0..n * n)
         .map(|i| if i / n < i % n { 1.0 } else { 0.0 })

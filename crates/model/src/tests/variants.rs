@@ -134,6 +134,46 @@ fn compositing_at_zero_and_huge_density() {
     }
 }
 
+/// An infinite σδ at one point makes that point opaque: what lies before it composites
+/// as usual, nothing after it counts, and nothing is NaN.
+#[test]
+fn an_infinite_density_is_an_opaque_point_not_a_nan() {
+    let (m, n, k) = (1, 4, 2);
+    let rgb = Tensor::new(
+        &[[
+            [0.1f32, 0.2, 0.3],
+            [0.4, 0.5, 0.6],
+            [0.7, 0.8, 0.9],
+            [1.0, 1.0, 1.0],
+        ]],
+        &CPU,
+    )
+    .unwrap();
+    let w = candle_nn::ops::softmax(&randn(&[m, n, k], 9, DType::F32), 2).unwrap();
+    let bg = Tensor::new(&[0.2f32, 0.4, 0.6], &CPU).unwrap();
+    let sd = Var::from_tensor(&Tensor::new(&[[0.5f32, 0.0, f32::INFINITY, 3.0]], &CPU).unwrap())
+        .unwrap();
+    let (c, s) = composite(sd.as_tensor(), &rgb, &w, &bg).unwrap();
+    // Point 0 takes 1 − e^{−0.5} of the light, point 2 the rest.
+    let a0 = 1.0 - (-0.5f32).exp();
+    let (rgb_v, w_v) = (values(&rgb), values(&w));
+    for ch in 0..3 {
+        let want = a0 * rgb_v[ch] + (1.0 - a0) * rgb_v[6 + ch];
+        assert!((values(&c)[ch] - want).abs() < 1e-6, "{:?}", values(&c));
+    }
+    for j in 0..k {
+        let want = a0 * w_v[j] + (1.0 - a0) * w_v[2 * k + j];
+        assert!((values(&s)[j] - want).abs() < 1e-6, "{:?}", values(&s));
+    }
+    let loss = (c.sum_all().unwrap() + s.sum_all().unwrap()).unwrap();
+    let g = loss.backward().unwrap();
+    assert!(
+        values(g.get(sd.as_tensor()).unwrap())
+            .iter()
+            .all(|x| x.is_finite())
+    );
+}
+
 #[test]
 fn the_box_segment_is_the_ray_inside_the_box() {
     let b: Bounds = [[-1.0, -2.0, 0.0], [1.0, 2.0, 1.0]];

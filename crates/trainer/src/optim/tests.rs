@@ -1,0 +1,249 @@
+use super::*;
+use candle_core::{Device, Tensor, Var};
+
+const HYPER: Hyperparams = Hyperparams {
+    beta1: 0.9,
+    beta2: 0.999,
+    eps: 1e-8,
+    weight_decay: 0.01,
+};
+
+/// Deterministic values in [-0.5, 0.5).
+fn values(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        })
+        .collect()
+}
+
+/// Parameters of the given sizes, on `dev`.
+fn vars(sizes: &[usize], dev: &Device) -> Vec<Var> {
+    sizes
+        .iter()
+        .enumerate()
+        .map(|(i, &n)| {
+            Var::from_tensor(&Tensor::from_vec(values(n, i as u64), n, dev).unwrap()).unwrap()
+        })
+        .collect()
+}
+
+fn flat(vars: &[Var]) -> Vec<f32> {
+    vars.iter()
+        .flat_map(|v| v.as_tensor().to_vec1::<f32>().unwrap())
+        .collect()
+}
+
+/// The arithmetic, element by element, as the reference the in-place paths must match.
+fn reference(p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32], k: &StepConsts) {
+    for i in 0..p.len() {
+        (p[i], m[i], v[i]) = adamw_element(p[i], g[i], m[i], v[i], k);
+    }
+}
+
+#[test]
+fn first_adam_step_moves_each_weight_by_lr() {
+    // With bias correction, step 1 is lr · sign(g) (up to ε).
+    let h = Hyperparams {
+        eps: 1e-12,
+        weight_decay: 0.0,
+        ..HYPER
+    };
+    let k = StepConsts::new(&h, 1, 0.1);
+    for (g, want) in [(0.5, 0.9), (-2.0, 1.1), (1e-3, 0.9)] {
+        let (p, _, _) = adamw_element(1.0, g, 0.0, 0.0, &k);
+        assert!((p - want).abs() < 1e-5, "{g}: {p}");
+    }
+}
+
+#[test]
+fn weight_decay_is_decoupled() {
+    let h = Hyperparams {
+        weight_decay: 0.5,
+        ..HYPER
+    };
+    // Zero gradient: only decay, 2 − 0.1·0.5·2 = 1.9.
+    let (p, _, _) = adamw_element(2.0, 0.0, 0.0, 0.0, &StepConsts::new(&h, 1, 0.1));
+    assert!((p - 1.9).abs() < 1e-6);
+}
+
+/// The host's in-place update gives the element-wise reference's bits, step after step,
+/// over parameters that span several parallel tasks.
+#[test]
+fn the_host_update_in_place_gives_the_reference_bits() {
+    let sizes = [3, 70_000, 1, 40_000];
+    let n: usize = sizes.iter().sum();
+    let vs = vars(&sizes, &Device::Cpu);
+    let mut opt = AdamW::new(n, HYPER);
+    let (mut p, mut m, mut v) = (flat(&vs), vec![0f32; n], vec![0f32; n]);
+    for step in 0..4 {
+        let g: Vec<f32> = values(n, 100 + step)
+            .iter()
+            .map(|x| x * 10f32.powi(step as i32 - 2))
+            .collect();
+        let lr = 1e-3 * (step + 1) as f64;
+        let k = StepConsts::new(&HYPER, step + 1, lr);
+        reference(&mut p, &mut m, &mut v, &g, &k);
+        let s = GradSummary::of(&g);
+        assert!(opt.step(&vs, 7, &g, s.max_abs, lr).unwrap());
+        assert_eq!(flat(&vs), p, "step {step}");
+        assert_eq!((&opt.m, &opt.v), (&m, &v), "step {step}");
+    }
+    assert_eq!(opt.t, 4);
+}
+
+/// The device optimiser (run here on CPU tensors, across several buckets) gives the
+/// host's bits, step after step, weight decay and bias correction included.
+#[test]
+fn the_device_update_gives_the_host_update_bits() {
+    // Two buckets and a parameter larger than one.
+    let sizes = [1000, (1 << 22) - 1000, 5, (1 << 22) + 3];
+    let n: usize = sizes.iter().sum();
+    let dev = Device::Cpu;
+    let (host_vars, dev_vars) = (vars(&sizes, &dev), vars(&sizes, &dev));
+    let mut host = AdamW::new(n, HYPER);
+    let mut device = DeviceAdamW::new(n, HYPER, &dev).unwrap();
+    for step in 0..3 {
+        let g: Vec<f32> = values(n, 200 + step)
+            .iter()
+            .map(|x| x * 10f32.powi(step as i32 - 1))
+            .collect();
+        let lr = 1e-3 * (step + 1) as f64;
+        let s = GradSummary::of(&g);
+        assert!(host.step(&host_vars, 1, &g, s.max_abs, lr).unwrap());
+        let gt = Tensor::from_slice(&g, n, &dev).unwrap();
+        assert!(device.step(&dev_vars, 1, &gt, s.max_abs, lr).unwrap());
+        assert!(flat(&dev_vars) == flat(&host_vars), "step {step}");
+        assert!(device.m.to_vec1::<f32>().unwrap() == host.m, "step {step}");
+        assert!(device.v.to_vec1::<f32>().unwrap() == host.v, "step {step}");
+    }
+    assert_eq!(device.t, host.t);
+}
+
+/// An update whose second moment overflows f32 (a huge finite gradient), or whose
+/// weights would, is refused on both sides with nothing changed; a large gradient that
+/// still fits goes through.
+#[test]
+fn an_update_that_would_overflow_changes_nothing() {
+    let dev = Device::Cpu;
+    for (g_bad, lr, accepted) in [
+        (1e19f32, 1e-3, true),
+        (1e30, 1e-3, false),
+        (0.1, 1e40, false),
+    ] {
+        let (hv, dv) = (vars(&[4], &dev), vars(&[4], &dev));
+        let before = flat(&hv);
+        let mut host = AdamW::new(4, HYPER);
+        let mut device = DeviceAdamW::new(4, HYPER, &dev).unwrap();
+        let g = [0.1, g_bad, -0.2, 0.0];
+        let gt = Tensor::new(&g, &dev).unwrap();
+        let s = GradSummary::of(&g);
+        assert_eq!(
+            host.step(&hv, 0, &g, s.max_abs, lr).unwrap(),
+            accepted,
+            "{g_bad} {lr}"
+        );
+        assert_eq!(
+            device.step(&dv, 0, &gt, s.max_abs, lr).unwrap(),
+            accepted,
+            "{g_bad} {lr}"
+        );
+        if !accepted {
+            assert_eq!(flat(&hv), before);
+            assert_eq!(flat(&dv), before);
+            assert_eq!((host.m.as_slice(), host.t), ([0f32; 4].as_slice(), 0));
+            assert_eq!(device.m.to_vec1::<f32>().unwrap(), vec![0f32; 4]);
+            assert_eq!(device.t, 0);
+        }
+    }
+}
+
+/// The bound is refused where it cannot hold, and shown where it does; a state restored
+/// with a NaN, an infinity or a negative second moment is never taken on trust.
+#[test]
+fn the_finiteness_bound() {
+    let k = StepConsts::new(&HYPER, 1, 1e-3);
+    let sane = Maxima {
+        p: 10.0,
+        m: 1.0,
+        v: 1.0,
+    };
+    assert!(k.provably_finite(sane, 100.0));
+    assert!(!k.provably_finite(sane, 1e25), "v overflows: 1e-3 · 1e50");
+    assert!(
+        !k.provably_finite(
+            Maxima {
+                p: f32::MAX,
+                ..sane
+            },
+            1.0
+        ),
+        "p at the edge"
+    );
+    assert!(
+        k.provably_finite(Maxima { p: 3e38, ..sane }, 1.0),
+        "p near it, with room"
+    );
+    assert!(!k.provably_finite(Maxima::of(f32::NAN, 0.0, 0.0), 1.0));
+    assert!(!k.provably_finite(Maxima::of(0.0, 0.0, -1.0), 1.0));
+    assert!(!k.provably_finite(Maxima::of(0.0, f32::INFINITY, 0.0), 1.0));
+    assert!(!k.provably_finite(sane, f32::NAN));
+    let no_eps = StepConsts::new(&Hyperparams { eps: 0.0, ..HYPER }, 1, 1e-3);
+    assert!(!no_eps.provably_finite(sane, 1.0));
+
+    // Restored with a negative second moment: sqrt would give NaN, so the step is
+    // checked element by element and refused.
+    let dev = Device::Cpu;
+    let hv = vars(&[2], &dev);
+    let mut host = AdamW::new(2, HYPER);
+    host.restore(vec![0.0; 2], vec![-1.0, 0.0], 3);
+    assert!(!host.step(&hv, 0, &[0.0, 0.0], 0.0, 1e-3).unwrap());
+    let mut device = DeviceAdamW::new(2, HYPER, &dev).unwrap();
+    device.restore(vec![0.0; 2], vec![-1.0, 0.0], 3).unwrap();
+    let g = Tensor::new(&[0f32, 0.0], &dev).unwrap();
+    assert!(!device.step(&hv, 0, &g, 0.0, 1e-3).unwrap());
+}
+
+/// Non-finite values in the gradient show in its summary; the sum does not depend on
+/// the thread count (fixed blocks) and matches an f64 sum closely.
+#[test]
+fn the_gradient_summary() {
+    let g = values(300_000, 9);
+    let s = GradSummary::of(&g);
+    let plain: f64 = g.iter().map(|&x| x as f64 * x as f64).sum();
+    assert!(
+        (s.sum_sq - plain).abs() <= 1e-12 * plain,
+        "{} vs {plain}",
+        s.sum_sq
+    );
+    assert_eq!(s.max_abs, g.iter().fold(0f32, |a, &x| a.max(x.abs())));
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    assert_eq!(one.install(|| GradSummary::of(&g)), s);
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        let mut b = g.clone();
+        b[123_456] = bad;
+        assert!(!GradSummary::of(&b).finite(), "{bad}");
+    }
+    let huge = vec![f32::MAX; 1000];
+    assert!(
+        GradSummary::of(&huge).finite(),
+        "squares of f32 values fit f64"
+    );
+}
+
+#[test]
+fn clipping_bounds_the_norm() {
+    let mut g = vec![3.0, 4.0];
+    assert_eq!(clip_global_norm(&mut g, 1.0), 5.0);
+    assert!((global_norm(&g) - 1.0).abs() < 1e-6);
+    let mut small = vec![0.3, 0.4];
+    clip_global_norm(&mut small, 1.0);
+    assert_eq!(small, vec![0.3, 0.4]);
+}
