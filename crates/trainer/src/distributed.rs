@@ -9,6 +9,7 @@
 
 use crate::collective::Ring;
 use crate::error::Result;
+use crate::optim::GradSummary;
 use crate::step::StepGradients;
 
 /// Floats appended after the gradient.
@@ -33,6 +34,9 @@ pub struct Reduced {
     pub signals: Signals,
     /// Ranks whose own loss or gradient was not finite this step.
     pub nonfinite: NonFiniteRanks,
+    /// The gradient's summary where the reduction already took it (one worker), so that
+    /// the optimiser does not pass over the gradient again.
+    pub summary: Option<GradSummary>,
 }
 
 /// Which ranks computed a non-finite loss or gradient: their number, and the rank when
@@ -64,8 +68,10 @@ pub async fn reduce(
     let Some(ring) = ring else {
         // One worker: its gradient is the step's as it is, with nothing to weight or sum
         // (and no pass over it but the finiteness check).
-        let bad = !g.loss.is_finite() || !crate::optim::GradSummary::of(&g.grads).finite();
+        let summary = GradSummary::of(&g.grads);
+        let bad = !g.loss.is_finite() || !summary.finite();
         return Ok(Reduced {
+            summary: Some(summary),
             loss: g.loss,
             samples: g.samples as f64,
             grads: g.grads,
@@ -104,6 +110,7 @@ pub async fn reduce(
     buf.truncate(p);
     buf.iter_mut().for_each(|x| *x /= total);
     Ok(Reduced {
+        summary: None,
         grads: buf,
         loss: (loss_sum / total) as f64,
         samples: total as f64,

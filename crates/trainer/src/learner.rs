@@ -299,8 +299,10 @@ impl Learner {
     pub fn finish_step(&mut self, reduced: Reduced, max_steps: Option<u64>) -> Result<StepEnd> {
         let t = self.job.train.clone();
         let c = self.job.cluster.clone();
-        let outcome =
-            tokio::task::block_in_place(|| self.trainer.apply(reduced.loss, reduced.grads))?;
+        let outcome = tokio::task::block_in_place(|| {
+            self.trainer
+                .apply_summarized(reduced.loss, reduced.grads, reduced.summary)
+        })?;
         self.train_s += self.step_start.elapsed().as_secs_f64();
         if let ApplyOutcome::Skipped { reason } = &outcome {
             tracing::warn!(step = self.trainer.step - 1, reason, from = %reduced.nonfinite, "step skipped on every rank");

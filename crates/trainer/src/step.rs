@@ -221,7 +221,18 @@ impl Trainer {
     /// Clips (if configured) and applies a flat gradient with AdamW, or skips the step if
     /// the loss, the gradient, the resulting weights or the moments are not finite. Counts
     /// the step either way.
-    pub fn apply(&mut self, loss: f64, mut grads: Vec<f32>) -> Result<ApplyOutcome> {
+    pub fn apply(&mut self, loss: f64, grads: Vec<f32>) -> Result<ApplyOutcome> {
+        self.apply_summarized(loss, grads, None)
+    }
+
+    /// [`Trainer::apply`] with the gradient's summary where it is known already
+    /// (`GradSummary::of(&grads)`), saving a pass over the gradient.
+    pub fn apply_summarized(
+        &mut self,
+        loss: f64,
+        mut grads: Vec<f32>,
+        summary: Option<GradSummary>,
+    ) -> Result<ApplyOutcome> {
         let step = self.step;
         self.step += 1;
         let skip = |me: &mut Self, reason| {
@@ -238,7 +249,7 @@ impl Trainer {
         if !loss.is_finite() {
             return skip(self, "non-finite loss");
         }
-        let mut summary = GradSummary::of(&grads);
+        let mut summary = summary.unwrap_or_else(|| GradSummary::of(&grads));
         if !summary.finite() {
             return skip(self, "non-finite gradient");
         }
