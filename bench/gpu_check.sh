@@ -6,6 +6,8 @@
 #   bench/gpu_check.sh train   # check-device, then time to quality (clevr-lite-gpu) beside
 #                              # 1,000 steps of clevr-lite-cpu in f32 and in bf16
 #   bench/gpu_check.sh bench   # train-step time against PyTorch eager, same cases, f32 and bf16
+#   bench/gpu_check.sh memory  # check-device (ops and steps), then the paper preset's peak
+#                              # device memory and step time beside PyTorch, and the small model
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -84,8 +86,49 @@ bench)
         --cases 1x8192,5x2304 --dtypes f32,bf16 --no-render --out "$OUT/torch-paper.json"
     tar czf "$OUT/osrt-bench.tgz" "$OUT"/osrt-*.json && rm -f "$OUT"/osrt-*.json
     ;;
+memory)
+    # The paper's model at batch 32: the ops one by one and the whole step against the CPU
+    # first, then peak device memory and step time beside PyTorch eager, same cases.
+    timeout 240 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
+    echo "check-device rc $?"
+    python3 - "$OUT/check.json" <<'PY'
+import json, sys
+try:
+    c = json.load(open(sys.argv[1]))
+except Exception as e:
+    sys.exit(f"no check-device result: {e}")
+for o in c["ops"]:
+    print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} finite {o["finite"]} pass {o["pass"]}')
+for s in c["steps"]:
+    print(f'step {s["preset"]:<15} {s["kernels"]:<8} {s["precision"]:<5} grad rel {s["gradient_rel_l2"]:.2e} worst {s["worst_parameter"]} {s["worst_parameter_rel_l2"]:.2e} step {s["step_rel_max"]:.1e} pass {s["pass"]}')
+PY
+    paper=(--device cuda --steps 5 --step-only --presets paper --image-size 128 --batch-size 32)
+    for vr in "1 8192" "5 2304"; do
+        set -- $vr
+        for prec in f32 bf16; do
+            echo "== osrt paper ${1}x$2 $prec fused"
+            timeout 150 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
+                --precision "$prec" --kernels fused --out "$OUT/osrt-paper$1-$prec.json" 2>&1 | tail -n 6
+        done
+    done
+    timeout 200 python3 bench/torch_step.py --device cuda --presets paper --batch-size 32 --image-size 128 \
+        --cases 1x8192,5x2304 --dtypes f32,bf16 --steps 5 --no-render --out "$OUT/torch-paper.json" 2>&1 | tail -n 8
+    echo "== osrt paper 1x8192 f32 composed (candle's graph, for the one-node ops' share)"
+    timeout 120 "$BIN" bench model "${paper[@]}" --input-views 1 --rays-per-scene 8192 --precision f32 \
+        --kernels composed --out "$OUT/osrt-paper1-f32-composed.json" 2>&1 | tail -n 6
+    lite=(--device cuda --steps 10 --step-only --presets clevr-lite-cpu --kernels fused)
+    for prec in f32 bf16; do
+        for b in 16 256; do
+            echo "== osrt clevr-lite-cpu b$b $prec"
+            timeout 60 "$BIN" bench model "${lite[@]}" --precision "$prec" --batch-size "$b" \
+                --out "$OUT/osrt-lite$b-$prec.json" 2>&1 | tail -n 4
+        done
+    done
+    timeout 120 python3 bench/torch_step.py --device cuda --presets clevr-lite-cpu --batch-size 16,256 \
+        --dtypes f32,bf16 --no-render --out "$OUT/torch-lite.json" 2>&1 | tail -n 8
+    ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench"
+    echo "usage: bench/gpu_check.sh train|bench|memory"
     exit 2
     ;;
 esac

@@ -240,9 +240,19 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
                 gib("peak_heap_gib"),
                 gib("peak_rss_gib"),
             );
+            if let Some(n) = s["skipped_steps"].as_u64().filter(|&n| n > 0) {
+                println!(
+                    "    SKIPPED {n} of the timed steps: {}",
+                    s["skip_reason"].as_str().unwrap_or("")
+                );
+            }
+            if s["peak_gib"].is_number() {
+                println!("    peak device memory {}", gib("peak_gib"));
+            }
             if ms("median_gradient_transfer_s") > 0.0 {
                 println!(
-                    "    gradient device → host → device: {:.2} ms median ({:.1} % of the step)",
+                    "    gradient device → host → device (paid by each of ≥ 2 workers, not \
+                     in the step above): {:.2} ms median ({:.1} % of the step)",
                     ms("median_gradient_transfer_s"),
                     100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
                 );

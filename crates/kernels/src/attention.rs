@@ -14,7 +14,7 @@
 //! scale applied to the logits, then the same row softmax. Tests check values and
 //! gradients against it, against finite differences, and on extreme inputs.
 
-use super::{Kept, f32_slice, softmax_row, softmax_row_grad, usable};
+use super::{Kept, f32_slice, softmax_row, softmax_row_grad, usable, usable_with_cuda};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -419,6 +419,13 @@ pub fn attention_composed(
             .reshape((b * heads, len, dh))
     };
     let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
+    if usable_with_cuda(&[&q, &k, &v]) && !q.device().is_cpu() && n > 0 && m > 0 {
+        // A GPU: one node that keeps only the weights (`attention_node.rs`).
+        return super::attention_node::attention_heads(&q, &k, &v, scale)?
+            .reshape((b, heads, n, dh))?
+            .transpose(1, 2)?
+            .reshape((b, n, inner));
+    }
     let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b·h, n, m]
     let attn = super::softmax(&logits, D::Minus1)?;
     super::matmul(&attn, &v)? // [b·h, n, dh]

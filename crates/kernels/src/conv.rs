@@ -105,6 +105,10 @@ impl CustomOp1 for Col2Im {
     }
 }
 
+/// Most values of one unfolded (im2col) buffer of candle's device convolution: 2²⁸ (1 GiB
+/// in f32), a sixteenth of what its 32-bit indexing can address.
+const MAX_UNFOLDED: usize = 1 << 28;
+
 /// 2-D convolution without bias on channels-last input, as im2col + one matmul.
 ///
 /// Why: candle's CPU `conv2d` is a direct loop and its input gradient a transposed
@@ -129,11 +133,25 @@ pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -
     let ho = (h + 2 * padding - k) / stride + 1;
     let wo = (w + 2 * padding - k) / stride + 1;
     if !usable(&[x, kernel]) {
-        return in_precision(&[x, kernel], |t| {
-            t[0].permute((0, 3, 1, 2))?
-                .conv2d(&t[1], padding, stride, 1, 1)?
-                .permute((0, 2, 3, 1))
-        });
+        let conv = |x: &Tensor| {
+            in_precision(&[x, kernel], |t| {
+                t[0].permute((0, 3, 1, 2))?
+                    .conv2d(&t[1], padding, stride, 1, 1)?
+                    .permute((0, 2, 3, 1))
+            })
+        };
+        // candle's CUDA convolution unfolds its input (im2col) into one buffer indexed with
+        // 32-bit thread numbers, forward and for the kernel's gradient alike: past 2³²
+        // values the unfolded buffer is silently left partly unwritten (the `paper`
+        // preset's first convolution over 5 views at batch 32 needs 4.3 G). Images go
+        // through in groups whose unfolded size stays far below that; the groups also cap
+        // the buffer's memory.
+        let per_image = ho * wo * c * k * k;
+        let group = (MAX_UNFOLDED / per_image.max(1)).max(1);
+        if x.device().is_cpu() {
+            return conv(x);
+        }
+        return in_groups(x, group, conv);
     }
     let geom = ConvGeom {
         n,
@@ -153,6 +171,19 @@ pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -
         saved: Kept::new(None),
     };
     x.contiguous()?.apply_op2(&kernel.contiguous()?, op)
+}
+
+/// `f` over groups of at most `group` leading entries of `x`, concatenated.
+fn in_groups(x: &Tensor, group: usize, f: impl Fn(&Tensor) -> Result<Tensor>) -> Result<Tensor> {
+    let n = x.dim(0)?;
+    if n <= group {
+        return f(x);
+    }
+    let parts = (0..n)
+        .step_by(group.max(1))
+        .map(|i| f(&x.narrow(0, i, group.min(n - i))?))
+        .collect::<Result<Vec<_>>>()?;
+    Tensor::cat(&parts, 0)
 }
 
 /// The convolution as one graph node: im2col and the product with the kernel inside.
@@ -294,6 +325,27 @@ mod tests {
     use super::*;
     use crate::testing::*;
     use candle_core::Var;
+
+    /// The grouped convolution (a GPU's path for big batches) gives the one-shot values and
+    /// gradients.
+    #[test]
+    fn a_convolution_in_groups_equals_one_over_the_whole_batch() {
+        let args = [randn(&[5, 6, 8, 4], 1.0, 91), randn(&[3, 4, 3, 3], 0.5, 92)];
+        let conv = |t: &[Tensor], group: usize| {
+            in_groups(&t[0], group, |x| {
+                x.permute((0, 3, 1, 2))?
+                    .conv2d(&t[1], 1, 2, 1, 1)?
+                    .permute((0, 2, 3, 1))
+            })
+        };
+        let [(y1, g1), _] = both(&args, |t| conv(t, 2));
+        let [(y5, g5), _] = both(&args, |t| conv(t, 5));
+        assert_eq!(y1.dims(), y5.dims());
+        assert!(max_diff(&y1, &y5) < 1e-6);
+        for (a, b) in g1.iter().zip(&g5) {
+            assert!(max_diff(a, b) < 1e-5 * max_abs(b).max(1.0));
+        }
+    }
 
     #[test]
     fn conv2d_matches_candle_and_finite_differences() {

@@ -13,15 +13,21 @@
 //! differences, and extreme inputs.
 //!
 //! One switch chooses between the fused and the composed ops: [`Kernels`], a job-config
-//! value applied per thread with [`with_kernels`]. The kernels need contiguous f32 on the
-//! CPU; anything else takes the composed path whatever the switch says. Per-device
-//! kernels (CUDA) belong here too.
+//! value applied per thread with [`with_kernels`]. The kernels need f32 on the CPU;
+//! anything else takes the composed path whatever the switch says, except LayerNorm and
+//! softmax, which have CUDA kernels too (`cuda.rs`, in a `cuda` build): on a GPU they
+//! are the only one-node ops, and the rest of the graph is candle's.
 
 mod activation;
 mod attention;
+mod attention_node;
+mod bias_act;
 mod block;
 mod buffer;
 mod conv;
+#[cfg(feature = "cuda")]
+pub mod cuda;
+pub mod device_check;
 pub mod fastmath;
 mod gemm;
 mod layer_norm;
@@ -34,6 +40,7 @@ mod testing;
 
 pub use activation::{gelu, leaky_relu, relu};
 pub use attention::{attention, attention_composed};
+pub use bias_act::bias_act;
 pub use block::{BlockParams, block};
 pub use conv::conv2d_nhwc;
 pub use layer_norm::layer_norm;
@@ -129,8 +136,8 @@ fn in_precision(ts: &[&Tensor], op: impl FnOnce(&[Tensor]) -> Result<Tensor>) ->
 
 /// Which ops graphs are built from: `fused` (this crate's one-node kernels where they
 /// apply; the default) or `composed` (candle's own ops only). The two compute the same
-/// functions; fused is the fast path on CPUs, composed the reference and the path any
-/// other device takes.
+/// functions; fused is the fast path on CPUs, composed the reference (on a GPU, fused
+/// means LayerNorm and softmax as one-node CUDA ops, the rest composed).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Kernels {
@@ -249,6 +256,22 @@ fn usable(ts: &[&Tensor]) -> bool {
         && ts
             .iter()
             .all(|t| t.dtype() == candle_core::DType::F32 && t.device().is_cpu() && t.rank() >= 1)
+}
+
+/// [`usable`] for the ops that have CUDA kernels too (`cuda.rs`: LayerNorm, softmax,
+/// bias with activation): f32 on the CPU or, in a `cuda` build, on a CUDA device.
+fn usable_with_cuda(ts: &[&Tensor]) -> bool {
+    enabled() && usable_with_cuda_any(ts)
+}
+
+/// [`usable_with_cuda`] whatever the fused-ops switch says (for the hand-written backward
+/// passes of one-node ops, which run whichever way the graph was built).
+fn usable_with_cuda_any(ts: &[&Tensor]) -> bool {
+    ts.iter().all(|t| {
+        t.dtype() == candle_core::DType::F32
+            && t.rank() >= 1
+            && (t.device().is_cpu() || (cfg!(feature = "cuda") && t.device().is_cuda()))
+    })
 }
 
 #[cfg(test)]

@@ -78,6 +78,15 @@ impl CustomOp1 for ColumnSum {
         }
         Ok((CpuStorage::F32(out), Shape::from(d)))
     }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        crate::cuda::column_sum(s, l, self.d)
+    }
 }
 
 /// `x: [.., d] + bias: [d]`.
@@ -325,11 +334,24 @@ pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tens
             None => x.apply_op2(&w, LinearNoBiasOp),
         };
     }
+    linear_act(x, weight, bias, None)
+}
+
+/// [`linear`] followed by `act`, from candle's matrix product, with the bias and the
+/// activation as one node where [`crate::bias_act`] applies (f32 on a GPU): the path of
+/// every linear layer on a GPU.
+pub(crate) fn linear_act(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    act: Option<MlpAct>,
+) -> Result<Tensor> {
     let composed = |x: &Tensor| -> Result<Tensor> {
         let y = matmul(x, &weight.t()?)?;
-        match bias {
-            Some(b) => bias_add(&y, b),
-            None => Ok(y),
+        match (bias, act) {
+            (Some(b), _) => crate::bias_act(&y, b, act),
+            (None, Some(a)) => a.apply(&y),
+            (None, None) => Ok(y),
         }
     };
     if x.rank() == 2 {

@@ -18,7 +18,7 @@ use super::gemm::{self, MatRef, Threads};
 use super::{
     ColumnSum, Kept, add_bias_rows, cpu_storage as cpu, f32_slice, gelu_grad_slice, gelu_slice,
     leaky_relu_grad_slice, leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad,
-    rows_layout, usable, weight_grad, with_last_dim,
+    rows_layout, usable, usable_with_cuda, weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -37,7 +37,7 @@ pub enum MlpAct {
 }
 
 impl MlpAct {
-    fn forward(self, z: &[f32]) -> Vec<f32> {
+    pub(crate) fn forward(self, z: &[f32]) -> Vec<f32> {
         match self {
             MlpAct::Relu => par_elementwise(z, |o, x| leaky_relu_slice(o, x, 0.0)),
             MlpAct::LeakyRelu(s) => par_elementwise(z, |o, x| leaky_relu_slice(o, x, s)),
@@ -46,7 +46,7 @@ impl MlpAct {
     }
 
     /// `dy · act'(z)`.
-    fn backward(self, z: &[f32], dy: &[f32]) -> Vec<f32> {
+    pub(crate) fn backward(self, z: &[f32], dy: &[f32]) -> Vec<f32> {
         match self {
             MlpAct::Relu => {
                 par_elementwise_grad(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, 0.0))
@@ -59,7 +59,7 @@ impl MlpAct {
     }
 
     /// The same activation as its own node (the layer-by-layer path).
-    fn apply(self, x: &Tensor) -> Result<Tensor> {
+    pub(crate) fn apply(self, x: &Tensor) -> Result<Tensor> {
         match self {
             MlpAct::Relu => super::relu(x),
             MlpAct::LeakyRelu(s) => super::leaky_relu(x, s),
@@ -528,12 +528,18 @@ pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
     a.contiguous()?.apply_op3(&b.contiguous()?, &packed, op)
 }
 
-/// The same MLP as separate nodes: `fused::linear` and the activation op per layer.
+/// The same MLP as separate nodes: `fused::linear` and the activation op per layer (on
+/// a GPU: candle's product, then the bias and the activation as one node).
 pub fn mlp_layer_by_layer(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     let mut h = x.clone();
     for (i, (w, b)) in layers.iter().enumerate() {
+        let hidden = i + 1 < layers.len();
+        if usable_with_cuda(&[&h, w]) && !h.device().is_cpu() {
+            h = super::linear::linear_act(&h, w, *b, hidden.then_some(act))?;
+            continue;
+        }
         h = super::linear(&h, w, *b)?;
-        if i + 1 < layers.len() {
+        if hidden {
             h = act.apply(&h)?;
         }
     }

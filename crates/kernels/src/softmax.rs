@@ -42,6 +42,15 @@ impl CustomOp1 for SoftmaxOp {
         Ok((CpuStorage::F32(out), l.shape().clone()))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        crate::cuda::softmax_fwd(s, l)
+    }
+
     fn bwd(&self, _x: &Tensor, res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
         Ok(Some(
             res.apply_op2_no_bwd(&grad.contiguous()?, &SoftmaxBwd)?,
@@ -80,12 +89,46 @@ impl CustomOp2 for SoftmaxBwd {
             });
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        crate::cuda::softmax_bwd(s1, l1, s2, l2)
+    }
+}
+
+/// Softmax over the last dimension with no graph node (a forward pass whose backward is
+/// written by hand: [`softmax_grad`]).
+pub(crate) fn softmax_no_grad(x: &Tensor) -> Result<Tensor> {
+    let x = x.detach();
+    if usable_with_cuda_any(&[&x]) {
+        return x.contiguous()?.apply_op1_no_bwd(&SoftmaxOp);
+    }
+    candle_nn::ops::softmax_last_dim(&x)
+}
+
+/// The input gradient of a last-dimension softmax from its output `y` and the output's
+/// gradient `dy`: `y ⊙ (dy − Σ y ⊙ dy)` per row, with no graph node.
+pub(crate) fn softmax_grad(y: &Tensor, dy: &Tensor) -> Result<Tensor> {
+    let (y, dy) = (y.detach(), dy.detach());
+    if usable_with_cuda_any(&[&y, &dy]) {
+        return y
+            .contiguous()?
+            .apply_op2_no_bwd(&dy.contiguous()?, &SoftmaxBwd);
+    }
+    let dot = (&y * &dy)?.sum_keepdim(candle_core::D::Minus1)?;
+    y * dy.broadcast_sub(&dot)?
 }
 
 /// Softmax over dimension `dim` (any; other than the last it goes through a transpose).
 pub fn softmax<Dim: candle_core::shape::Dim>(x: &Tensor, dim: Dim) -> Result<Tensor> {
     let dim = dim.to_index(x.shape(), "softmax")?;
-    if !usable(&[x]) {
+    if !usable_with_cuda(&[x]) {
         return candle_nn::ops::softmax(x, dim);
     }
     let last = x.rank() - 1;

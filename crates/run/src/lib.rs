@@ -7,12 +7,14 @@
 //! RUN/run.json        dataset location, parameter count, workers
 //! RUN/job.json        the coordinator's persisted job state (generation, restarts, …)
 //! RUN/metrics.jsonl   one JSON object per line: training and evaluation records (`records`)
+//! RUN/lease.json      the coordinator driving the folder, while it runs (`lease`)
 //! RUN/checkpoints/step-NNNNNNNNN/…   see `checkpoint`
 //! ```
 
 pub mod checkpoint;
 pub mod cluster;
 pub mod error;
+pub mod lease;
 pub mod records;
 
 pub use cluster::{ClusterConfig, ClusterOverrides};

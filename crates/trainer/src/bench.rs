@@ -46,6 +46,14 @@ pub struct StepFigures {
     /// The process's peak resident memory during the timed steps (the figure
     /// `bench/torch_step.py` reports for PyTorch on the CPU).
     pub peak_rss_gib: Option<f64>,
+    /// Timed steps the trainer skipped (a non-finite loss, gradient or update), and the
+    /// first reason: a step that skips is not a step to compare with.
+    pub skipped_steps: usize,
+    pub skip_reason: Option<String>,
+    /// On a GPU: the most device memory the step's tensors held at once, weights and
+    /// optimiser state included (the memory pool's high-water mark, the counterpart of
+    /// `torch.cuda.max_memory_allocated`); `None` on the CPU.
+    pub peak_gib: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -123,6 +131,11 @@ pub fn bench_step(
     let mut transfer_s = Vec::new();
     let mut optimizer_s = Vec::new();
     let mut peak_heap: Option<usize> = None;
+    let mut peak_device: Option<u64> = None;
+    let (mut skipped_steps, mut skip_reason) = (0, None);
+    // A single worker's step: on a GPU the gradient stays there (the round trip that
+    // several workers pay is timed apart, `median_gradient_transfer_s`).
+    let keep = !device.is_cpu();
     for i in 0..steps + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
         if i == warmup {
@@ -131,17 +144,27 @@ pub fn bench_step(
             crate::memory::reset_peak_rss();
         }
         crate::memory::reset_peak_heap();
-        // Both halves end in a copy to the host (the gradient, the finiteness check), so
-        // the clock reads a finished step on a GPU too.
+        crate::device::reset_device_peak(device);
+        // Both halves end synchronised, so the clock reads finished work on a GPU too.
         let t0 = Instant::now();
-        let g = trainer.gradients(&batch, &mut rng)?;
+        let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
+        device.synchronize()?;
         let t1 = Instant::now();
-        trainer.apply(g.loss, g.grads)?;
+        let outcome = trainer.apply(g.loss, g.grads)?;
+        device.synchronize()?;
+        tracing::debug!(apply_s = t1.elapsed().as_secs_f64(), "apply and drop");
+        if let crate::step::ApplyOutcome::Skipped { reason } = outcome
+            && i >= warmup
+        {
+            skipped_steps += 1;
+            skip_reason.get_or_insert_with(|| format!("{reason} (loss {})", g.loss));
+        }
         if i >= warmup {
             step_s.push(t0.elapsed().as_secs_f64());
             fb_s.push((t1 - t0).as_secs_f64());
             optimizer_s.push(t1.elapsed().as_secs_f64());
             peak_heap = crate::memory::peak_heap_bytes().max(peak_heap);
+            peak_device = crate::device::device_peak_bytes(device).max(peak_device);
             if !device.is_cpu() {
                 transfer_s.push(gradient_round_trip(trainer.num_parameters(), device)?);
             }
@@ -169,6 +192,9 @@ pub fn bench_step(
         scenes_per_s: b as f64 / m,
         peak_heap_gib: peak_heap.map(gib),
         peak_rss_gib: crate::memory::peak_rss_mb().map(|mb| mb / 1024.0),
+        peak_gib: peak_device.map(|b| gib(b as usize)),
+        skipped_steps,
+        skip_reason,
     })
 }
 

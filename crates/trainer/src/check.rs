@@ -1,7 +1,9 @@
 //! Whether a device computes the CPU's train step: the same initial weights, batch and
-//! slot noise on the CPU (fused kernels, f32) and on the device (candle's ops, the job's
+//! slot noise on the CPU (fused kernels, f32) and on the device (the job's kernels and
 //! precision), compared as relative errors of the loss and of the flat gradient, and of
-//! the weights after one AdamW step from the same gradient.
+//! the weights after one AdamW step from the same gradient (on the device, as a device
+//! tensor). The one-node ops with device kernels are compared one by one in
+//! `osrt_kernels::device_check`.
 //!
 //! `osrt check-device` prints it; `tests/device.rs` asserts the tolerances below.
 
@@ -9,7 +11,7 @@ use crate::bench::bench_batch;
 use crate::config::JobConfig;
 use crate::device::DeviceSpec;
 use crate::error::Result;
-use crate::step::Trainer;
+use crate::step::{Gradient, Trainer};
 use candle_core::Device;
 use osrt_model::Precision;
 use rand::SeedableRng;
@@ -99,7 +101,14 @@ pub fn compare_with_cpu(
     }
 
     cpu.apply(g_cpu.loss, g_cpu.grads.clone())?;
-    dev.apply(g_cpu.loss, g_cpu.grads)?;
+    // On a GPU the gradient goes in as a device tensor, as a single worker's stays there.
+    let on_dev = if device.is_cpu() {
+        Gradient::Host(g_cpu.grads)
+    } else {
+        let n = g_cpu.grads.len();
+        Gradient::Device(candle_core::Tensor::from_vec(g_cpu.grads, n, device)?)
+    };
+    dev.apply(g_cpu.loss, on_dev)?;
     let (w_cpu, w_dev) = (cpu.params.flatten()?, dev.params.flatten()?);
     let scale = w_cpu
         .iter()

@@ -92,10 +92,148 @@ fn cuda_available(ordinal: usize) -> Result<()> {
 #[cfg(feature = "cuda")]
 fn open_cuda(ordinal: usize) -> Result<Device> {
     cuda_available(ordinal)?;
-    Device::new_cuda(ordinal).map_err(|e| TrainError::Config {
+    let opening = |e: &dyn std::fmt::Display| TrainError::Config {
         path: "device".into(),
         reason: format!("opening cuda:{ordinal}: {e}"),
-    })
+    };
+    let device = Device::new_cuda(ordinal).map_err(|e| opening(&e))?;
+    pool::configure(&device).map_err(|e| opening(&e))?;
+    Ok(device)
+}
+
+/// The device's stream-ordered memory pool, which candle's allocations come from
+/// (cudarc allocates with `cuMemAllocAsync` from the device's default pool).
+// Memory-pool attributes are read and set through cudarc's raw driver calls.
+#[cfg(feature = "cuda")]
+#[allow(unsafe_code)]
+mod pool {
+    use candle_core::Device;
+    use candle_core::cuda_backend::cudarc::driver::{DriverError, result, sys};
+
+    fn default_pool(device: &Device) -> Option<sys::CUmemoryPool> {
+        let Device::Cuda(d) = device else { return None };
+        let ctx = d.cuda_stream().context().clone();
+        ctx.bind_to_thread().ok()?;
+        // SAFETY: the device handle comes from a live context.
+        unsafe { result::device::get_default_mem_pool(ctx.cu_device()) }.ok()
+    }
+
+    /// Keeps freed memory in the pool instead of handing it back to the driver: the
+    /// default release threshold (0) returns every free block at each synchronisation,
+    /// so every step allocates its activations from the driver again. And turns off
+    /// cudarc's per-allocation event pair: candle runs one stream per device, where the
+    /// stream order alone keeps uses and frees in order (the events serve several streams).
+    pub fn configure(device: &Device) -> Result<(), DriverError> {
+        let Device::Cuda(d) = device else {
+            return Ok(());
+        };
+        // SAFETY: osrt uses the device's one stream only (no tensor crosses streams).
+        unsafe { d.disable_event_tracking() };
+        let Some(pool) = default_pool(device) else {
+            return Ok(());
+        };
+        let mut keep_all = u64::MAX;
+        // SAFETY: RELEASE_THRESHOLD takes a u64 (cuuint64_t).
+        unsafe {
+            result::mem_pool::set_attribute(
+                pool,
+                sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
+                (&mut keep_all as *mut u64).cast(),
+            )
+        }
+    }
+
+    /// Hands every free block of the pool back to the driver.
+    pub fn trim(device: &Device) -> bool {
+        let Some(pool) = default_pool(device) else {
+            return false;
+        };
+        // SAFETY: a valid pool; keeping 0 bytes only releases memory no allocation holds.
+        unsafe { result::mem_pool::trim_to(pool, 0) }.is_ok()
+    }
+
+    /// The most bytes the pool had handed out at once since the last [`reset_peak`]
+    /// (`USED_MEM_HIGH`: the counterpart of `torch.cuda.max_memory_allocated`).
+    pub fn peak_bytes(device: &Device) -> Option<u64> {
+        let pool = default_pool(device)?;
+        let mut v = 0u64;
+        // SAFETY: USED_MEM_HIGH is a u64 (cuuint64_t).
+        unsafe {
+            result::mem_pool::get_attribute(
+                pool,
+                sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH,
+                (&mut v as *mut u64).cast(),
+            )
+        }
+        .ok()?;
+        Some(v)
+    }
+
+    /// Starts a new peak from the bytes in use now (the driver only accepts 0, which
+    /// resets the high-water mark to the current use).
+    pub fn reset_peak(device: &Device) -> bool {
+        let Some(pool) = default_pool(device) else {
+            return false;
+        };
+        let mut zero = 0u64;
+        // SAFETY: USED_MEM_HIGH is set with a u64 (cuuint64_t).
+        unsafe {
+            result::mem_pool::set_attribute(
+                pool,
+                sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH,
+                (&mut zero as *mut u64).cast(),
+            )
+        }
+        .is_ok()
+    }
+}
+
+/// The most device memory the step's tensors held at once since the last
+/// [`reset_device_peak`], in bytes; `None` on the CPU or where the driver does not say.
+pub fn device_peak_bytes(device: &Device) -> Option<u64> {
+    #[cfg(feature = "cuda")]
+    {
+        device.synchronize().ok()?;
+        pool::peak_bytes(device)
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        let _ = device;
+        None
+    }
+}
+
+/// Whether `e` is the device running out of memory.
+pub fn is_out_of_memory(e: &candle_core::Error) -> bool {
+    e.to_string().contains("CUDA_ERROR_OUT_OF_MEMORY")
+}
+
+/// Hands the memory pool's free blocks back to the driver (after an allocation failed:
+/// the pool keeps what it frees, and its free blocks may be too fragmented for one big
+/// request that fresh memory from the driver would satisfy); false on the CPU.
+pub fn release_cached(device: &Device) -> bool {
+    #[cfg(feature = "cuda")]
+    {
+        device.synchronize().is_ok() && pool::trim(device)
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        let _ = device;
+        false
+    }
+}
+
+/// Starts a new device-memory peak from what is in use now; false on the CPU.
+pub fn reset_device_peak(device: &Device) -> bool {
+    #[cfg(feature = "cuda")]
+    {
+        device.synchronize().is_ok() && pool::reset_peak(device)
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        let _ = device;
+        false
+    }
 }
 
 #[cfg(not(feature = "cuda"))]

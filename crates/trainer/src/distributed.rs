@@ -10,7 +10,7 @@
 use crate::collective::Ring;
 use crate::error::Result;
 use crate::optim::GradSummary;
-use crate::step::StepGradients;
+use crate::step::{Gradient, StepGradients};
 
 /// Floats appended after the gradient.
 pub const CONTROL_FLOATS: usize = 6;
@@ -25,8 +25,9 @@ pub struct Signals {
 /// The step every replica takes.
 #[derive(Debug, Clone)]
 pub struct Reduced {
-    /// Sample-weighted mean gradient.
-    pub grads: Vec<f32>,
+    /// Sample-weighted mean gradient (where a single worker computed it on a GPU, still
+    /// there).
+    pub grads: Gradient,
     /// Sample-weighted mean loss.
     pub loss: f64,
     /// Scenes in the global batch.
@@ -62,19 +63,20 @@ pub async fn reduce(
     ring: Option<&mut Ring>,
     seq: u64,
     rank: usize,
-    g: StepGradients,
+    g: StepGradients<impl Into<Gradient>>,
     signals: Signals,
 ) -> Result<Reduced> {
+    let grads: Gradient = g.grads.into();
     let Some(ring) = ring else {
-        // One worker: its gradient is the step's as it is, with nothing to weight or sum
-        // (and no pass over it but the finiteness check).
-        let summary = GradSummary::of(&g.grads);
+        // One worker: its gradient is the step's as it is, where it is, with nothing to
+        // weight or sum (and no pass over it but the finiteness check).
+        let summary = grads.summary()?;
         let bad = !g.loss.is_finite() || !summary.finite();
         return Ok(Reduced {
             summary: Some(summary),
             loss: g.loss,
             samples: g.samples as f64,
-            grads: g.grads,
+            grads,
             signals,
             nonfinite: NonFiniteRanks {
                 count: u32::from(bad),
@@ -83,8 +85,8 @@ pub async fn reduce(
         });
     };
     let n = g.samples as f32;
-    let bad = !g.loss.is_finite() || g.grads.iter().any(|x| !x.is_finite());
-    let mut buf = g.grads;
+    let mut buf = grads.into_host()?;
+    let bad = !g.loss.is_finite() || buf.iter().any(|x| !x.is_finite());
     buf.iter_mut().for_each(|x| *x *= n);
     let mine = if rank == 0 {
         signals
@@ -111,7 +113,7 @@ pub async fn reduce(
     buf.iter_mut().for_each(|x| *x /= total);
     Ok(Reduced {
         summary: None,
-        grads: buf,
+        grads: Gradient::Host(buf),
         loss: (loss_sum / total) as f64,
         samples: total as f64,
         signals: Signals {

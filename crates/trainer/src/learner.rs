@@ -18,7 +18,7 @@ use crate::error::{Result, TrainError};
 use crate::eval::{EvalOptions, EvalResult, evaluate};
 use crate::retry::{READ_RETRY_BUDGET, retry_transient};
 use crate::shard::{EpochPlan, step_rng};
-use crate::step::{ApplyOutcome, StepGradients, Trainer};
+use crate::step::{ApplyOutcome, Gradient, StepGradients, Trainer};
 use crate::worker::unix_now;
 use candle_core::Device;
 use osrt_dataset::{
@@ -258,8 +258,9 @@ impl Learner {
     }
 
     /// This rank's gradients of the next step (its share of the global batch), opening
-    /// the next epoch where the last one is used up.
-    pub async fn gradients(&mut self) -> Result<StepGradients> {
+    /// the next epoch where the last one is used up. A lone worker on a GPU keeps its
+    /// gradient there: with no all-reduce, it would only go to the host and back.
+    pub async fn gradients(&mut self) -> Result<StepGradients<Gradient>> {
         let step = self.trainer.step;
         if step - self.epoch.start_step >= self.epoch.plan.steps {
             let next = self.epoch.plan.epoch + 1;
@@ -286,9 +287,10 @@ impl Learner {
             .collect();
         let mut rng = step_rng(seed, step, rank, world);
         let (cfg, trainer) = (&self.batch_cfg, &self.trainer);
+        let keep = world == 1;
         tokio::task::block_in_place(|| {
             let batch = build_batch(&refs, cfg, &mut rng)?;
-            trainer.gradients(&batch, &mut rng)
+            trainer.gradients_kept(&batch, &mut rng, keep)
         })
     }
 

@@ -10,7 +10,7 @@
 //! (`train.precision`: f32, or bf16 on a GPU), weights and optimiser state in f32.
 
 use crate::config::JobConfig;
-use crate::error::Result;
+use crate::error::{Result, TrainError};
 use crate::optim::{AdamW, DeviceAdamW, GradSummary, Hyperparams, clip_scale};
 use candle_core::{CpuStorage, Device, Storage, Tensor, Var};
 use osrt_dataset::Batch;
@@ -42,13 +42,60 @@ impl BatchTensors {
     }
 }
 
-/// Gradients of one (local) batch.
-pub struct StepGradients {
+/// Gradients of one (local) batch: by default a host buffer, as the all-reduce sends it.
+pub struct StepGradients<G = Vec<f32>> {
     pub loss: f64,
     /// Flat, in [`Params::vars`] order.
-    pub grads: Vec<f32>,
+    pub grads: G,
     /// Scenes this gradient averages over (for weighting across workers).
     pub samples: usize,
+}
+
+/// A flat f32 gradient in [`Params::vars`] order: in host memory (what the all-reduce
+/// sends and the host optimiser reads), or one tensor on the device that computed it (a
+/// single worker on a GPU: nothing to sum with anyone, so it never leaves the device).
+#[derive(Debug, Clone)]
+pub enum Gradient {
+    Host(Vec<f32>),
+    Device(Tensor),
+}
+
+impl From<Vec<f32>> for Gradient {
+    fn from(g: Vec<f32>) -> Self {
+        Self::Host(g)
+    }
+}
+
+impl From<Tensor> for Gradient {
+    fn from(g: Tensor) -> Self {
+        Self::Device(g)
+    }
+}
+
+impl Gradient {
+    /// The host buffer, copied from the device where the gradient lives there.
+    pub fn into_host(self) -> Result<Vec<f32>> {
+        Ok(match self {
+            Self::Host(g) => g,
+            Self::Device(g) => g.to_vec1::<f32>()?,
+        })
+    }
+
+    /// The host buffer, where the gradient is on the host.
+    pub fn host(&self) -> Option<&[f32]> {
+        match self {
+            Self::Host(g) => Some(g),
+            Self::Device(_) => None,
+        }
+    }
+
+    /// Its sum of squares and largest magnitude (on the device where it lives there).
+    pub fn summary(&self) -> Result<GradSummary> {
+        Ok(match self {
+            Self::Host(g) => GradSummary::of(g),
+            Self::Device(g) => GradSummary::of_tensor(g)?,
+        })
+    }
 }
 
 /// What [`Trainer::apply`] did.
@@ -155,17 +202,78 @@ impl Trainer {
         Ok(self.model.slot_noise(b, rng)?)
     }
 
-    /// MSE on the sampled target rays, and its gradient as one flat buffer.
-    pub fn gradients(&self, batch: &Batch, rng: &mut (impl Rng + Send)) -> Result<StepGradients> {
-        let (kernels, precision) = (self.cfg.train.kernels, self.cfg.train.precision);
-        osrt_kernels::with_kernels(kernels, || {
-            osrt_kernels::with_precision(precision, || {
-                osrt_kernels::on_device_pool(&self.device, || self.gradients_here(batch, rng))
-            })
+    /// MSE on the sampled target rays, and its gradient as one flat host buffer.
+    pub fn gradients<R: Rng + Send + Clone>(
+        &self,
+        batch: &Batch,
+        rng: &mut R,
+    ) -> Result<StepGradients> {
+        let g = self.gradients_kept(batch, rng, false)?;
+        Ok(StepGradients {
+            loss: g.loss,
+            grads: g.grads.into_host()?,
+            samples: g.samples,
         })
     }
 
-    fn gradients_here(&self, batch: &Batch, rng: &mut impl Rng) -> Result<StepGradients> {
+    /// [`Trainer::gradients`], with the flat gradient left on the device where `keep` is
+    /// set and the model runs on one (a single worker has no all-reduce to feed).
+    pub fn gradients_kept<R: Rng + Send + Clone>(
+        &self,
+        batch: &Batch,
+        rng: &mut R,
+        keep: bool,
+    ) -> Result<StepGradients<Gradient>> {
+        let (kernels, precision) = (self.cfg.train.kernels, self.cfg.train.precision);
+        let run = |rng: &mut R| {
+            osrt_kernels::with_kernels(kernels, || {
+                osrt_kernels::with_precision(precision, || {
+                    osrt_kernels::on_device_pool(&self.device, || {
+                        self.gradients_here(batch, rng, keep)
+                    })
+                })
+            })
+        };
+        if crate::device::is_cpu(&self.device) {
+            return run(rng);
+        }
+        // The device's pool keeps freed memory for reuse; where a step's allocation fails,
+        // the free blocks go back to the driver and the step runs once more from the same
+        // RNG state (so the retried step draws what the first try drew).
+        let mut again = rng.clone();
+        match run(rng) {
+            Err(TrainError::Model(e))
+                if crate::device::is_out_of_memory(&e)
+                    && crate::device::release_cached(&self.device) =>
+            {
+                tracing::warn!(
+                    "out of device memory: the pool's free blocks released, step retried"
+                );
+                let out = run(&mut again);
+                *rng = again;
+                out
+            }
+            other => other,
+        }
+    }
+
+    fn gradients_here(
+        &self,
+        batch: &Batch,
+        rng: &mut impl Rng,
+        keep: bool,
+    ) -> Result<StepGradients<Gradient>> {
+        // With debug logging, the phases' times (synchronised on a GPU).
+        let timing = tracing::enabled!(tracing::Level::DEBUG);
+        let lap = |t: &mut std::time::Instant| -> Result<f64> {
+            if timing {
+                self.device.synchronize()?;
+            }
+            let s = t.elapsed().as_secs_f64();
+            *t = std::time::Instant::now();
+            Ok(s)
+        };
+        let mut clock = std::time::Instant::now();
         let t = BatchTensors::new(batch, &self.device)?;
         let noise = self.slot_noise(batch.batch_size, rng)?;
         // Drawn after the slot noise; nothing is drawn for decoders that do not sample.
@@ -182,7 +290,9 @@ impl Trainer {
             offsets.as_ref(),
         )?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
+        let forward_s = lap(&mut clock)?;
         let grads = loss.backward()?;
+        let backward_s = lap(&mut clock)?;
         let mut grads = grads;
         let flat = if crate::device::is_cpu(&self.device) {
             // Room for the all-reduce's control values, so that appending them does not
@@ -197,22 +307,32 @@ impl Trainer {
                     None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
                 }
             }
-            flat
+            Gradient::Host(flat)
         } else {
-            // One flat tensor on the device, then one copy to the host.
-            let parts = self
-                .params
-                .vars()
-                .iter()
-                .map(|(_, var)| match grads.get(var.as_tensor()) {
-                    Some(g) => g.to_dtype(candle_core::DType::F32)?.flatten_all(),
-                    None => Tensor::zeros(var.elem_count(), candle_core::DType::F32, &self.device),
-                })
-                .collect::<candle_core::Result<Vec<_>>>()?;
-            Tensor::cat(&parts, 0)?.to_vec1::<f32>()?
+            // One flat tensor on the device; copied to the host only for an all-reduce.
+            let mut parts = Vec::new();
+            for (_, var) in self.params.vars() {
+                // Taken out of the store, so each part is freed once concatenated.
+                parts.push(match grads.remove(var.as_tensor()) {
+                    Some(g) => g.to_dtype(candle_core::DType::F32)?.flatten_all()?,
+                    None => Tensor::zeros(var.elem_count(), candle_core::DType::F32, &self.device)?,
+                });
+            }
+            drop(grads);
+            let flat = Tensor::cat(&parts, 0)?;
+            drop(parts);
+            if keep {
+                Gradient::Device(flat)
+            } else {
+                Gradient::Host(flat.to_vec1::<f32>()?)
+            }
         };
+        let loss = loss.to_scalar::<f32>()? as f64;
+        drop((out, slots, t));
+        let flatten_s = lap(&mut clock)?;
+        tracing::debug!(forward_s, backward_s, flatten_s, "train step gradients");
         Ok(StepGradients {
-            loss: loss.to_scalar::<f32>()? as f64,
+            loss,
             grads: flat,
             samples: batch.batch_size,
         })
@@ -221,16 +341,16 @@ impl Trainer {
     /// Clips (if configured) and applies a flat gradient with AdamW, or skips the step if
     /// the loss, the gradient, the resulting weights or the moments are not finite. Counts
     /// the step either way.
-    pub fn apply(&mut self, loss: f64, grads: Vec<f32>) -> Result<ApplyOutcome> {
-        self.apply_summarized(loss, grads, None)
+    pub fn apply(&mut self, loss: f64, grads: impl Into<Gradient>) -> Result<ApplyOutcome> {
+        self.apply_summarized(loss, grads.into(), None)
     }
 
     /// [`Trainer::apply`] with the gradient's summary where it is known already
-    /// (`GradSummary::of(&grads)`), saving a pass over the gradient.
+    /// ([`Gradient::summary`]), saving a pass over the gradient.
     pub fn apply_summarized(
         &mut self,
         loss: f64,
-        mut grads: Vec<f32>,
+        mut grads: Gradient,
         summary: Option<GradSummary>,
     ) -> Result<ApplyOutcome> {
         let step = self.step;
@@ -249,24 +369,41 @@ impl Trainer {
         if !loss.is_finite() {
             return skip(self, "non-finite loss");
         }
-        let mut summary = summary.unwrap_or_else(|| GradSummary::of(&grads));
+        let t0 = std::time::Instant::now();
+        let mut summary = match summary {
+            Some(s) => s,
+            None => grads.summary()?,
+        };
+        tracing::debug!(summary_s = t0.elapsed().as_secs_f64(), "gradient summary");
         if !summary.finite() {
             return skip(self, "non-finite gradient");
         }
         let grad_norm = summary.norm();
         let scale = clip_scale(grad_norm, self.cfg.train.clip_norm);
         if scale != 1.0 {
-            grads.iter_mut().for_each(|x| *x *= scale);
-            summary = GradSummary::of(&grads);
+            grads = match grads {
+                Gradient::Host(mut g) => {
+                    g.iter_mut().for_each(|x| *x *= scale);
+                    Gradient::Host(g)
+                }
+                Gradient::Device(g) => Gradient::Device((g * scale as f64)?),
+            };
+            summary = grads.summary()?;
         }
         let lr = self.cfg.train.lr_at(step);
         let vars: Vec<Var> = self.params.vars().into_iter().map(|(_, v)| v).collect();
         let version = self.params.version();
-        let applied = match &mut self.opt {
-            Optimizer::Host(opt) => opt.step(&vars, version, &grads, summary.max_abs, lr)?,
-            Optimizer::Device(opt) => {
-                let grads = Tensor::from_vec(grads, self.num_parameters, &self.device)?;
-                opt.step(&vars, version, &grads, summary.max_abs, lr)?
+        let n = self.num_parameters;
+        let applied = match (&mut self.opt, grads) {
+            (Optimizer::Host(opt), g) => {
+                opt.step(&vars, version, &g.into_host()?, summary.max_abs, lr)?
+            }
+            (Optimizer::Device(opt), Gradient::Device(g)) => {
+                opt.step(&vars, version, &g, summary.max_abs, lr)?
+            }
+            (Optimizer::Device(opt), Gradient::Host(g)) => {
+                let g = Tensor::from_vec(g, n, &self.device)?;
+                opt.step(&vars, version, &g, summary.max_abs, lr)?
             }
         };
         if !applied {

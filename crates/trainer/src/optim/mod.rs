@@ -160,6 +160,43 @@ impl GradSummary {
         )
     }
 
+    /// The summary of a flat f32 gradient on a device: squares summed in f64, in
+    /// buckets so that the f64 copy is one bucket's size; one synchronisation. The same
+    /// bits for the same gradient on the same device; not the host's bits (another
+    /// summation order).
+    pub fn of_tensor(g: &candle_core::Tensor) -> candle_core::Result<Self> {
+        use candle_core::{DType, Tensor};
+        let n = g.dims1()?;
+        if n == 0 {
+            return Ok(Self {
+                sum_sq: 0.0,
+                max_abs: 0.0,
+            });
+        }
+        let (mut sums, mut maxima) = (Vec::new(), Vec::new());
+        for off in (0..n).step_by(device::BUCKET) {
+            let part = g.narrow(0, off, device::BUCKET.min(n - off))?;
+            sums.push(device::wide_sum(&part.to_dtype(DType::F64)?.sqr()?)?);
+            maxima.push(device::wide_max(&part.abs()?)?);
+        }
+        let both = Tensor::cat(
+            &[
+                Tensor::stack(&sums, 0)?.sum_all()?.unsqueeze(0)?,
+                Tensor::stack(&maxima, 0)?
+                    .max(0)?
+                    .to_dtype(DType::F64)?
+                    .unsqueeze(0)?,
+            ],
+            0,
+        )?
+        .to_vec1::<f64>()?;
+        // A NaN makes the sum NaN (the maximum may skip it): `finite` reads the sum.
+        Ok(Self {
+            sum_sq: both[0],
+            max_abs: both[1] as f32,
+        })
+    }
+
     fn of_block(g: &[f32]) -> Self {
         let mut out = Self {
             sum_sq: 0.0,

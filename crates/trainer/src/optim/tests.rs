@@ -247,3 +247,42 @@ fn clipping_bounds_the_norm() {
     clip_global_norm(&mut small, 1.0);
     assert_eq!(small, vec![0.3, 0.4]);
 }
+
+/// The device summary (two-stage reductions over buckets) agrees with the host's: the
+/// same maximum, the sum to f64 rounding; a NaN or an infinity anywhere is not finite.
+#[test]
+fn the_device_gradient_summary_agrees_with_the_host_and_sees_non_finite_values() {
+    for n in [0, 5, 1024 * 3 + 17, device::BUCKET + 4099] {
+        let g = values(n, 7);
+        let host = GradSummary::of(&g);
+        let dev =
+            GradSummary::of_tensor(&Tensor::new(g.as_slice(), &Device::Cpu).unwrap()).unwrap();
+        assert_eq!(dev.max_abs, host.max_abs, "n = {n}");
+        assert!(
+            (dev.sum_sq - host.sum_sq).abs() <= 1e-12 * host.sum_sq.max(1e-300),
+            "n = {n}"
+        );
+    }
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        let mut g = values(3000, 8);
+        g[2999] = bad;
+        let s = GradSummary::of_tensor(&Tensor::new(g.as_slice(), &Device::Cpu).unwrap()).unwrap();
+        assert!(!s.finite(), "{bad}");
+    }
+}
+
+#[test]
+fn two_stage_reductions_equal_whole_tensor_reductions() {
+    for n in [1, 1023, 2048, 5000] {
+        let v = values(n, 9);
+        let t = Tensor::new(v.as_slice(), &Device::Cpu).unwrap();
+        let max = device::wide_max(&t).unwrap().to_scalar::<f32>().unwrap();
+        assert_eq!(max, v.iter().copied().fold(f32::MIN, f32::max));
+        let sum = device::wide_sum(&t.to_dtype(candle_core::DType::F64).unwrap())
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap();
+        let want: f64 = v.iter().map(|&x| x as f64).sum();
+        assert!((sum - want).abs() < 1e-9, "{sum} vs {want}");
+    }
+}
