@@ -5,7 +5,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
+use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec, OpenOptions};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
@@ -50,6 +50,10 @@ pub struct CoordinatorArgs {
     /// Continue the job in --run (a finished one too) with the limits given here.
     #[arg(long, env = "OSRT_RESUME")]
     pub resume: bool,
+    /// Take the run folder from a coordinator known to be dead without waiting to see
+    /// that its lease is not renewed (a live one is otherwise refused).
+    #[arg(long, env = "OSRT_TAKE_OVER")]
+    pub take_over: bool,
     /// Override cluster.min_workers / max_workers / max_restarts of the config.
     #[arg(long, env = "OSRT_MIN_WORKERS")]
     pub min_workers: Option<usize>,
@@ -152,7 +156,12 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     }
     let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes).await?;
     spec.cluster_overrides = overrides;
-    let coord = Coordinator::open(spec, a.resume).await?;
+    let opts = OpenOptions {
+        resume: a.resume,
+        take_over: a.take_over,
+        ..Default::default()
+    };
+    let coord = Coordinator::open_with(spec, opts).await?;
     let listener = tokio::net::TcpListener::bind(a.listen)
         .await
         .with_context(|| format!("listening on {}", a.listen))?;
@@ -298,7 +307,8 @@ pub struct LocalJob {
     pub spec: JobSpec,
     pub workers: usize,
     pub threads_per_worker: usize,
-    pub resume: bool,
+    /// `--resume`, `--take-over`.
+    pub open: OpenOptions,
 }
 
 fn spawn_worker(
@@ -339,7 +349,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let device = JobConfig::from_toml("the job config", &job.spec.job_toml)?
         .train
         .device;
-    let coord = Coordinator::open(job.spec, job.resume).await?;
+    let coord = Coordinator::open_with(job.spec, job.open).await?;
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = format!("http://{}", listener.local_addr()?);
     let status_view = coord.clone();

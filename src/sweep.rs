@@ -137,7 +137,10 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
             spec,
             workers: file.workers,
             threads_per_worker: threads,
-            resume: started,
+            open: osrt_coordinator::OpenOptions {
+                resume: started,
+                ..Default::default()
+            },
         })
         .await
         .with_context(|| format!("training sweep point {name}"))?;

@@ -40,6 +40,10 @@ pub struct TrainArgs {
     /// config; --max-steps counts from step 0).
     #[arg(long)]
     pub resume: bool,
+    /// With --resume: take the run folder from a coordinator known to be dead without
+    /// waiting to see that its lease is not renewed (a live one is otherwise refused).
+    #[arg(long, requires = "resume")]
+    pub take_over: bool,
     /// Stop after this many optimiser steps.
     #[arg(long)]
     pub max_steps: Option<u64>,
@@ -303,7 +307,11 @@ pub async fn train(a: TrainArgs) -> Result<()> {
         spec,
         workers,
         threads_per_worker: threads,
-        resume: a.resume,
+        open: osrt_coordinator::OpenOptions {
+            resume: a.resume,
+            take_over: a.take_over,
+            ..Default::default()
+        },
     })
     .await?;
     let loc = Location::parse(&run)?;

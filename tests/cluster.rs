@@ -234,6 +234,77 @@ fn a_restarted_coordinator_resumes_the_job() {
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
 }
 
+/// A second coordinator on the folder of a live job is refused, naming the holder, and
+/// changes nothing there: the live job ends with one training record per step and every
+/// checkpoint it committed verifying.
+#[test]
+fn a_second_coordinator_on_a_live_run_folder_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let args = ["--max-steps", "400", "--min-workers", "1"];
+    let mut coord = coordinator(port, &data, &run, &args);
+    let mut a = worker(port);
+    wait_job(&run, Duration::from_secs(60), |j| {
+        j["last_checkpoint"].as_u64().is_some_and(|s| s >= 10)
+    });
+    let started = Instant::now();
+    let listen = format!("127.0.0.1:{}", free_port());
+    let second = std::process::Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args(["coordinator", "--preset", "tiny", "--data"])
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .args(["--listen", &listen, "--max-steps", "400", "--resume"])
+        .env("OSRT_TOKEN", TOKEN)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&second.stderr);
+    assert!(
+        !second.status.success(),
+        "the second coordinator was not refused"
+    );
+    assert!(
+        err.contains("another coordinator drives this run folder") && err.contains("pid"),
+        "{err}"
+    );
+    assert!(
+        started.elapsed() < Duration::from_secs(30),
+        "{:?}",
+        started.elapsed()
+    );
+    assert!(
+        coord.0.try_wait().unwrap().is_none(),
+        "the live job stopped"
+    );
+    assert!(coord.wait_for_exit(Duration::from_secs(180)).success());
+    assert!(a.wait_for_exit(Duration::from_secs(30)).success());
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    assert_eq!(
+        job["generation"], 1,
+        "one generation: nobody else drove the folder"
+    );
+    let steps: Vec<u64> = losses(&run).iter().map(|(s, _)| *s).collect();
+    let mut unique = steps.clone();
+    unique.dedup();
+    assert_eq!(steps, unique, "one training record per step");
+    assert!(steps.windows(2).all(|w| w[0] < w[1]), "{steps:?}");
+    let loc = Location::parse(run.to_str().unwrap()).unwrap();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let committed = rt.block_on(osrt_run::checkpoint::list_steps(&loc)).unwrap();
+    assert!(!committed.is_empty());
+    for step in committed {
+        rt.block_on(osrt_run::checkpoint::verify(&loc, step))
+            .unwrap_or_else(|e| panic!("checkpoint {step}: {e}"));
+    }
+    assert!(
+        !run.join("lease.json").exists(),
+        "the lease is released at the end"
+    );
+}
+
 fn signal(p: &Proc, sig: &str) {
     let pid = p.0.id().to_string();
     let s = std::process::Command::new("kill")

@@ -11,4 +11,4 @@ pub mod service;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
 pub use error::CoordinatorError;
-pub use service::{Coordinator, JOB_FILE, StatusSnapshot};
+pub use service::{Coordinator, JOB_FILE, OpenOptions, StatusSnapshot};

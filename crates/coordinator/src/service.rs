@@ -8,6 +8,7 @@ use osrt_proto::convert::Directive;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
 use osrt_run::Location;
+use osrt_run::lease::{Holder, Lease, LeaseTiming};
 use osrt_run::{
     CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
     write_file,
@@ -30,6 +31,20 @@ struct Shared {
     core: Mutex<Core>,
     changed: Notify,
     run: Location,
+    /// The run folder's lease, held from `open` until the job is over (`None` once
+    /// released).
+    lease: tokio::sync::Mutex<Option<Lease>>,
+}
+
+/// How a coordinator opens its run folder.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct OpenOptions {
+    /// Continue a finished job with new limits (`--resume`).
+    pub resume: bool,
+    /// Take the run folder's lease without watching it for a live holder (`--take-over`:
+    /// the holder is known to be dead).
+    pub take_over: bool,
+    pub lease: LeaseTiming,
 }
 
 impl Shared {
@@ -64,16 +79,84 @@ impl Coordinator {
     /// restarted coordinator: the job continues from its newest committed checkpoint (its
     /// own `config.toml` wins). `resume` continues a finished job with the new limits.
     pub async fn open(spec: JobSpec, resume: bool) -> Result<Self, CoordinatorError> {
+        let opts = OpenOptions {
+            resume,
+            ..Default::default()
+        };
+        Self::open_with(spec, opts).await
+    }
+
+    /// [`Coordinator::open`] with all of [`OpenOptions`].
+    pub async fn open_with(spec: JobSpec, opts: OpenOptions) -> Result<Self, CoordinatorError> {
         let run = Location::parse(&spec.run)?;
-        Self::open_at(spec, run, resume).await
+        Self::open_at_with(spec, run, opts).await
     }
 
     /// [`Coordinator::open`] on an already opened run location (`spec.run` names it).
     pub async fn open_at(
-        mut spec: JobSpec,
+        spec: JobSpec,
         run: Location,
         resume: bool,
     ) -> Result<Self, CoordinatorError> {
+        let opts = OpenOptions {
+            resume,
+            ..Default::default()
+        };
+        Self::open_at_with(spec, run, opts).await
+    }
+
+    /// [`Coordinator::open_at`] with all of [`OpenOptions`]. The run folder's lease is
+    /// taken before anything in it is written: a second coordinator on a folder whose
+    /// coordinator is alive is refused (`osrt_run::lease`).
+    pub async fn open_at_with(
+        spec: JobSpec,
+        run: Location,
+        opts: OpenOptions,
+    ) -> Result<Self, CoordinatorError> {
+        let resume = opts.resume;
+        let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
+            Some(b) => Some(
+                serde_json::from_slice(&b)
+                    .map_err(|e| run_err(&run, JOB_FILE, format!("unreadable: {e}")))?,
+            ),
+            None => None,
+        };
+        let job_id = persisted.as_ref().map_or(&spec.job_id, |p| &p.job_id);
+        let lease = Lease::acquire(
+            &run,
+            Holder::this_process(job_id),
+            opts.lease,
+            opts.take_over,
+        )
+        .await?;
+        // A refusal below leaves the folder free at once.
+        let core = match Self::open_core(spec, &run, resume).await {
+            Ok(core) => core,
+            Err(e) => {
+                if let Err(r) = lease.release().await {
+                    tracing::warn!(error = %r, "releasing the run folder's lease");
+                }
+                return Err(e);
+            }
+        };
+        Ok(Self {
+            shared: Arc::new(Shared {
+                core: Mutex::new(core),
+                changed: Notify::new(),
+                run,
+                lease: tokio::sync::Mutex::new(Some(lease)),
+            }),
+        })
+    }
+
+    /// The job's state from the run folder (read again under the lease: the folder's
+    /// previous holder may have written last), or a new job's.
+    async fn open_core(
+        mut spec: JobSpec,
+        run: &Location,
+        resume: bool,
+    ) -> Result<Core, CoordinatorError> {
+        let run = run.clone();
         let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
             Some(b) => Some(
                 serde_json::from_slice(&b)
@@ -175,13 +258,7 @@ impl Coordinator {
                 core
             }
         };
-        Ok(Self {
-            shared: Arc::new(Shared {
-                core: Mutex::new(core),
-                changed: Notify::new(),
-                run,
-            }),
-        })
+        Ok(core)
     }
 
     pub fn job_id(&self) -> String {
@@ -251,11 +328,13 @@ impl Coordinator {
         let mut over_since: Option<Instant> = None;
         let mut store = StoreRetry::default();
         let can_append = self.local_metrics().is_some();
+        let mut last_renewal = Instant::now();
         loop {
             tokio::select! {
                 _ = &mut shutdown => break,
                 _ = tokio::time::sleep(Duration::from_millis(100)) => {}
             }
+            self.renew_lease(&mut last_renewal).await?;
             let write_now = store.due();
             let (job, metrics, over) = self.shared.with(|c, now| {
                 c.tick(now);
@@ -319,7 +398,32 @@ impl Coordinator {
         if let Some(w) = metrics {
             self.write_metrics(w).await?;
         }
+        if let Some(lease) = self.shared.lease.lock().await.take() {
+            lease.release().await?;
+        }
         Ok(self.status())
+    }
+
+    /// Renews the run folder's lease when it is due. Losing the folder to another
+    /// coordinator ends this one with an error (it must not write there any more); a store
+    /// that fails to take a renewal is retried at the next turn.
+    async fn renew_lease(&self, last: &mut Instant) -> Result<(), CoordinatorError> {
+        let mut guard = self.shared.lease.lock().await;
+        let Some(lease) = guard.as_mut() else {
+            return Ok(());
+        };
+        if last.elapsed() < lease.timing.renew_every {
+            return Ok(());
+        }
+        match lease.renew().await {
+            Ok(()) => *last = Instant::now(),
+            Err(e) if e.to_string().contains("taken over by") => {
+                guard.take();
+                return Err(e.into());
+            }
+            Err(e) => tracing::warn!(error = %e, "renewing the run folder's lease"),
+        }
+        Ok(())
     }
 
     /// `RUN/metrics.jsonl` as a local file, where the run folder is one.

@@ -7,7 +7,8 @@
 //! [`LeaseTiming::watch`]: if the count moves, the holder is alive and the newcomer is
 //! refused, with the holder's name and how long it has held the folder; if it does not
 //! move, the holder is dead (a crashed coordinator: the restart path) and the newcomer
-//! takes the lease over. Liveness is judged by a count seen to move, not by timestamps,
+//! takes the lease over. A holder on the same machine whose process is gone is dead
+//! without watching (a local restart after a crash). Liveness is judged by a count seen to move, not by timestamps,
 //! so clocks of different machines need not agree. `take_over` skips the watch, for a
 //! holder known to be dead.
 //!
@@ -108,6 +109,13 @@ fn lease_err(run: &Location, reason: impl std::fmt::Display) -> RunError {
     }
 }
 
+/// Whether process `pid` of this machine is running (Linux: `/proc/PID`); true where that
+/// cannot be told, so that the lease is watched instead.
+fn process_alive(pid: u32) -> bool {
+    let proc = std::path::Path::new("/proc");
+    !proc.is_dir() || proc.join(pid.to_string()).exists()
+}
+
 fn unix_now() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -186,6 +194,12 @@ impl Lease {
         let Some(first) = read_lease(run).await? else {
             return Ok(());
         };
+        if first.holder.host == self.file.holder.host && !process_alive(first.holder.pid) {
+            // A holder on this machine whose process is gone (a restart after a crash):
+            // nothing to watch.
+            tracing::warn!(holder = %first.holder, "the run folder's holder is no longer running");
+            return Ok(());
+        }
         tracing::info!(
             holder = %first.holder,
             watch_s = self.timing.watch.as_secs_f64(),
@@ -300,6 +314,35 @@ mod tests {
             .await
             .unwrap();
         assert_eq!(d.holder().job_id, "d");
+    }
+
+    #[tokio::test]
+    async fn a_holder_on_this_machine_whose_process_is_gone_is_replaced_at_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = Location::parse(dir.path().to_str().unwrap()).unwrap();
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let dead = child.id();
+        child.wait().unwrap();
+        let mut gone = holder("a");
+        gone.pid = dead;
+        let file = LeaseFile {
+            holder: gone,
+            renewals: 7,
+            renewed_unix_s: 0,
+        };
+        assert!(put(&run, &file, true).await.unwrap());
+        let slow = LeaseTiming {
+            renew_every: Duration::from_secs(3),
+            watch: Duration::from_secs(3600),
+        };
+        let b = tokio::time::timeout(
+            Duration::from_secs(5),
+            Lease::acquire(&run, holder("b"), slow, false),
+        )
+        .await
+        .expect("no watch")
+        .unwrap();
+        assert_eq!(b.holder().job_id, "b");
     }
 
     #[tokio::test]
