@@ -217,6 +217,9 @@ async fn generate(a: GenerateArgs) -> Result<()> {
 
 async fn import_cmd(a: ImportArgs) -> Result<()> {
     let mut opts = ImportOptions::new(a.format);
+    // The source as an absolute path, so that re-runs from another working folder agree.
+    opts.source = std::fs::canonicalize(&a.src)
+        .map_or_else(|_| a.src.display().to_string(), |p| p.display().to_string());
     if let Some(s) = &a.split {
         opts.splits = Splits::parse(s, opts.splits).map_err(anyhow::Error::msg)?;
     }

@@ -223,6 +223,22 @@ fn an_import_resumes_reads_in_pyarrow_and_trains() {
         err.contains("import.json") && err.contains("other options"),
         "{err}"
     );
+    // Another release with the same options would mix two datasets' parts: refused,
+    // naming both sources; nothing of the first import is touched.
+    let second = python_fixture("make_obsurf.py", dir.path(), "release2", &["12"]);
+    std::fs::remove_file(&part).unwrap();
+    let mixed = import(&second, &data, &[]);
+    assert!(!mixed.status.success());
+    let err = String::from_utf8_lossy(&mixed.stderr);
+    assert!(
+        err.contains("release2") && err.contains(src.canonicalize().unwrap().to_str().unwrap()),
+        "{err}"
+    );
+    assert!(!part.exists(), "no part written from the other source");
+    assert!(
+        import(&src, &data, &[]).status.success(),
+        "the first source finishes it"
+    );
 
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/check_png_split.py");
     let out = Command::new("python3")

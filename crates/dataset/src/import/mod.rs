@@ -11,7 +11,8 @@
 //! import` of 400 noise-image scenes, 2026-11-26, 2-core Intel Xeon). A part file
 //! becomes visible only when whole (object_store completes it on close), so an interrupted
 //! import re-run with the same options keeps the finished parts and writes the rest;
-//! `import.json` records the options and a re-run with others is refused.
+//! `import.json` records the source and the options, and a re-run from another source or
+//! with other options is refused.
 
 pub mod kubric;
 pub mod npy;
@@ -133,6 +134,11 @@ impl Splits {
 /// What to import and how.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ImportOptions {
+    /// The source folder as imported from (absolute): a re-run from another source into
+    /// the same folder would mix the two datasets' parts. Empty in `import.json` files
+    /// written before it was recorded (their source is then not compared).
+    #[serde(default)]
+    pub source: String,
     pub format: Format,
     pub splits: Splits,
     /// Scenes with more objects are left out, as the public loaders do.
@@ -149,6 +155,7 @@ impl ImportOptions {
     /// of 32; CLEVR-3D keeps scenes of at most 6 objects, as its loaders do.
     pub fn new(format: Format) -> Self {
         Self {
+            source: String::new(),
             format,
             splits: format.default_splits(),
             max_objects: (format == Format::Clevr3d).then_some(6),
@@ -199,15 +206,28 @@ async fn claim(out: &Location, opts: &ImportOptions) -> Result<()> {
                 .await
                 .map_err(|e| DatasetError::store(&shown, e))?;
             let theirs: Option<ImportOptions> = serde_json::from_slice(&there).ok();
-            if theirs.as_ref() != Some(opts) {
-                return Err(DatasetError::Import {
-                    path: shown,
-                    reason: "the folder holds an import made with other options: import \
-                             into a new folder, or re-run with the same options to finish it"
-                        .into(),
-                });
-            }
-            Ok(())
+            let reason = match theirs {
+                Some(t) if t.source != opts.source && !t.source.is_empty() => format!(
+                    "the folder holds an import from {}, not from {}: import into a new \
+                     folder, or re-run from that source to finish it",
+                    t.source, opts.source
+                ),
+                Some(t)
+                    if t == ImportOptions {
+                        source: t.source.clone(),
+                        ..opts.clone()
+                    } =>
+                {
+                    return Ok(());
+                }
+                _ => "the folder holds an import made with other options: import into a new \
+                      folder, or re-run with the same options to finish it"
+                    .into(),
+            };
+            Err(DatasetError::Import {
+                path: shown,
+                reason,
+            })
         }
         Err(object_store::Error::NotFound { .. }) => out
             .store
