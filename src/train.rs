@@ -256,11 +256,20 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     }
     let mut job = job_config(&a)?;
     job.train.device.check_available()?;
-    let workers = a.workers.unwrap_or(if job.train.device.is_cuda() {
+    let mut workers = a.workers.unwrap_or(if job.train.device.is_cuda() {
         osrt_trainer::device::cuda_device_count().max(1)
     } else {
         2
     });
+    let batch = job.train.batch_size;
+    if workers > batch {
+        // Each worker needs at least one scene of the step.
+        eprintln!(
+            "{workers} workers asked for; a step's {batch} scenes (--batch-size) feed at most \
+             {batch}: starting {batch}"
+        );
+        workers = batch.max(1);
+    }
     // The launcher starts exactly `workers`: the job (a resumed one too) waits for them.
     let overrides = osrt_coordinator::ClusterOverrides {
         min_workers: Some(workers),

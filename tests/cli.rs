@@ -221,6 +221,68 @@ fn train_then_eval_a_tiny_run() {
             assert!(r["fg_ari"].as_f64().is_some() && r["ari"].as_f64().is_some());
         }
     }
+    // More workers than the batch has scenes: the launcher starts as many as it feeds
+    // (the ring used to form and then fail the job).
+    let run = dir.path().join("run-capped");
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--data",
+            data.to_str().unwrap(),
+            "--run",
+        ])
+        .arg(&run)
+        .args([
+            "--max-steps",
+            "2",
+            "--workers",
+            "3",
+            "--batch-size",
+            "2",
+            "--threads",
+            "1",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("3 workers asked for") && err.contains("starting 2"),
+        "{err}"
+    );
+    let records = read_jsonl(&run.join("metrics.jsonl"));
+    assert!(records.iter().any(|r| r["workers"] == 2), "a ring of 2");
+    // A coordinator asked to wait for more workers than its batch feeds is refused.
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "coordinator",
+            "--preset",
+            "tiny",
+            "--data",
+            data.to_str().unwrap(),
+            "--run",
+        ])
+        .arg(dir.path().join("run-never"))
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--min-workers",
+            "9",
+            "--max-steps",
+            "1",
+        ])
+        .env("OSRT_TOKEN", "test-token-0123456789abcdef")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("min_workers = 9 can never gather"), "{err}");
+    assert!(
+        !dir.path().join("run-never/lease.json").exists(),
+        "the lease is released"
+    );
     // Training into a folder that holds a run is refused, not overwritten.
     let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
         .args([

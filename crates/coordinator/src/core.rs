@@ -88,6 +88,8 @@ pub enum Phase {
 #[derive(Debug)]
 pub struct Core {
     pub spec: JobSpec,
+    /// The job's global batch, where its config says: the most workers a step can feed.
+    pub batch: Option<usize>,
     pub phase: Phase,
     pub generation: u64,
     /// Worker ids in ring order (rank = index) of the current generation.
@@ -149,6 +151,7 @@ impl Core {
 
     pub fn with_incarnation(spec: JobSpec, incarnation: u32, now: Instant) -> Self {
         Self {
+            batch: ClusterConfig::global_batch_of(&spec.job_toml),
             spec,
             phase: Phase::Waiting { since: now },
             generation: 0,
@@ -311,6 +314,14 @@ impl Core {
                 "the job already has {max} workers (cluster.max_workers)"
             )));
         }
+        if let Some(b) = self.batch
+            && self.members.len() >= b
+        {
+            return Err(Status::resource_exhausted(format!(
+                "the job already has {b} workers: its global batch of {b} scenes \
+                 (train.batch_size) feeds at most {b}, one scene each"
+            )));
+        }
         let id = (u64::from(self.incarnation) << 32) | u64::from(self.next_id);
         // 2^32 registrations in one incarnation would wrap onto a live id; refuse instead.
         self.next_id = self.next_id.checked_add(1).ok_or_else(|| {
@@ -435,8 +446,10 @@ impl Core {
             let n = eligible.len();
             let grace = Duration::from_secs_f64(c.join_grace_s);
             let waited = now.duration_since(since);
-            if n >= c.max_workers || (n >= c.min_workers && waited >= grace) {
-                self.form(eligible);
+            let limit = c.max_workers.min(self.batch.unwrap_or(usize::MAX));
+            if n >= limit || (n >= c.min_workers && waited >= grace) {
+                // A ring larger than the batch could not give every rank a scene.
+                self.form(eligible.into_iter().take(limit).collect());
             } else if waited.as_secs_f64() > c.wait_timeout_s {
                 let names: Vec<&str> = self.members.values().map(|m| m.name.as_str()).collect();
                 let (min, limit) = (c.min_workers, c.wait_timeout_s);

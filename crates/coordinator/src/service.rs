@@ -258,6 +258,18 @@ impl Coordinator {
                 core
             }
         };
+        let min = core.spec.cluster.min_workers;
+        if let Some(b) = core.batch.filter(|&b| min > b) {
+            return Err(run_err(
+                &run,
+                CONFIG_FILE,
+                format!(
+                    "cluster.min_workers = {min} can never gather: a step's {b} scenes \
+                     (train.batch_size) feed at most {b} workers; lower --min-workers or \
+                     raise --batch-size"
+                ),
+            ));
+        }
         Ok(core)
     }
 

@@ -69,6 +69,21 @@ impl ClusterConfig {
         Ok(only.cluster)
     }
 
+    /// The job's global batch (`[train] batch_size` of its TOML), where it says: a step
+    /// feeds at most that many workers (one scene each). `None` where the table or the
+    /// key is absent or unreadable (the trainer validates the config itself).
+    pub fn global_batch_of(text: &str) -> Option<usize> {
+        #[derive(Deserialize)]
+        struct Train {
+            batch_size: Option<usize>,
+        }
+        #[derive(Deserialize)]
+        struct Only {
+            train: Option<Train>,
+        }
+        toml::from_str::<Only>(text).ok()?.train?.batch_size
+    }
+
     /// Rejects settings that cannot run, by name.
     pub fn validate(&self) -> Result<()> {
         let c = self;

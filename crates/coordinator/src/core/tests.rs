@@ -363,3 +363,34 @@ fn restarts_are_bounded_and_bad_registrations_refused() {
     assert_eq!(c.phase, Phase::Done);
     assert_eq!(c.plan(a, 1, t).unwrap(), PlanState::Done);
 }
+
+/// A ring never outgrows the global batch: with a batch of 2 scenes the ring forms at 2
+/// workers without waiting for more, and a third registration is refused, saying why.
+#[test]
+fn the_ring_is_capped_at_the_global_batch() {
+    let t = Instant::now();
+    let mut s = spec(1, 64, 3);
+    s.cluster.join_grace_s = 3600.0;
+    s.job_toml = "[train]\nbatch_size = 2\n\n[cluster]\n".into();
+    let mut c = Core::new(s, t);
+    assert_eq!(c.batch, Some(2));
+    reg(&mut c, t);
+    c.tick(t);
+    assert!(
+        matches!(c.phase, Phase::Waiting { .. }),
+        "one worker waits for the grace"
+    );
+    reg(&mut c, t);
+    c.tick(t);
+    assert_eq!(
+        c.phase,
+        Phase::Running,
+        "two workers are all the batch can feed"
+    );
+    assert_eq!(c.ring.len(), 2);
+    let e = c
+        .register(PROTOCOL_VERSION, "w3".into(), "http://x:1".into(), 1, t)
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted);
+    assert!(e.message().contains("train.batch_size"), "{}", e.message());
+}
