@@ -67,6 +67,23 @@ pub struct Coordinator {
 /// A copy of the job's status for displays (the launcher's progress bar).
 pub type StatusSnapshot = v1::JobStatus;
 
+/// Refuses a job whose `min_workers` its batch cannot feed (one scene per worker).
+fn gatherable(core: &Core, run: &Location) -> Result<(), CoordinatorError> {
+    let min = core.spec.cluster.min_workers;
+    match core.batch.filter(|&b| min > b) {
+        Some(b) => Err(run_err(
+            run,
+            CONFIG_FILE,
+            format!(
+                "cluster.min_workers = {min} can never gather: a step's {b} scenes \
+                 (train.batch_size) feed at most {b} workers; lower --min-workers or raise \
+                 --batch-size"
+            ),
+        )),
+        None => Ok(()),
+    }
+}
+
 fn run_err(run: &Location, name: &str, reason: impl std::fmt::Display) -> CoordinatorError {
     CoordinatorError::Run(RunError::Run {
         path: run.describe(&run.path(name)),
@@ -258,18 +275,7 @@ impl Coordinator {
                 core
             }
         };
-        let min = core.spec.cluster.min_workers;
-        if let Some(b) = core.batch.filter(|&b| min > b) {
-            return Err(run_err(
-                &run,
-                CONFIG_FILE,
-                format!(
-                    "cluster.min_workers = {min} can never gather: a step's {b} scenes \
-                     (train.batch_size) feed at most {b} workers; lower --min-workers or \
-                     raise --batch-size"
-                ),
-            ));
-        }
+        gatherable(&core, &run)?;
         Ok(core)
     }
 
