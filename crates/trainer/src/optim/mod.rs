@@ -251,15 +251,5 @@ pub fn clip_scale(norm: f64, max_norm: Option<f64>) -> f32 {
     }
 }
 
-/// Scales `g` in place so its global norm is at most `max_norm`; returns the norm before.
-pub fn clip_global_norm(g: &mut [f32], max_norm: f64) -> f64 {
-    let norm = global_norm(g);
-    let s = clip_scale(norm, Some(max_norm));
-    if s != 1.0 {
-        g.iter_mut().for_each(|x| *x *= s);
-    }
-    norm
-}
-
 #[cfg(test)]
 mod tests;

@@ -240,12 +240,17 @@ fn the_gradient_summary() {
 
 #[test]
 fn clipping_bounds_the_norm() {
-    let mut g = vec![3.0, 4.0];
-    assert_eq!(clip_global_norm(&mut g, 1.0), 5.0);
+    let mut g = vec![3.0f32, 4.0];
+    let s = clip_scale(global_norm(&g), Some(1.0));
+    g.iter_mut().for_each(|x| *x *= s);
     assert!((global_norm(&g) - 1.0).abs() < 1e-6);
-    let mut small = vec![0.3, 0.4];
-    clip_global_norm(&mut small, 1.0);
-    assert_eq!(small, vec![0.3, 0.4]);
+    assert_eq!(
+        clip_scale(0.5, Some(1.0)),
+        1.0,
+        "within the bound: unchanged"
+    );
+    assert_eq!(clip_scale(5.0, None), 1.0, "no bound");
+    assert_eq!(clip_scale(0.0, Some(1.0)), 1.0);
 }
 
 /// The device summary (two-stage reductions over buckets) agrees with the host's: the
