@@ -305,6 +305,49 @@ fn a_second_coordinator_on_a_live_run_folder_is_refused() {
     );
 }
 
+/// A worker whose device this build cannot open never joins, saying why, and the job
+/// goes on with the others (it used to be a config error that failed the whole job).
+#[test]
+fn a_worker_that_cannot_open_its_device_stays_out_and_the_job_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let port = free_port();
+    let mut coord = coordinator(
+        port,
+        &data,
+        &run,
+        &["--max-steps", "20", "--min-workers", "1"],
+    );
+    let mut a = worker(port);
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "worker",
+            "--coordinator",
+            &format!("http://127.0.0.1:{port}"),
+        ])
+        .args([
+            "--listen",
+            "127.0.0.1:0",
+            "--device",
+            if cfg!(feature = "cuda") {
+                "cuda:99"
+            } else {
+                "cuda"
+            },
+        ])
+        .env("OSRT_TOKEN", TOKEN)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("device: cuda"), "{err}");
+    assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
+    assert!(a.wait_for_exit(Duration::from_secs(30)).success());
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+}
+
 fn signal(p: &Proc, sig: &str) {
     let pid = p.0.id().to_string();
     let s = std::process::Command::new("kill")

@@ -76,10 +76,9 @@ impl DeviceSpec {
 fn cuda_available(ordinal: usize) -> Result<()> {
     let n = cuda_device_count();
     if ordinal >= n {
-        return Err(TrainError::Config {
-            path: "device".into(),
-            reason: format!("cuda:{ordinal} asked for, this machine has {n} CUDA device(s)"),
-        });
+        return Err(TrainError::Device(format!(
+            "cuda:{ordinal} asked for, this machine has {n} CUDA device(s)"
+        )));
     }
     Ok(())
 }
@@ -92,10 +91,8 @@ fn cuda_available(ordinal: usize) -> Result<()> {
 #[cfg(feature = "cuda")]
 fn open_cuda(ordinal: usize) -> Result<Device> {
     cuda_available(ordinal)?;
-    let opening = |e: &dyn std::fmt::Display| TrainError::Config {
-        path: "device".into(),
-        reason: format!("opening cuda:{ordinal}: {e}"),
-    };
+    let opening =
+        |e: &dyn std::fmt::Display| TrainError::Device(format!("opening cuda:{ordinal}: {e}"));
     let device = Device::new_cuda(ordinal).map_err(|e| opening(&e))?;
     pool::configure(&device).map_err(|e| opening(&e))?;
     Ok(device)
@@ -238,13 +235,10 @@ pub fn reset_device_peak(device: &Device) -> bool {
 
 #[cfg(not(feature = "cuda"))]
 fn open_cuda(ordinal: usize) -> Result<Device> {
-    Err(TrainError::Config {
-        path: "device".into(),
-        reason: format!(
-            "cuda:{ordinal} asked for, but this osrt was built without the `cuda` feature \
-             (build it with scripts/build-cuda.sh)"
-        ),
-    })
+    Err(TrainError::Device(format!(
+        "cuda:{ordinal} asked for, but this osrt was built without the `cuda` feature \
+         (build it with scripts/build-cuda.sh)"
+    )))
 }
 
 /// CUDA devices the driver reports (0 without the `cuda` feature or a driver).

@@ -15,6 +15,11 @@ pub enum TrainError {
     #[error("config {path}: {reason}")]
     Config { path: String, reason: String },
 
+    /// This process's device cannot run the job (no such GPU, a build without CUDA, a
+    /// precision the device does not run): a problem of one worker, not of the job.
+    #[error("device: {0}")]
+    Device(String),
+
     #[error("run folder {path}: {reason}")]
     Run { path: String, reason: String },
 

@@ -151,6 +151,10 @@ pub async fn run_worker_until(
     opts: WorkerOptions,
     stop: impl std::future::Future<Output = ()>,
 ) -> Result<()> {
+    // A device this machine or build cannot open: the worker never joins.
+    if let Some(d) = opts.device {
+        d.check_available()?;
+    }
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await
         .map_err(|e| TrainError::Cluster(format!("cannot listen on {}: {e}", opts.listen)))?;
@@ -313,14 +317,16 @@ async fn worker_loop(
             Ok(Ended::Aborted { reason, report }) => {
                 tracing::warn!(generation = plan.generation, %reason, "generation aborted");
                 if report {
-                    report_fault(client, &plan, worker_id, &reason, false).await;
+                    report_fault(client, &plan, worker_id, &reason, false, false).await;
                 }
             }
             Err(e) => {
                 let reason = e.to_string();
                 tracing::error!(generation = plan.generation, %reason, "generation failed");
-                report_fault(client, &plan, worker_id, &reason, is_fatal(&e)).await;
-                if is_fatal(&e) {
+                // A device this worker cannot use: it leaves, and the job re-forms without it.
+                let leaving = matches!(e, TrainError::Device(_));
+                report_fault(client, &plan, worker_id, &reason, is_fatal(&e), leaving).await;
+                if is_fatal(&e) || leaving {
                     return Err(e);
                 }
             }
@@ -342,6 +348,7 @@ async fn report_fault(
     worker_id: u64,
     reason: &str,
     fatal: bool,
+    leaving: bool,
 ) {
     let r = client
         .report_fault(v1::FaultReport {
@@ -350,7 +357,7 @@ async fn report_fault(
             generation: plan.generation,
             reason: reason.to_string(),
             fatal,
-            leaving: false,
+            leaving,
         })
         .await;
     if let Err(s) = r {
@@ -572,13 +579,27 @@ async fn run_generation(
 
 /// The plan's job config (with this worker's `--device`), checked, and its device.
 fn plan_job(opts: &WorkerOptions, plan: &WorkerPlan) -> Result<(JobConfig, candle_core::Device)> {
-    let mut job = JobConfig::from_toml("plan from the coordinator", &plan.job_config_toml)?;
-    if let Some(d) = opts.device {
-        job.train.device = d;
-    }
+    let job = job_on_device(&plan.job_config_toml, opts.device)?;
     let device = job.train.device.open()?;
-    job.validate()?;
     Ok((job, device))
+}
+
+/// The job config of `toml` with `device` (this worker's `--device`) in place of its own.
+/// A config that is wrong in itself is a [`TrainError::Config`] (the job's fault, fatal);
+/// one that only this worker's device cannot run is a [`TrainError::Device`] (the worker
+/// leaves, the job goes on without it).
+fn job_on_device(toml: &str, device: Option<crate::DeviceSpec>) -> Result<JobConfig> {
+    let mut job = JobConfig::from_toml("plan from the coordinator", toml)?;
+    job.validate()?;
+    if let Some(d) = device.filter(|&d| d != job.train.device) {
+        job.train.device = d;
+        job.validate().map_err(|e| {
+            TrainError::Device(format!(
+                "this worker's --device {d} cannot run the job: {e}"
+            ))
+        })?;
+    }
+    Ok(job)
 }
 
 /// How a generation ends after `e`: a failed round is an abort to report (or no fault of
@@ -770,5 +791,44 @@ impl<T> Drop for AbortOnDrop<T> {
         if let Some(h) = &self.0 {
             h.abort();
         }
+    }
+}
+
+#[cfg(test)]
+mod device_tests {
+    use super::*;
+    use crate::DeviceSpec;
+    use osrt_model::Precision;
+
+    fn toml_of(f: impl FnOnce(&mut JobConfig)) -> String {
+        let mut job = JobConfig::preset("tiny").unwrap();
+        f(&mut job);
+        job.to_toml()
+    }
+
+    /// A worker whose device cannot run a sound job has a device problem of its own (it
+    /// leaves); a job that cannot run anywhere is the job's (fatal).
+    #[test]
+    fn a_device_only_this_worker_lacks_is_its_own_problem_not_the_jobs() {
+        let bf16_gpu = toml_of(|j| {
+            j.train.device = DeviceSpec::Cuda(0);
+            j.train.precision = Precision::Bf16;
+        });
+        let e = job_on_device(&bf16_gpu, Some(DeviceSpec::Cpu)).unwrap_err();
+        assert!(matches!(e, TrainError::Device(_)), "{e}");
+        assert!(e.to_string().contains("--device cpu"), "{e}");
+        assert!(job_on_device(&bf16_gpu, Some(DeviceSpec::Cuda(1))).is_ok());
+        // The same job written for a CPU is wrong in itself.
+        let bf16_cpu = toml_of(|j| j.train.precision = Precision::Bf16);
+        let e = job_on_device(&bf16_cpu, None).unwrap_err();
+        assert!(matches!(e, TrainError::Config { .. }), "{e}");
+        assert!(!is_fatal(&TrainError::Device("x".into())));
+    }
+
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn opening_a_gpu_without_the_feature_is_a_device_error() {
+        let e = DeviceSpec::Cuda(0).open().unwrap_err();
+        assert!(matches!(e, TrainError::Device(_)), "{e}");
     }
 }
