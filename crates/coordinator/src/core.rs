@@ -305,6 +305,14 @@ impl Core {
                 "collective address `{addr}` is not an http(s) URL"
             )));
         }
+        let host = addr.split("://").nth(1).unwrap_or("");
+        if ["0.0.0.0:", "[::]:"].iter().any(|a| host.starts_with(a)) {
+            // Every peer that dialled it would reach itself.
+            return Err(Status::invalid_argument(format!(
+                "collective address `{addr}` names no host: advertise the address other \
+                 workers reach this one at (--advertise)"
+            )));
+        }
         if self.is_over() {
             return Err(Status::failed_precondition("the job is over"));
         }

@@ -39,12 +39,7 @@ pub struct Holder {
 impl Holder {
     /// This process, holding the folder for `job_id`.
     pub fn this_process(job_id: &str) -> Self {
-        let host = std::env::var("HOSTNAME")
-            .ok()
-            .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
-            .map(|h| h.trim().to_string())
-            .filter(|h| !h.is_empty())
-            .unwrap_or_else(|| "unknown-host".into());
+        let host = host_name().unwrap_or_else(|| "unknown-host".into());
         let started_unix_s = unix_now();
         let pid = std::process::id();
         let nonce: u64 = rand::random();
@@ -56,6 +51,15 @@ impl Holder {
             started_unix_s,
         }
     }
+}
+
+/// This machine's host name (`HOSTNAME`, else `/etc/hostname`), where it has one.
+pub fn host_name() -> Option<String> {
+    std::env::var("HOSTNAME")
+        .ok()
+        .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
 }
 
 impl std::fmt::Display for Holder {

@@ -161,10 +161,7 @@ pub async fn run_worker_until(
     let local = listener
         .local_addr()
         .map_err(|e| TrainError::Cluster(e.to_string()))?;
-    let host = opts
-        .advertise
-        .clone()
-        .unwrap_or_else(|| local.ip().to_string());
+    let host = advertised_host(opts.advertise.as_deref(), local.ip())?;
     let scheme = Tls::scheme(opts.tls.as_ref());
     let collective_addr = format!("{scheme}://{host}:{}", local.port());
     // The job id is learnt at registration; the mailbox takes it then.
@@ -230,6 +227,26 @@ async fn register(
     .await?;
     tracing::info!(job = %reply.job, worker_id = reply.worker_id, addr = collective_addr, "registered");
     Ok((reply.job, reply.worker_id))
+}
+
+/// The host the other workers dial this one at: `--advertise`, else the listen address,
+/// else (listening on every interface, whose address `0.0.0.0` would make a peer dial
+/// itself) this machine's host name.
+fn advertised_host(advertise: Option<&str>, listen: std::net::IpAddr) -> Result<String> {
+    if let Some(h) = advertise {
+        return Ok(h.to_string());
+    }
+    if !listen.is_unspecified() {
+        return Ok(listen.to_string());
+    }
+    let name = osrt_run::lease::host_name().ok_or_else(|| {
+        TrainError::Cluster(format!(
+            "listening on {listen} (every interface) and this machine has no host name: \
+             pass --advertise HOST, the address the other workers reach this one at"
+        ))
+    })?;
+    tracing::warn!(host = %name, "listening on every interface: advertising this machine's host name (--advertise sets it)");
+    Ok(name)
 }
 
 /// Who this worker is to the coordinator, and in which generation.
@@ -823,6 +840,18 @@ mod device_tests {
         let e = job_on_device(&bf16_cpu, None).unwrap_err();
         assert!(matches!(e, TrainError::Config { .. }), "{e}");
         assert!(!is_fatal(&TrainError::Device("x".into())));
+    }
+
+    #[test]
+    fn a_worker_listening_everywhere_advertises_a_name_not_0_0_0_0() {
+        let any: std::net::IpAddr = "0.0.0.0".parse().unwrap();
+        let lo: std::net::IpAddr = "127.0.0.1".parse().unwrap();
+        assert_eq!(advertised_host(Some("w-3.osrt"), any).unwrap(), "w-3.osrt");
+        assert_eq!(advertised_host(None, lo).unwrap(), "127.0.0.1");
+        match advertised_host(None, any) {
+            Ok(h) => assert!(!h.is_empty() && h != "0.0.0.0", "{h}"),
+            Err(e) => assert!(e.to_string().contains("--advertise"), "{e}"),
+        }
     }
 
     #[cfg(not(feature = "cuda"))]

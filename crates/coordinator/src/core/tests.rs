@@ -394,3 +394,26 @@ fn the_ring_is_capped_at_the_global_batch() {
     assert_eq!(e.code(), tonic::Code::ResourceExhausted);
     assert!(e.message().contains("train.batch_size"), "{}", e.message());
 }
+
+#[test]
+fn an_address_that_names_no_host_is_refused() {
+    let t = Instant::now();
+    let mut c = Core::new(spec(1, 4, 3), t);
+    for addr in ["http://0.0.0.0:7071", "https://[::]:7071"] {
+        let e = c
+            .register(PROTOCOL_VERSION, "w".into(), addr.into(), 1, t)
+            .unwrap_err();
+        assert_eq!(e.code(), tonic::Code::InvalidArgument);
+        assert!(e.message().contains("--advertise"), "{}", e.message());
+    }
+    assert!(
+        c.register(
+            PROTOCOL_VERSION,
+            "w".into(),
+            "http://10.0.0.7:7071".into(),
+            1,
+            t
+        )
+        .is_ok()
+    );
+}
