@@ -283,6 +283,10 @@ fn train_then_eval_a_tiny_run() {
         !dir.path().join("run-never/lease.json").exists(),
         "the lease is released"
     );
+    assert!(
+        !dir.path().join("run-never/config.toml").exists(),
+        "nothing written"
+    );
     // Training into a folder that holds a run is refused, not overwritten.
     let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
         .args([

@@ -68,9 +68,9 @@ pub struct Coordinator {
 pub type StatusSnapshot = v1::JobStatus;
 
 /// Refuses a job whose `min_workers` its batch cannot feed (one scene per worker).
-fn gatherable(core: &Core, run: &Location) -> Result<(), CoordinatorError> {
-    let min = core.spec.cluster.min_workers;
-    match core.batch.filter(|&b| min > b) {
+fn gatherable(spec: &JobSpec, run: &Location) -> Result<(), CoordinatorError> {
+    let min = spec.cluster.min_workers;
+    match ClusterConfig::global_batch_of(&spec.job_toml).filter(|&b| min > b) {
         Some(b) => Err(run_err(
             run,
             CONFIG_FILE,
@@ -199,6 +199,8 @@ impl Coordinator {
                         "the run folder already holds a run; choose a new --run or pass --resume",
                     ));
                 }
+                // Refused before anything is written.
+                gatherable(&spec, &run)?;
                 write_file(&run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
                 // The parameter count comes from rank 0: the coordinator never builds the
                 // model (the `paper` preset's weights and optimizer state are a gigabyte).
@@ -240,6 +242,7 @@ impl Coordinator {
                 spec.job_toml = text;
                 spec.job_id = p.job_id.clone();
                 spec.data = p.data.clone();
+                gatherable(&spec, &run)?;
                 if !resume {
                     // A restarted coordinator keeps the job's limits.
                     spec.max_steps = p.max_steps;
@@ -275,7 +278,6 @@ impl Coordinator {
                 core
             }
         };
-        gatherable(&core, &run)?;
         Ok(core)
     }
 
