@@ -551,6 +551,9 @@ impl Core {
             entry.insert(rank, h);
             if entry.len() == world {
                 let all = self.hashes.remove(&step).expect("present");
+                // Ranks report steps in order: an earlier step still short of a rank's
+                // hash (its report was lost) can never complete, and would stay forever.
+                self.hashes.retain(|&s, _| s > step);
                 let first = all[&0].clone();
                 if all.values().all(|h| *h == first) {
                     self.hash_checks += 1;

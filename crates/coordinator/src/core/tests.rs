@@ -417,3 +417,28 @@ fn an_address_that_names_no_host_is_refused() {
         .is_ok()
     );
 }
+
+/// A step whose hash one rank never reports (its report was lost) is dropped once a later
+/// step completes: the per-step map does not grow with the job.
+#[test]
+fn hashes_of_steps_that_can_no_longer_complete_are_dropped() {
+    let t = Instant::now();
+    let mut c = Core::new(spec(2, 2, 1), t);
+    let a = reg(&mut c, t);
+    let b = reg(&mut c, t);
+    c.tick(t);
+    for step in 1..=100 {
+        c.progress(prog(a, 1, 0, step, Some("h"), vec![]), t)
+            .unwrap();
+        if step % 10 == 0 {
+            c.progress(prog(b, 1, 1, step, Some("h"), vec![]), t)
+                .unwrap();
+        }
+    }
+    assert_eq!(c.hash_checks, 10);
+    assert!(
+        c.hashes.is_empty(),
+        "{:?}",
+        c.hashes.keys().collect::<Vec<_>>()
+    );
+}
