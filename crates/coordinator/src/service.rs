@@ -437,7 +437,7 @@ impl Coordinator {
         }
         match lease.renew().await {
             Ok(()) => *last = Instant::now(),
-            Err(e) if e.to_string().contains("taken over by") => {
+            Err(e @ RunError::LeaseLost { .. }) => {
                 guard.take();
                 return Err(e.into());
             }

@@ -17,4 +17,8 @@ pub enum RunError {
 
     #[error("checkpoint {path}: {reason}")]
     Checkpoint { path: String, reason: String },
+
+    /// The run folder's lease is another holder's now: this process must stop writing.
+    #[error("run folder {path}: the run folder was taken over by {holder}")]
+    LeaseLost { path: String, holder: String },
 }

@@ -245,10 +245,10 @@ impl Lease {
         match read_lease(&self.run).await? {
             Some(there) if there.holder.token == self.file.holder.token => {}
             Some(there) => {
-                return Err(lease_err(
-                    &self.run,
-                    format!("the run folder was taken over by {}", there.holder),
-                ));
+                return Err(RunError::LeaseLost {
+                    path: self.run.describe(&self.run.path(LEASE_FILE)),
+                    holder: there.holder.to_string(),
+                });
             }
             // Deleted by hand: taken back.
             None => {}

@@ -62,6 +62,10 @@ impl From<osrt_run::RunError> for TrainError {
             R::Config { path, reason } => Self::Config { path, reason },
             R::Run { path, reason } => Self::Run { path, reason },
             R::Checkpoint { path, reason } => Self::Checkpoint { path, reason },
+            R::LeaseLost { path, holder } => Self::Run {
+                path,
+                reason: format!("the run folder was taken over by {holder}"),
+            },
         }
     }
 }
