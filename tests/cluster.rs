@@ -123,6 +123,10 @@ fn resume_is_bit_identical_to_a_straight_run() {
     let job = read_json(&split.join("job.json")).unwrap();
     assert_eq!(job["state"], "done");
     assert_eq!(job["generation"], 2, "the resume is a second generation");
+    // TensorBoard sees both invocations' records once each, pictures included.
+    let tb = check_tensorboard(&split);
+    assert_eq!(tb["train_steps"], 12, "{tb}");
+    assert_eq!(tb["eval_steps"], serde_json::json!([0, 6, 12]), "{tb}");
 }
 
 #[test]
@@ -232,6 +236,20 @@ fn a_restarted_coordinator_resumes_the_job() {
     assert!(job["last_checkpoint"].as_u64().unwrap() > 10, "{job}");
     assert!(a.wait_for_exit(Duration::from_secs(30)).success());
     assert!(b.wait_for_exit(Duration::from_secs(30)).success());
+    // The steps replayed after the restart have one value each in TensorBoard, and the
+    // records of the second generation say it was a restart.
+    let tb = check_tensorboard(&run);
+    assert_eq!(
+        tb["train_steps"].as_u64(),
+        Some(losses(&run).len() as u64),
+        "{tb}"
+    );
+    let restarts: Vec<u64> = read_jsonl(&run.join("metrics.jsonl"))
+        .iter()
+        .filter_map(|r| r.get("loss").map(|_| r["restarts"].as_u64().unwrap_or(0)))
+        .collect();
+    assert_eq!(restarts.first(), Some(&0));
+    assert_eq!(restarts.last(), job["restarts"].as_u64().as_ref(), "{job}");
 }
 
 /// A second coordinator on the folder of a live job is refused, naming the holder, and

@@ -28,6 +28,25 @@ pub fn read_json(path: &Path) -> Option<serde_json::Value> {
     serde_json::from_str(&text).ok()
 }
 
+/// TensorBoard's own readers agree with `RUN/metrics.jsonl`: every record's figures at
+/// its step, one value per tag and step, each validation's pictures
+/// (`tests/python/check_tensorboard.py`). Returns the script's summary.
+pub fn check_tensorboard(run: &Path) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/check_tensorboard.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(run)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "check_tensorboard.py {}: {}",
+        run.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 /// A small dataset for cluster tests: 8×8 views, 8 scenes per row group.
 pub fn tiny_dataset(dir: &Path, train: usize) -> PathBuf {
     let data = dir.join("data");

@@ -124,6 +124,21 @@ pub struct Core {
     /// written whole (records were dropped, or an append may have failed half-way).
     flushed: usize,
     rewrite: bool,
+    /// Records the TensorBoard event log holds (a prefix of `records`), and the step it
+    /// must first be cut back to (records it holds were dropped).
+    events_sent: usize,
+    events_cut: Option<Option<u64>>,
+}
+
+/// What the TensorBoard event log must do to match `records`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct EventsWork {
+    /// Cut out the events past this step (`Some(None)`: all of them) first.
+    pub cut_after: Option<Option<u64>>,
+    /// Record lines to add, in order.
+    pub records: Vec<String>,
+    /// The training record before them (step times are differences).
+    pub previous_train: Option<String>,
 }
 
 /// How to bring `metrics.jsonl` up to date.
@@ -171,7 +186,39 @@ impl Core {
             dirty_metrics: false,
             flushed: 0,
             rewrite: false,
+            events_sent: 0,
+            events_cut: None,
         }
+    }
+
+    /// Takes what the event log must do to match `records`.
+    pub fn events_work(&mut self) -> EventsWork {
+        let sent = self.events_sent.min(self.records.len());
+        let previous_train = self.records[..sent]
+            .iter()
+            .rev()
+            .find(|(_, l)| matches!(MetricsRecord::parse(l), Some(MetricsRecord::Train(_))))
+            .map(|(_, l)| l.clone());
+        self.events_sent = self.records.len();
+        EventsWork {
+            cut_after: self.events_cut.take(),
+            records: self.records[sent..]
+                .iter()
+                .map(|(_, l)| l.clone())
+                .collect(),
+            previous_train,
+        }
+    }
+
+    /// Whether the event log lags `records`.
+    pub fn events_pending(&self) -> bool {
+        self.events_cut.is_some() || self.events_sent != self.records.len()
+    }
+
+    /// The event log (just opened) holds events of the records before step `from`.
+    pub fn events_resume(&mut self, from: u64) {
+        self.events_sent = self.records.iter().take_while(|(s, _)| *s < from).count();
+        self.events_cut = None;
     }
 
     /// The write that brings `metrics.jsonl` up to date; `can_append`: the store appends
@@ -407,6 +454,7 @@ impl Core {
                         resume_step: self.resume_step,
                         max_steps: self.spec.max_steps,
                         deadline_unix_s: self.spec.deadline_unix_s,
+                        restarts: self.restarts,
                     }),
                     None => PlanState::Waiting,
                 }
@@ -483,6 +531,13 @@ impl Core {
             self.dirty_metrics = true;
             if self.records.len() < self.flushed {
                 self.rewrite = true;
+            }
+            if self.records.len() < self.events_sent {
+                self.events_sent = self.records.len();
+                self.events_cut = Some(match self.events_cut {
+                    Some(earlier) => earlier.min(keep),
+                    None => keep,
+                });
             }
         }
         self.dirty_job = true;

@@ -1,12 +1,14 @@
 //! The osrt coordinator: owns one job's spec and state, decides who trains in which
 //! generation, hands out plans, checks that replicas agree, and keeps the run's
-//! `metrics.jsonl` and `job.json` in the object store so a restarted coordinator resumes.
+//! `metrics.jsonl` and `job.json` in the object store so a restarted coordinator resumes,
+//! with the records as TensorBoard events ([`events`]).
 //!
 //! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
 //! the loop that times out silent members and persists state.
 
 pub mod core;
 pub mod error;
+pub mod events;
 pub mod service;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};

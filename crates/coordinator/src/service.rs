@@ -3,6 +3,7 @@
 
 use crate::core::{Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, record_step};
 use crate::error::CoordinatorError;
+use crate::events::Events;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
@@ -34,6 +35,8 @@ struct Shared {
     /// The run folder's lease, held from `open` until the job is over (`None` once
     /// released).
     lease: tokio::sync::Mutex<Option<Lease>>,
+    /// The records as TensorBoard events (only the monitor loop writes them).
+    events: tokio::sync::Mutex<Events>,
 }
 
 /// How a coordinator opens its run folder.
@@ -147,8 +150,14 @@ impl Coordinator {
         )
         .await?;
         // A refusal below leaves the folder free at once.
-        let core = match Self::open_core(spec, &run, resume).await {
-            Ok(core) => core,
+        let opened = async {
+            let mut core = Self::open_core(spec, &run, resume).await?;
+            let can_append = run.local_file(&run.path(METRICS_FILE)).is_some();
+            let events = Events::open(&run, &mut core, can_append).await?;
+            Ok::<_, CoordinatorError>((core, events))
+        };
+        let (core, events) = match opened.await {
+            Ok(opened) => opened,
             Err(e) => {
                 if let Err(r) = lease.release().await {
                     tracing::warn!(error = %r, "releasing the run folder's lease");
@@ -162,6 +171,7 @@ impl Coordinator {
                 changed: Notify::new(),
                 run,
                 lease: tokio::sync::Mutex::new(Some(lease)),
+                events: tokio::sync::Mutex::new(events),
             }),
         })
     }
@@ -356,14 +366,21 @@ impl Coordinator {
             }
             self.renew_lease(&mut last_renewal).await?;
             let write_now = store.due();
-            let (job, metrics, over) = self.shared.with(|c, now| {
+            let mut events = self.shared.events.lock().await;
+            let (job, metrics, work, over) = self.shared.with(|c, now| {
                 c.tick(now);
                 let job = (write_now && std::mem::take(&mut c.dirty_job)).then(|| c.persisted());
                 let flush = write_now
                     && c.dirty_metrics
                     && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
                 let metrics = flush.then(|| c.metrics_write(can_append));
-                (job, metrics, c.is_over())
+                // Events follow what metrics.jsonl holds.
+                let work = (write_now
+                    && !c.dirty_metrics
+                    && (c.events_pending() || events.is_dirty())
+                    && events.due(c.is_over()))
+                .then(|| c.events_work());
+                (job, metrics, work, c.is_over())
             });
             let run = &self.shared.run;
             let (had_job, had_metrics) = (job.is_some(), metrics.is_some());
@@ -380,6 +397,15 @@ impl Coordinator {
                     self.shared.with(|c, _| c.metrics_write_failed());
                 }
             }
+            let had_events = work.is_some();
+            if let Some(w) = work {
+                // Added to the log even if this write fails: its next write has them.
+                let w = events.write(w).await;
+                if written.is_ok() {
+                    written = w;
+                }
+            }
+            drop(events);
             if let Err(e) = written {
                 // Whatever was not written is written again at the next try.
                 self.shared.with(|c, _| {
@@ -391,12 +417,13 @@ impl Coordinator {
                 store.failed(e)?;
                 continue;
             }
-            if had_job || had_metrics {
+            if had_job || had_metrics || had_events {
                 store.succeeded();
             }
+            let events_dirty = self.shared.events.lock().await.is_dirty();
             let pending = {
                 let c = self.shared.core.lock().expect("state");
-                c.dirty_job || c.dirty_metrics
+                c.dirty_job || c.dirty_metrics || c.events_pending() || events_dirty
             };
             if over {
                 let since = *over_since.get_or_insert_with(Instant::now);
@@ -418,6 +445,8 @@ impl Coordinator {
         if let Some(w) = metrics {
             self.write_metrics(w).await?;
         }
+        let work = self.shared.with(|c, _| c.events_work());
+        self.shared.events.lock().await.write(work).await?;
         if let Some(lease) = self.shared.lease.lock().await.take() {
             lease.release().await?;
         }

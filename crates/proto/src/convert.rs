@@ -46,6 +46,8 @@ pub struct WorkerPlan {
     pub resume_step: Option<u64>,
     pub max_steps: Option<u64>,
     pub deadline_unix_s: Option<f64>,
+    /// Generations formed again before this one.
+    pub restarts: u32,
 }
 
 impl WorkerPlan {
@@ -118,6 +120,7 @@ impl TryFrom<v1::Plan> for PlanState {
                     resume_step: p.resume_step,
                     max_steps: p.max_steps,
                     deadline_unix_s: p.deadline_unix_s,
+                    restarts: p.restarts,
                 }))
             }
         }
@@ -157,6 +160,7 @@ impl PlanState {
                 max_steps: w.max_steps,
                 deadline_unix_s: w.deadline_unix_s,
                 message: String::new(),
+                restarts: w.restarts,
             },
         }
     }
@@ -210,6 +214,7 @@ mod tests {
             resume_step: Some(10),
             max_steps: None,
             deadline_unix_s: Some(1.0e9),
+            restarts: 2,
         }
     }
 

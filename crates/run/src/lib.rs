@@ -8,6 +8,8 @@
 //! RUN/job.json        the coordinator's persisted job state (generation, restarts, …)
 //! RUN/metrics.jsonl   one JSON object per line: training and evaluation records (`records`)
 //! RUN/lease.json      the coordinator driving the folder, while it runs (`lease`)
+//! RUN/tb/events.out.tfevents.*   the records as TensorBoard events (`tensorboard`)
+//! RUN/eval/step-NNNNNNNNN/*.png  pictures of each validation (`tensorboard::eval_picture`)
 //! RUN/checkpoints/step-NNNNNNNNN/…   see `checkpoint`
 //! ```
 
@@ -16,10 +18,11 @@ pub mod cluster;
 pub mod error;
 pub mod lease;
 pub mod records;
+pub mod tensorboard;
 
 pub use cluster::{ClusterConfig, ClusterOverrides};
 pub use error::{Result, RunError};
-pub use records::{EvalRecord, MetricsRecord, TrainRecord};
+pub use records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord};
 
 use object_store::ObjectStoreExt;
 /// Run folders are object-store locations, like datasets.
@@ -57,6 +60,14 @@ pub async fn record_parameters(run: &Location, parameters: usize) -> Result<()> 
     info.parameters = Some(parameters);
     let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
     write_file(run, INFO_FILE, bytes).await
+}
+
+/// Seconds since the Unix epoch (0 if the clock is before it).
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
 }
 
 /// Reads `RUN/name`; `Ok(None)` if it does not exist.

@@ -21,6 +21,10 @@ pub struct TrainRecord {
     /// The data epoch in progress.
     #[serde(default)]
     pub epoch: u64,
+    /// Mean gradient norm (before clipping) over the window's applied steps; absent when
+    /// every step of the window was skipped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grad_norm: Option<f64>,
     /// Mean training loss over the window.
     #[serde(deserialize_with = "nan_if_null")]
     pub loss: f64,
@@ -30,6 +34,10 @@ pub struct TrainRecord {
     /// The worker's peak resident memory so far (where the OS tells).
     #[serde(default)]
     pub peak_rss_mb: Option<f64>,
+    /// Generations the coordinator had to form again (a member lost, a coordinator
+    /// restarted) before the one that took this step.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub restarts: u32,
     #[serde(default, deserialize_with = "nan_if_null")]
     pub scenes_per_s: f64,
     /// Steps skipped for a non-finite loss or gradient, since the start.
@@ -53,6 +61,9 @@ pub struct EvalRecord {
     /// PSNR of predicting each scene's mean input-view colour everywhere.
     #[serde(default)]
     pub baseline_psnr: Option<f64>,
+    /// Segmentation scores per number of objects in the scene (ascending), where scored.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub by_objects: Vec<ObjectCountRecord>,
     #[serde(default)]
     pub eval_scenes: usize,
     #[serde(default)]
@@ -71,6 +82,19 @@ pub struct EvalRecord {
     pub train_s: f64,
     #[serde(default, deserialize_with = "nan_if_null")]
     pub wall_s: f64,
+}
+
+/// FG-ARI of the validation scenes with one object count.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ObjectCountRecord {
+    #[serde(default)]
+    pub fg_ari: Option<f64>,
+    pub objects: usize,
+    pub scenes: usize,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 /// One line of `metrics.jsonl`.
@@ -130,9 +154,11 @@ mod tests {
     fn records_print_as_before_and_read_back_as_their_kind() {
         let train = TrainRecord {
             epoch: 0,
+            grad_norm: None,
             loss: 0.008278974890708923,
             lr: 2e-4 * 0.1,
             peak_rss_mb: Some(147.37109375),
+            restarts: 0,
             scenes_per_s: 87.52540294216084,
             skipped: 0,
             step: 10,
@@ -151,6 +177,7 @@ mod tests {
         let eval = EvalRecord {
             ari: None,
             baseline_psnr: Some(21.882636289774595),
+            by_objects: Vec::new(),
             eval_scenes: 32,
             fg_ari: Some(0.028622414207576715),
             fg_ari_2d: Some(0.06106365945622926),

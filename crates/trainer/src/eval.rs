@@ -32,6 +32,23 @@ pub struct EvalResult {
     pub by_objects: Vec<ObjectCountScore>,
     /// The protocol the scores follow, in words: input views, targets, what FG-ARI pools.
     pub protocol: String,
+    /// The first scene's first target view, for pictures.
+    #[serde(skip)]
+    pub sample: Option<EvalSample>,
+}
+
+/// One rendered target view beside its inputs, from the first validation scene.
+#[derive(Debug, Clone)]
+pub struct EvalSample {
+    /// The scene's first input view (RGB8, its own size).
+    pub input: osrt_dataset::View,
+    /// The target view: its ground truth image and mask.
+    pub target: osrt_dataset::View,
+    /// The render of the target view: `[h * w * 3]` in `[0, 1]`, row-major.
+    pub rgb: Vec<f32>,
+    /// The slot each pixel was assigned (argmax of the slot weights), if the decoder has
+    /// them.
+    pub labels: Option<Vec<u32>>,
 }
 
 /// The evaluation protocol of `opts`, in words.
@@ -87,6 +104,7 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
     let mut has_weights = true;
     let mut decode_s = 0.0;
     let mut frames = 0usize;
+    let mut sample = None;
     let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
     let cfg = BatchConfig {
         input_views: opts.input_views,
@@ -128,6 +146,9 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         let Decoded { rgb, labels, .. } =
             decode_rays(model, &slots, &t.target_origins, &t.target_directions)?;
         decode_s += start.elapsed().as_secs_f64();
+        if sample.is_none() {
+            sample = first_view_sample(scene, &batch.target_pixels[..r], &rgb, labels.as_deref());
+        }
         let n_views: std::collections::BTreeSet<u32> =
             batch.target_pixels.iter().map(|p| p.0).collect();
         frames += n_views.len();
@@ -165,6 +186,7 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         },
         segmentation,
         protocol: protocol(opts),
+        sample,
         by_objects: if segmentation {
             seg_by_objects
                 .into_iter()
@@ -181,6 +203,39 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         } else {
             Vec::new()
         },
+    })
+}
+
+/// The first target view of a whole-view batch of `scene` as a sample (its rays are the
+/// batch's first ones; `pixels`: each ray's view and pixel index).
+fn first_view_sample(
+    scene: &Scene,
+    pixels: &[(u32, u32)],
+    rgb: &[f32],
+    labels: Option<&[u32]>,
+) -> Option<EvalSample> {
+    let v = pixels.first()?.0;
+    let target = scene.views.get(v as usize)?;
+    let n = target.num_pixels();
+    let rays = pixels.iter().take_while(|p| p.0 == v).count();
+    if rays != n || rgb.len() < 3 * n {
+        return None;
+    }
+    // Placed by pixel index: the picture does not rely on the batch's ray order.
+    let mut image = vec![0f32; 3 * n];
+    let mut slots = labels.map(|_| vec![0u32; n]);
+    for (i, &(_, p)) in pixels[..n].iter().enumerate() {
+        let p = p as usize;
+        image[3 * p..3 * p + 3].copy_from_slice(&rgb[3 * i..3 * i + 3]);
+        if let (Some(s), Some(l)) = (slots.as_mut(), labels) {
+            s[p] = l[i];
+        }
+    }
+    Some(EvalSample {
+        input: scene.views[0].clone(),
+        target: target.clone(),
+        rgb: image,
+        labels: slots,
     })
 }
 

@@ -19,12 +19,11 @@ use crate::eval::{EvalOptions, EvalResult, evaluate};
 use crate::retry::{READ_RETRY_BUDGET, retry_transient};
 use crate::shard::{EpochPlan, step_rng};
 use crate::step::{ApplyOutcome, Gradient, StepGradients, Trainer};
-use crate::worker::unix_now;
 use candle_core::Device;
 use osrt_dataset::{
     BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch, load_split,
 };
-use osrt_run::{EvalRecord, MetricsRecord, TrainRecord};
+use osrt_run::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord, unix_now};
 use std::time::Instant;
 
 /// Where a generation starts and who this rank is in it.
@@ -37,6 +36,8 @@ pub struct Start {
     pub resume_step: Option<u64>,
     /// SHA-256 of the job config's TOML: a checkpoint of another config is refused.
     pub config_hash: String,
+    /// Generations the coordinator formed again before this one (for the records).
+    pub restarts: u32,
 }
 
 /// What a finished step asks of the shell.
@@ -65,6 +66,9 @@ struct Window {
     samples: f64,
     loss: f64,
     steps: u64,
+    /// Sum and count of the applied steps' gradient norms.
+    grad_norm: f64,
+    applied: u64,
 }
 
 impl Window {
@@ -74,6 +78,8 @@ impl Window {
             samples: 0.0,
             loss: 0.0,
             steps: 0,
+            grad_norm: 0.0,
+            applied: 0,
         }
     }
 }
@@ -99,6 +105,10 @@ pub struct Learner {
     last_eval: Instant,
     step_start: Instant,
     window: Window,
+    restarts: u32,
+    /// Pictures of validations for the run folder (rank 0), `(step, name, PNG)`, until
+    /// the shell takes them.
+    pictures: Vec<(u64, &'static str, Vec<u8>)>,
 }
 
 impl Learner {
@@ -212,6 +222,8 @@ impl Learner {
             last_eval: now,
             step_start: now,
             window: Window::new(),
+            restarts: s.restarts,
+            pictures: Vec::new(),
         })
     }
 
@@ -245,6 +257,7 @@ impl Learner {
             return Ok(None);
         }
         let r = self.evaluate()?;
+        self.keep_pictures(0, &r);
         Ok((self.rank == 0).then(|| eval_record(0, 0.0, 0.0, &r).into()))
     }
 
@@ -306,6 +319,10 @@ impl Learner {
                 .apply_summarized(reduced.loss, reduced.grads, reduced.summary)
         })?;
         self.train_s += self.step_start.elapsed().as_secs_f64();
+        if let ApplyOutcome::Applied { grad_norm, .. } = outcome {
+            self.window.grad_norm += grad_norm;
+            self.window.applied += 1;
+        }
         if let ApplyOutcome::Skipped { reason } = &outcome {
             tracing::warn!(step = self.trainer.step - 1, reason, from = %reduced.nonfinite, "step skipped on every rank");
             if self.trainer.skipped_in_a_row >= t.max_consecutive_skips {
@@ -323,11 +340,14 @@ impl Learner {
         let mut records = Vec::new();
         if self.rank == 0 && step.is_multiple_of(t.log_every) {
             let dt = self.window.since.elapsed().as_secs_f64().max(1e-9);
+            let w = &self.window;
             records.push(MetricsRecord::Train(TrainRecord {
                 epoch: self.epoch.plan.epoch,
+                grad_norm: (w.applied > 0).then(|| w.grad_norm / w.applied as f64),
                 loss: self.window.loss / self.window.steps as f64,
                 lr: t.lr_at(step - 1),
                 peak_rss_mb: crate::memory::peak_rss_mb(),
+                restarts: self.restarts,
                 scenes_per_s: self.window.samples / dt,
                 skipped: self.trainer.skipped_total,
                 step,
@@ -344,6 +364,7 @@ impl Learner {
             let r = self.evaluate()?;
             self.state.val_fg_ari = r.fg_ari;
             self.state.val_psnr = Some(r.psnr);
+            self.keep_pictures(step, &r);
             if self.rank == 0 {
                 records.push(eval_record(step, self.wall(), self.train_s, &r).into());
             }
@@ -381,6 +402,23 @@ impl Learner {
         })
     }
 
+    /// Rank 0 keeps the pictures of the validation at `step` for the run folder.
+    fn keep_pictures(&mut self, step: u64, r: &EvalResult) {
+        if self.rank != 0 {
+            return;
+        }
+        if let Some(sample) = &r.sample {
+            for (name, png) in crate::pictures::eval_pictures(sample) {
+                self.pictures.push((step, name, png));
+            }
+        }
+    }
+
+    /// The validation pictures not yet taken: `(step, name, PNG)`.
+    pub fn take_pictures(&mut self) -> Vec<(u64, &'static str, Vec<u8>)> {
+        std::mem::take(&mut self.pictures)
+    }
+
     fn evaluate(&self) -> Result<EvalResult> {
         tokio::task::block_in_place(|| evaluate(&self.trainer.model, &self.val, &self.eval_opts))
     }
@@ -391,6 +429,15 @@ pub fn eval_record(step: u64, wall_s: f64, train_s: f64, r: &EvalResult) -> Eval
     EvalRecord {
         ari: r.ari,
         baseline_psnr: Some(r.baseline_psnr).filter(|v| v.is_finite()),
+        by_objects: r
+            .by_objects
+            .iter()
+            .map(|o| ObjectCountRecord {
+                fg_ari: o.fg_ari,
+                objects: o.objects,
+                scenes: o.scenes,
+            })
+            .collect(),
         eval_scenes: r.scenes,
         fg_ari: r.fg_ari,
         fg_ari_2d: r.fg_ari_2d,

@@ -18,6 +18,7 @@ pub mod eval;
 pub mod learner;
 pub mod memory;
 pub mod optim;
+pub mod pictures;
 pub mod render;
 pub mod retry;
 pub mod run;

@@ -31,7 +31,7 @@ use osrt_run::MetricsRecord;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 
@@ -77,13 +77,7 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
     ))
 }
 
-/// Seconds since the Unix epoch (0 if the clock is before it).
-pub fn unix_now() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0)
-}
+pub use osrt_run::unix_now;
 
 /// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
 /// or the connection lost during the call (tonic then answers `Unknown` with the
@@ -507,6 +501,7 @@ async fn run_generation(
         world,
         resume_step: plan.resume_step,
         config_hash: checkpoint::config_hash(&plan.job_config_toml),
+        restarts: plan.restarts,
     };
     let mut learner = Learner::open(job, device, start).await?;
     if learner.is_fresh() {
@@ -520,6 +515,7 @@ async fn run_generation(
     // Records a report could not deliver go again with the next one (the coordinator
     // drops a record it already holds).
     let mut unsent: Vec<MetricsRecord> = learner.begin()?.into_iter().collect();
+    put_pictures(&run, learner.take_pictures()).await;
     if !unsent.is_empty() {
         report_step(client, plan, worker_id, 0, None, &mut unsent).await;
     }
@@ -553,6 +549,8 @@ async fn run_generation(
             Err(e) => return aborted(&live, e),
         };
         let end = learner.finish_step(reduced, plan.max_steps)?;
+        // Before the record that names them reaches the coordinator.
+        put_pictures(&run, learner.take_pictures()).await;
         let step = learner.step();
         live.step.store(step, Ordering::Relaxed);
         unsent.extend(end.records);
@@ -592,6 +590,17 @@ async fn run_generation(
         prev.join().await?;
     }
     Ok(Ended::Finished)
+}
+
+/// Puts validation pictures into the run folder (`RUN/eval/`), for the coordinator's
+/// TensorBoard events. A picture that cannot be written is left out, not a fault.
+async fn put_pictures(run: &Location, pictures: Vec<(u64, &'static str, Vec<u8>)>) {
+    for (step, name, png) in pictures {
+        let path = osrt_run::tensorboard::eval_picture(step, name);
+        if let Err(e) = osrt_run::write_file(run, &path, png).await {
+            tracing::warn!(error = %e, step, "writing a validation picture");
+        }
+    }
 }
 
 /// The plan's job config (with this worker's `--device`), checked, and its device.
