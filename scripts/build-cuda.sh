@@ -7,8 +7,8 @@
 #
 # What it does (docs/gpu.md explains why each piece is needed):
 # 1. installs NVIDIA's CUDA 13.0 compiler, headers and libraries from PyPI into
-#    $OSRT_CUDA_DIR (default target/cuda-toolkit): 13.0.x to match a 13.0 driver, whose
-#    loader may refuse PTX from a newer nvcc;
+#    $OSRT_CUDA_DIR (default: cuda-toolkit in cargo's target directory): 13.0.x to match
+#    a 13.0 driver, whose loader may refuse PTX from a newer nvcc;
 # 2. assembles a CUDA root there: bin/include/nvvm of the wheels, and lib64 with the
 #    unversioned `libX.so` links the linker's `-lX` wants;
 # 3. writes a link-time stub of the driver library (`libcuda.so`, soname `libcuda.so.1`)
@@ -22,7 +22,7 @@
 # $OSRT_CUDA_DIR/lib64 after copying it there.
 set -euo pipefail
 ROOT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-CUDA_DIR="${OSRT_CUDA_DIR:-$ROOT_DIR/target/cuda-toolkit}"
+CUDA_DIR="${OSRT_CUDA_DIR:-${CARGO_TARGET_DIR:-$ROOT_DIR/target}/cuda-toolkit}"
 COMPUTE_CAP="${CUDA_COMPUTE_CAP:-90}"
 PYTHON="${PYTHON:-python3}"
 WHEELS=(

@@ -220,6 +220,24 @@ mod tests {
         assert!(e.psnr.is_nan());
     }
 
+    /// The figures added later (gradient norm, restarts, FG-ARI by object count) are
+    /// left out of a line while absent and read back when present.
+    #[test]
+    fn later_figures_round_trip_and_stay_out_while_absent() {
+        let train = r#"{"epoch":1,"grad_norm":0.5,"loss":0.25,"lr":0.001,"peak_rss_mb":null,"restarts":2,"scenes_per_s":3.0,"skipped":0,"step":9,"train_s":1.0,"wall_s":2.0,"workers":2}"#;
+        let Some(MetricsRecord::Train(t)) = MetricsRecord::parse(train) else {
+            panic!("a train record")
+        };
+        assert_eq!((t.grad_norm, t.restarts), (Some(0.5), 2));
+        assert_eq!(MetricsRecord::Train(t).to_line(), train);
+        let eval = r#"{"ari":null,"baseline_psnr":null,"by_objects":[{"fg_ari":0.75,"objects":3,"scenes":4}],"eval_scenes":4,"fg_ari":null,"fg_ari_2d":null,"psnr":20.0,"ratio":null,"render_fps":1.0,"step":4,"train_s":0.0,"wall_s":0.0}"#;
+        let Some(MetricsRecord::Eval(e)) = MetricsRecord::parse(eval) else {
+            panic!("an eval record")
+        };
+        assert_eq!(e.by_objects[0].objects, 3);
+        assert_eq!(MetricsRecord::Eval(e).to_line(), eval);
+    }
+
     #[test]
     fn lines_without_a_step_or_a_kind_are_not_records() {
         for line in [
