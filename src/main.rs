@@ -8,6 +8,7 @@ mod device;
 mod render;
 mod sweep;
 mod train;
+mod watch;
 
 use clap::{Parser, Subcommand};
 

@@ -31,9 +31,17 @@ pub struct ReportArgs {
     #[arg(required = true, num_args = 1..)]
     pub paths: Vec<PathBuf>,
     /// Where the page and its charts go (default: PATH/report for one run, PATH for a
-    /// sweep; required for several runs).
+    /// sweep; required for several runs, and for a run in an object store).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Keep the page of one running job current (its step, run time, restarts, ETA and
+    /// newest validation with its pictures) until the job is over; the run folder may be
+    /// a path or an object-store URL.
+    #[arg(long)]
+    pub watch: bool,
+    /// With --watch: seconds between rewrites of the page.
+    #[arg(long, default_value_t = 30, requires = "watch")]
+    pub every: u64,
 }
 
 fn budget(f: &SweepFile) -> String {
@@ -231,6 +239,7 @@ async fn sweep_report(dir: &Path, out: &Path) -> Result<PathBuf> {
             rows: &rows,
             curves: &curves,
             strips,
+            refresh_s: None,
         },
     )?;
     Ok(page)
@@ -260,6 +269,12 @@ async fn render_strip(
 }
 
 pub async fn report(a: ReportArgs) -> Result<()> {
+    if a.watch {
+        let [one] = a.paths.as_slice() else {
+            bail!("--watch follows one run folder, not {}", a.paths.len());
+        };
+        return crate::watch::watch(&one.to_string_lossy(), a.out.as_deref(), a.every).await;
+    }
     let page = match a.paths.as_slice() {
         [one] if one.join(SWEEP_COPY).exists() => {
             sweep_report(one, a.out.as_deref().unwrap_or(one)).await?
@@ -357,6 +372,7 @@ async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
             rows: &rows,
             curves: &curves,
             strips,
+            refresh_s: None,
         },
     )
     .map_err(Into::into)

@@ -561,3 +561,151 @@ fn the_table4_sweep_runs_every_row() {
         assert!(r[fg].parse::<f64>().is_ok(), "{decoder}{poses}: {csv}");
     }
 }
+
+/// The step of the newest validation `text` names after "newest validation at step ".
+fn shown_validation(text: &str) -> Option<u64> {
+    let rest = text.split("newest validation at step ").nth(1)?;
+    rest.split(|c: char| !c.is_ascii_digit())
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// The newest validation in `RUN/metrics.jsonl` (a torn last line ignored).
+fn newest_validation(run: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).ok()?;
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|r| r.get("psnr").is_some())
+        .filter_map(|r| r["step"].as_u64())
+        .max()
+}
+
+/// `osrt report RUN --watch` keeps the page of a running job current: every validation
+/// the job records shows on the page within one interval (plus the time to draw the
+/// page: charts in a debug build), the page reloads itself while the job runs, and the
+/// watcher writes a last page and exits when the job is done. Chromium, loading the
+/// page from disk, shows the newest validation.
+#[test]
+fn a_watched_report_follows_a_running_job() {
+    use std::time::{Duration, Instant};
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let mut job = Command::new(common::bin())
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--workers",
+            "1",
+            "--threads",
+            "1",
+        ])
+        .args(["--max-minutes", "0.25", "--eval-every-s", "2", "--data"])
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let every = Duration::from_secs(1);
+    let slack = Duration::from_secs(2);
+    let mut watch = Command::new(common::bin())
+        .args(["report", "--watch", "--every", "1"])
+        .arg(&run)
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let page = run.join("report/index.html");
+    let mut followed = Vec::new();
+    while job.try_wait().unwrap().is_none() {
+        std::thread::sleep(Duration::from_millis(300));
+        let Some(newest) = newest_validation(&run).filter(|&s| s > 0) else {
+            continue;
+        };
+        if followed.last() == Some(&newest) {
+            continue;
+        }
+        let seen = Instant::now();
+        loop {
+            let text = std::fs::read_to_string(&page).unwrap_or_default();
+            if shown_validation(&text).is_some_and(|s| s >= newest) {
+                // A running job's page reloads itself; a finished one's stays.
+                assert_eq!(
+                    text.contains("Job running"),
+                    text.contains("<meta http-equiv=\"refresh\" content=\"1\">"),
+                    "{text}"
+                );
+                break;
+            }
+            assert!(
+                seen.elapsed() < every + slack,
+                "validation {newest} not on the page after {:?}",
+                seen.elapsed()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        eprintln!("validation {newest} on the page after {:?}", seen.elapsed());
+        followed.push(newest);
+    }
+    assert!(job.wait().unwrap().success());
+    assert!(followed.len() >= 2, "followed {followed:?}");
+    let started = Instant::now();
+    while watch.try_wait().unwrap().is_none() {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the watcher did not end"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(watch.wait().unwrap().success());
+    let text = std::fs::read_to_string(&page).unwrap();
+    assert!(text.contains("Job done"), "{text}");
+    assert!(
+        !text.contains("http-equiv=\"refresh\""),
+        "a finished job's page stays"
+    );
+    assert_eq!(shown_validation(&text), newest_validation(&run));
+    assert!(run.join("report/render.png").exists() && run.join("report/segmentation.png").exists());
+    if let Some(dom) = dom_in_chromium(&page) {
+        assert_eq!(shown_validation(&dom), newest_validation(&run), "{dom}");
+    }
+}
+
+/// The DOM of a page as headless Chromium loads it from disk; `None` (and SKIPPED) where
+/// Chromium is not installed.
+fn dom_in_chromium(page: &Path) -> Option<String> {
+    let chromium = ["/usr/bin/chromium", "/usr/bin/chromium-browser"]
+        .into_iter()
+        .find(|p| Path::new(p).exists());
+    let Some(chromium) = chromium else {
+        eprintln!("SKIPPED the page check in Chromium: Chromium is not installed");
+        return None;
+    };
+    let profile = tempfile::tempdir().unwrap();
+    let out = Command::new(chromium)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+        ])
+        .args([
+            "--disable-background-networking",
+            "--disable-component-update",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg("--dump-dom")
+        .arg(format!("file://{}", page.canonicalize().unwrap().display()))
+        .output()
+        .unwrap();
+    let dom = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        dom.contains("<html"),
+        "Chromium loaded no page: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Some(dom)
+}

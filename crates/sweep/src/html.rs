@@ -27,6 +27,9 @@ pub struct Report<'a> {
     pub curves: &'a [Curve],
     /// Images to show as strips (render frames), paths relative to the output folder.
     pub strips: Vec<(String, String)>,
+    /// Seconds after which a browser showing the page loads it again (a page kept
+    /// current while a job runs); `None`: a page that does not change.
+    pub refresh_s: Option<u64>,
 }
 
 /// Writes the charts (SVG + PNG), `results.csv` / `results.md` when there are rows, and
@@ -62,7 +65,7 @@ pub fn write(dir: &Path, report: &Report) -> Result<PathBuf> {
     let _ = write!(
         h,
         "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <title>{t}</title><style>\
+         {r}<title>{t}</title><style>\
          body{{font-family:sans-serif;margin:2em;max-width:1100px;color:#222}}\
          table{{border-collapse:collapse;font-size:13px}}\
          td,th{{border:1px solid #bbb;padding:3px 7px;text-align:right}}\
@@ -71,7 +74,10 @@ pub fn write(dir: &Path, report: &Report) -> Result<PathBuf> {
          .strip img{{height:96px;image-rendering:pixelated;margin-right:4px}}\
          </style></head><body>\n<h1>{t}</h1>\n<p>{n}</p>\n",
         t = escape(&report.title),
-        n = escape(&report.note)
+        n = escape(&report.note),
+        r = report.refresh_s.map_or(String::new(), |s| format!(
+            "<meta http-equiv=\"refresh\" content=\"{s}\">"
+        )),
     );
     if !report.rows.is_empty() {
         let (header, body) = results::table(report.rows);
@@ -146,11 +152,19 @@ mod tests {
                 rows: &[],
                 curves: &curves,
                 strips: Vec::new(),
+                refresh_s: Some(7),
             },
         )
         .unwrap();
         let html = std::fs::read_to_string(&page).unwrap();
         assert!(html.contains("run &lt;x&gt;") && html.contains("a &amp; b"));
+        assert!(html.contains("<meta http-equiv=\"refresh\" content=\"7\">"));
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".tmp"))
+            .collect();
+        assert!(left.is_empty(), "no temporary files stay: {left:?}");
         assert!(
             !html.contains("http://") && !html.contains("https://") && !html.contains("<script")
         );

@@ -6,11 +6,13 @@
 //! - [`plot`]: those curves as SVG and PNG charts (no system fonts needed).
 //! - [`pictures`]: render frames and slot segmentations as PNG strips and GIFs.
 //! - [`html`]: one static page that opens from disk with no server and no network.
+//! - [`live`]: where a running job stands, for a page kept current while it runs.
 //!
 //! Training and evaluating a point needs the local cluster and lives in the binary.
 
 pub mod grid;
 pub mod html;
+pub mod live;
 pub mod pictures;
 pub mod plot;
 pub mod results;
@@ -42,10 +44,21 @@ pub(crate) fn read_text(path: &std::path::Path) -> Result<String> {
     })
 }
 
-/// Writes a local file, naming it in the error.
-pub(crate) fn write_bytes(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
-    std::fs::write(path, bytes).map_err(|e| SweepError::Io {
+/// Writes a local file whole or not at all (a temporary file renamed over it: a browser
+/// or a reader of a page being rewritten never sees half of it), naming it in the error.
+pub fn write_bytes(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
+    let err = |e: std::io::Error| SweepError::Io {
         path: path.display().to_string(),
         reason: e.to_string(),
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    std::fs::write(&tmp, bytes).map_err(err)?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        err(e)
     })
 }
