@@ -316,7 +316,7 @@ pub struct BenchAllReduceArgs {
     #[arg(long, default_value_t = 5)]
     pub repeats: usize,
     /// Floats per chunk (at most 262144 = 1 MiB).
-    #[arg(long, default_value_t = osrt_trainer::collective::MAX_CHUNK_FLOATS)]
+    #[arg(long, default_value_t = osrt_proto::MAX_CHUNK_FLOATS)]
     pub chunk_floats: usize,
     /// Print JSON.
     #[arg(long)]
@@ -331,7 +331,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     let mut rows = Vec::new();
     for &n in &a.floats {
         rows.push(
-            osrt_trainer::bench_allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
+            osrt_worker::bench_allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
         );
     }
     let text = save_json(&a.out, &serde_json::to_value(&rows)?)?;

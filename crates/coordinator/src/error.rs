@@ -9,7 +9,7 @@ pub enum CoordinatorError {
     Run(#[from] osrt_run::RunError),
 
     #[error(transparent)]
-    Dataset(#[from] osrt_run::DatasetError),
+    Location(#[from] osrt_run::LocationError),
 
     /// Serving: the listener, TLS.
     #[error("cluster: {0}")]

@@ -70,8 +70,20 @@ pub struct Coordinator {
 /// A copy of the job's status for displays (the launcher's progress bar).
 pub type StatusSnapshot = v1::JobStatus;
 
-/// Refuses a job whose `min_workers` its batch cannot feed (one scene per worker).
+/// Refuses a job whose `min_workers` its batch cannot feed (one scene per worker), or
+/// whose chunks the collective does not carry.
 fn gatherable(spec: &JobSpec, run: &Location) -> Result<(), CoordinatorError> {
+    let chunk = spec.cluster.chunk_floats;
+    if chunk > osrt_proto::MAX_CHUNK_FLOATS {
+        return Err(run_err(
+            run,
+            CONFIG_FILE,
+            format!(
+                "cluster.chunk_floats = {chunk} exceeds the collective's chunk of 1 MiB of f32 ({})",
+                osrt_proto::MAX_CHUNK_FLOATS
+            ),
+        ));
+    }
     let min = spec.cluster.min_workers;
     match ClusterConfig::global_batch_of(&spec.job_toml).filter(|&b| min > b) {
         Some(b) => Err(run_err(
@@ -738,5 +750,39 @@ impl coordinator_server::Coordinator for Service {
     ) -> Result<Response<v1::JobStatus>, Status> {
         let c = self.shared.core.lock().expect("state");
         Ok(Response::new(status_of(&c, Instant::now())))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(cluster: ClusterConfig) -> JobSpec {
+        JobSpec {
+            job_id: "j".into(),
+            cluster,
+            job_toml: String::new(),
+            data: "data".into(),
+            run: "run".into(),
+            max_steps: None,
+            deadline_unix_s: None,
+            cluster_overrides: Default::default(),
+        }
+    }
+
+    /// The run folder's default chunk is the collective's largest, and a larger one is
+    /// refused before any worker joins.
+    #[test]
+    fn chunks_the_collective_cannot_carry_are_refused() {
+        let run = Location::parse("memory://gatherable").unwrap();
+        let default = ClusterConfig::default();
+        assert_eq!(default.chunk_floats, osrt_proto::MAX_CHUNK_FLOATS);
+        assert!(gatherable(&spec(default.clone()), &run).is_ok());
+        let big = ClusterConfig {
+            chunk_floats: osrt_proto::MAX_CHUNK_FLOATS + 1,
+            ..default
+        };
+        let e = gatherable(&spec(big), &run).unwrap_err().to_string();
+        assert!(e.contains("exceeds the collective's chunk"), "{e}");
     }
 }

@@ -116,3 +116,12 @@ impl DatasetError {
         }
     }
 }
+
+impl From<osrt_store::LocationError> for DatasetError {
+    fn from(e: osrt_store::LocationError) -> Self {
+        Self::Location {
+            location: e.location,
+            reason: e.reason,
+        }
+    }
+}

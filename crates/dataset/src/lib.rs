@@ -26,7 +26,8 @@ pub mod rays;
 pub mod reader;
 pub mod scene;
 pub mod schema;
-pub mod store;
+/// Locations moved to the crate `osrt-store`; kept under their former path.
+pub use osrt_store as store;
 pub mod writer;
 
 pub use batch::{Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch};

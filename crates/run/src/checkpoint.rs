@@ -17,7 +17,7 @@
 use crate::error::{Result, RunError};
 use bytes::Bytes;
 use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload};
-use osrt_dataset::Location;
+use osrt_store::Location;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;

@@ -45,7 +45,9 @@ impl Default for ClusterConfig {
             wait_timeout_s: 600.0,
             rpc_timeout_s: 10.0,
             bucket_floats: 1 << 22,
-            chunk_floats: osrt_proto::MAX_CHUNK_FLOATS,
+            // The collective's largest chunk (`osrt_proto::MAX_CHUNK_FLOATS`, 1 MiB of
+            // f32), which the coordinator holds `chunk_floats` to.
+            chunk_floats: 1 << 18,
             hash_every: 10,
             checkpoint_every: 500,
             keep_last: 3,
@@ -110,13 +112,6 @@ impl ClusterConfig {
                 // keep_last = 0 would let retention delete the newest committed checkpoint.
                 return bad(format!("cluster.{name} must be positive"));
             }
-        }
-        if c.chunk_floats > osrt_proto::MAX_CHUNK_FLOATS {
-            return bad(format!(
-                "cluster: chunk_floats {} exceeds 1 MiB of f32 ({})",
-                c.chunk_floats,
-                osrt_proto::MAX_CHUNK_FLOATS
-            ));
         }
         for (name, v) in [
             ("heartbeat_timeout_s", c.heartbeat_timeout_s),

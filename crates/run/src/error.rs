@@ -7,7 +7,7 @@ pub type Result<T, E = RunError> = std::result::Result<T, E>;
 #[derive(Debug, Error)]
 pub enum RunError {
     #[error(transparent)]
-    Dataset(#[from] osrt_dataset::DatasetError),
+    Location(#[from] osrt_store::LocationError),
 
     #[error("config {path}: {reason}")]
     Config { path: String, reason: String },

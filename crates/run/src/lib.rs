@@ -26,7 +26,7 @@ pub use records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord};
 
 use object_store::ObjectStoreExt;
 /// Run folders are object-store locations, like datasets.
-pub use osrt_dataset::{DatasetError, Location};
+pub use osrt_store::{Location, LocationError};
 use serde::{Deserialize, Serialize};
 
 pub const CONFIG_FILE: &str = "config.toml";

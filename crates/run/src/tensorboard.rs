@@ -2,7 +2,7 @@
 //! persists in `metrics.jsonl`, so TensorBoard (or anything reading its format) follows a
 //! job while it runs, from wherever the run folder can be read.
 //!
-//! An event file is a TFRecord file (the framing of [`osrt_dataset::import::tfrecord`])
+//! An event file is a TFRecord file (the framing `osrt_dataset::import::tfrecord` reads)
 //! of `tensorflow.Event` messages (`proto/tensorflow/event.proto`): a `file_version`
 //! event, then one event per record with its figures as scalar summaries and, for an
 //! evaluation, the pictures rank 0 left in `RUN/eval/` as image summaries.
@@ -20,7 +20,6 @@
 use crate::records::{MetricsRecord, TrainRecord};
 use crate::{Location, Result, RunError};
 use object_store::{ObjectStore, ObjectStoreExt};
-use osrt_dataset::import::tfrecord::masked_crc;
 use prost::Message;
 
 /// TensorBoard's messages (`proto/tensorflow/event.proto`).
@@ -46,6 +45,15 @@ pub fn eval_picture(step: u64, name: &str) -> String {
 
 /// The pictures an evaluation may leave, in the order they are shown.
 pub const EVAL_PICTURES: [&str; 2] = ["render", "segmentation"];
+
+/// TFRecord's checksum: CRC-32C (Castagnoli), rotated right by 15 bits plus a constant.
+fn masked_crc(data: &[u8]) -> u32 {
+    const CRC32C: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISCSI);
+    CRC32C
+        .checksum(data)
+        .rotate_right(15)
+        .wrapping_add(0xa282_ead8)
+}
 
 /// One TFRecord frame around `payload`.
 fn frame(payload: &[u8], out: &mut Vec<u8>) {

@@ -302,6 +302,13 @@ pub fn is_cpu(device: &Device) -> bool {
 mod tests {
     use super::*;
 
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn opening_a_gpu_without_the_feature_is_a_device_error() {
+        let e = DeviceSpec::Cuda(0).open().unwrap_err();
+        assert!(matches!(e, crate::TrainError::Device(_)), "{e}");
+    }
+
     #[test]
     fn names_round_trip_and_bad_names_say_what_is_expected() {
         for (s, d) in [

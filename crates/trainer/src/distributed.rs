@@ -1,13 +1,13 @@
-//! One data-parallel step's reduction: every rank's gradient, weighted by its real sample
-//! count, summed over the ring together with a few control values, so that every replica
-//! derives the same averaged gradient, loss and decisions from the same bytes.
+//! One data-parallel step's reduction, less the ring that carries it (`osrt-worker`):
+//! every rank's gradient, weighted by its real sample count, summed over the ring
+//! together with a few control values, so that every replica derives the same averaged
+//! gradient, loss and decisions from the same bytes.
 //!
 //! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop]` where `n`
 //! is the rank's scene count. `evaluate` and `stop` are set by rank 0 only (its clock
 //! decides), so after the sum every rank sees rank 0's decision. A non-finite value on any
 //! rank makes the sum non-finite on every rank, so all replicas skip the step together.
 
-use crate::collective::Ring;
 use crate::error::Result;
 use crate::optim::GradSummary;
 use crate::step::{Gradient, StepGradients};
@@ -58,32 +58,36 @@ impl std::fmt::Display for NonFiniteRanks {
     }
 }
 
-/// Sums `g` over the ring (`None` = a single worker) as all-reduce number `seq`.
-pub async fn reduce(
-    ring: Option<&mut Ring>,
-    seq: u64,
+/// The step of a worker alone: its gradient as it is, where it is, with nothing to weight
+/// or sum (and no pass over it but the finiteness check).
+pub fn alone(
     rank: usize,
     g: StepGradients<impl Into<Gradient>>,
     signals: Signals,
 ) -> Result<Reduced> {
     let grads: Gradient = g.grads.into();
-    let Some(ring) = ring else {
-        // One worker: its gradient is the step's as it is, where it is, with nothing to
-        // weight or sum (and no pass over it but the finiteness check).
-        let summary = grads.summary()?;
-        let bad = !g.loss.is_finite() || !summary.finite();
-        return Ok(Reduced {
-            summary: Some(summary),
-            loss: g.loss,
-            samples: g.samples as f64,
-            grads,
-            signals,
-            nonfinite: NonFiniteRanks {
-                count: u32::from(bad),
-                only: bad.then_some(rank),
-            },
-        });
-    };
+    let summary = grads.summary()?;
+    let bad = !g.loss.is_finite() || !summary.finite();
+    Ok(Reduced {
+        summary: Some(summary),
+        loss: g.loss,
+        samples: g.samples as f64,
+        grads,
+        signals,
+        nonfinite: NonFiniteRanks {
+            count: u32::from(bad),
+            only: bad.then_some(rank),
+        },
+    })
+}
+
+/// This rank's buffer for the all-reduce (the layout above).
+pub fn contribution(
+    rank: usize,
+    g: StepGradients<impl Into<Gradient>>,
+    signals: Signals,
+) -> Result<Vec<f32>> {
+    let grads: Gradient = g.grads.into();
     let n = g.samples as f32;
     let mut buf = grads.into_host()?;
     let bad = !g.loss.is_finite() || buf.iter().any(|x| !x.is_finite());
@@ -101,7 +105,11 @@ pub async fn reduce(
         f32::from(u8::from(bad)),
         if bad { (rank + 1) as f32 } else { 0.0 },
     ]);
-    ring.all_reduce(seq, &mut buf).await?;
+    Ok(buf)
+}
+
+/// The step every rank derives from the summed buffers.
+pub fn reduced_from(mut buf: Vec<f32>) -> Reduced {
     let p = buf.len() - CONTROL_FLOATS;
     let (total, loss_sum, evaluate, stop) = (buf[p], buf[p + 1], buf[p + 2], buf[p + 3]);
     let (bad_count, bad_rank_sum) = (buf[p + 4] as u32, buf[p + 5] as usize);
@@ -111,7 +119,7 @@ pub async fn reduce(
     };
     buf.truncate(p);
     buf.iter_mut().for_each(|x| *x /= total);
-    Ok(Reduced {
+    Reduced {
         summary: None,
         grads: Gradient::Host(buf),
         loss: (loss_sum / total) as f64,
@@ -121,21 +129,12 @@ pub async fn reduce(
             stop: stop > 0.5,
         },
         nonfinite,
-    })
+    }
 }
 
-/// Makes every rank's `flat` equal to rank 0's (the initial weights come from one rank,
-/// never from independent seeds): the other ranks contribute zeros to a sum.
-pub async fn broadcast_from_rank0(
-    ring: Option<&mut Ring>,
-    seq: u64,
-    rank: usize,
-    flat: &mut Vec<f32>,
-) -> Result<()> {
-    let Some(ring) = ring else { return Ok(()) };
+/// Rank 0's weights for a broadcast as a sum: the other ranks contribute zeros.
+pub fn zero_unless_rank0(rank: usize, flat: &mut [f32]) {
     if rank != 0 {
         flat.iter_mut().for_each(|x| *x = 0.0);
     }
-    ring.all_reduce(seq, flat).await?;
-    Ok(())
 }

@@ -26,19 +26,6 @@ pub enum TrainError {
     #[error("checkpoint {path}: {reason}")]
     Checkpoint { path: String, reason: String },
 
-    #[error(transparent)]
-    Collective(#[from] crate::collective::CollectiveError),
-
-    #[error("cluster: {0}")]
-    Cluster(String),
-
-    #[error("{what}: the coordinator answered {code:?}: {message}")]
-    Coordinator {
-        what: String,
-        code: tonic::Code,
-        message: String,
-    },
-
     #[error("{path}: {source}")]
     Io {
         path: String,
@@ -58,7 +45,7 @@ impl From<osrt_run::RunError> for TrainError {
     fn from(e: osrt_run::RunError) -> Self {
         use osrt_run::RunError as R;
         match e {
-            R::Dataset(e) => Self::Dataset(e),
+            R::Location(e) => Self::Dataset(e.into()),
             R::Config { path, reason } => Self::Config { path, reason },
             R::Run { path, reason } => Self::Run { path, reason },
             R::Checkpoint { path, reason } => Self::Checkpoint { path, reason },
@@ -76,5 +63,11 @@ impl TrainError {
             path: path.to_string(),
             source,
         }
+    }
+}
+
+impl From<osrt_dataset::store::LocationError> for TrainError {
+    fn from(e: osrt_dataset::store::LocationError) -> Self {
+        Self::Dataset(e.into())
     }
 }

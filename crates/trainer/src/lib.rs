@@ -1,13 +1,11 @@
-//! The worker side of osrt: job configuration, the train step (gradients as one flat
-//! buffer, AdamW applied from one), evaluation, data sharding, checkpoints' tensors, the
-//! learner (one rank's training loop, no RPC) and the worker shell around it (membership,
-//! heartbeats, the ring all-reduce of `osrt-collective`, reports).
+//! Training OSRT on one rank, with no RPC: job configuration, the train step (gradients
+//! as one flat buffer, AdamW applied from one), evaluation, rendering, data sharding,
+//! checkpoints' tensors, the reduction's buffer layout and the learner (one rank's
+//! training loop). The worker shell around the learner (membership, heartbeats, the ring
+//! all-reduce, reports) is the crate `osrt-worker`; evaluation, rendering, sweeps and
+//! `check-device` build without gRPC.
 
 pub mod bench;
-pub mod bench_allreduce;
-/// The ring all-reduce (crate `osrt-collective`), under its former path.
-pub use osrt_collective as collective;
-pub use osrt_collective::chunk_wire;
 pub mod check;
 pub mod checkpoint;
 pub mod config;
@@ -24,7 +22,6 @@ pub mod retry;
 pub mod run;
 pub mod shard;
 pub mod step;
-pub mod worker;
 
 pub use config::{ClusterConfig, JobConfig, TrainConfig};
 pub use device::DeviceSpec;
@@ -32,4 +29,3 @@ pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
 pub use run::{LoadedRun, load_run, load_run_on, load_run_with_slots};
 pub use step::{ApplyOutcome, StepGradients, Trainer};
-pub use worker::{WorkerOptions, run_worker};

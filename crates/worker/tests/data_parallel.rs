@@ -3,12 +3,13 @@
 //! bit-identical.
 
 use candle_core::Device;
+use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
 use osrt_proto::auth::Token;
-use osrt_trainer::collective::{Mailbox, Ring, RingConfig, serve};
-use osrt_trainer::distributed::{Signals, reduce};
+use osrt_trainer::distributed::Signals;
 use osrt_trainer::{JobConfig, Trainer};
+use osrt_worker::reduce::reduce;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Duration;

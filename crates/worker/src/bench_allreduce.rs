@@ -16,7 +16,7 @@
 //!   reaches; reported for comparison with the figures of 2026-11-25.
 //! - a **one-way** copy (one socket copying `N·4` bytes), for older figures.
 
-use crate::collective::{Mailbox, Ring, RingConfig, serve};
+use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::bench::median;
 use serde::Serialize;
 use std::time::{Duration, Instant};

@@ -10,16 +10,13 @@
 //! then the worker reports the fault and asks for the next plan.
 //!
 //! Every replica takes bit-identical steps: the data order, the ray sampling and the slot
-//! noise of a step derive from `(seed, step, rank, world)` ([`crate::shard`]), gradients are
+//! noise of a step derive from `(seed, step, rank, world)` ([`osrt_trainer::shard`]), gradients are
 //! summed in fixed ring order, and rank 0's clock decides evaluation and stopping for all
-//! ([`crate::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
+//! ([`osrt_trainer::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
 
-use crate::checkpoint::{self, Snapshot};
-use crate::collective::{Mailbox, Ring, RingConfig, serve};
-use crate::config::{ClusterConfig, JobConfig};
-use crate::distributed::{broadcast_from_rank0, reduce};
-use crate::error::{Result, TrainError};
-use crate::learner::{Learner, Start};
+use crate::error::{Result, WorkerError};
+use crate::reduce::{broadcast_from_rank0, reduce};
+use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::Location;
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::auth::{AttachToken, Token};
@@ -28,6 +25,10 @@ use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use osrt_run::MetricsRecord;
+use osrt_trainer::TrainError;
+use osrt_trainer::checkpoint::{self, Snapshot};
+use osrt_trainer::config::{ClusterConfig, JobConfig};
+use osrt_trainer::learner::{Learner, Start};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -46,7 +47,7 @@ pub struct WorkerOptions {
     pub advertise: Option<String>,
     pub threads: usize,
     /// Overrides the job config's `train.device` (each worker its own GPU).
-    pub device: Option<crate::device::DeviceSpec>,
+    pub device: Option<osrt_trainer::device::DeviceSpec>,
     pub token: Token,
     /// Mutual TLS for both services (see `osrt_proto::tls`).
     pub tls: Option<Tls>,
@@ -58,7 +59,7 @@ pub struct WorkerOptions {
 /// Connects to the coordinator with the job's token on every call.
 pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result<Client> {
     let bad = |e: tonic::transport::Error| {
-        TrainError::Cluster(format!("coordinator address {addr}: {e}"))
+        WorkerError::Cluster(format!("coordinator address {addr}: {e}"))
     };
     let mut endpoint = Endpoint::from_shared(addr.to_string()).map_err(bad)?;
     if let Some(tls) = tls {
@@ -67,8 +68,8 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
     let endpoint = endpoint
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(30))
-        .http2_keep_alive_interval(crate::collective::KEEP_ALIVE_INTERVAL)
-        .keep_alive_timeout(crate::collective::KEEP_ALIVE_TIMEOUT)
+        .http2_keep_alive_interval(osrt_collective::KEEP_ALIVE_INTERVAL)
+        .keep_alive_timeout(osrt_collective::KEEP_ALIVE_TIMEOUT)
         .keep_alive_while_idle(true)
         .tcp_nodelay(true);
     Ok(CoordinatorClient::with_interceptor(
@@ -112,7 +113,7 @@ where
                 tokio::time::sleep(Duration::from_millis(250)).await;
             }
             Err(s) => {
-                return Err(TrainError::Coordinator {
+                return Err(WorkerError::Coordinator {
                     what: what.to_string(),
                     code: s.code(),
                     message: s.message().to_string(),
@@ -151,10 +152,10 @@ pub async fn run_worker_until(
     }
     let listener = tokio::net::TcpListener::bind(opts.listen)
         .await
-        .map_err(|e| TrainError::Cluster(format!("cannot listen on {}: {e}", opts.listen)))?;
+        .map_err(|e| WorkerError::Cluster(format!("cannot listen on {}: {e}", opts.listen)))?;
     let local = listener
         .local_addr()
-        .map_err(|e| TrainError::Cluster(e.to_string()))?;
+        .map_err(|e| WorkerError::Cluster(e.to_string()))?;
     let host = advertised_host(opts.advertise.as_deref(), local.ip())?;
     let scheme = Tls::scheme(opts.tls.as_ref());
     let collective_addr = format!("{scheme}://{host}:{}", local.port());
@@ -194,7 +195,7 @@ pub async fn run_worker_until(
                     tracing::warn!(status = %s, "could not tell the coordinator this worker leaves");
                 }
             }
-            Err(TrainError::Cluster("stopped by a signal".into()))
+            Err(WorkerError::Cluster("stopped by a signal".into()))
         }
     };
     let _ = stop_tx.send(());
@@ -234,7 +235,7 @@ fn advertised_host(advertise: Option<&str>, listen: std::net::IpAddr) -> Result<
         return Ok(listen.to_string());
     }
     let name = osrt_run::lease::host_name().ok_or_else(|| {
-        TrainError::Cluster(format!(
+        WorkerError::Cluster(format!(
             "listening on {listen} (every interface) and this machine has no host name: \
              pass --advertise HOST, the address the other workers reach this one at"
         ))
@@ -283,7 +284,7 @@ async fn worker_loop(
         .await;
         let plan = match plan {
             Ok(p) => p,
-            Err(TrainError::Coordinator {
+            Err(WorkerError::Coordinator {
                 code: tonic::Code::NotFound,
                 ..
             }) => {
@@ -295,7 +296,7 @@ async fn worker_loop(
             Err(e) => return Err(e),
         };
         let plan = PlanState::try_from(plan)
-            .map_err(|e| TrainError::Cluster(format!("bad plan from the coordinator: {e}")))?;
+            .map_err(|e| WorkerError::Cluster(format!("bad plan from the coordinator: {e}")))?;
         let plan = match plan {
             PlanState::Waiting => continue,
             PlanState::Done => {
@@ -303,7 +304,7 @@ async fn worker_loop(
                 return Ok(());
             }
             PlanState::Failed(msg) => {
-                return Err(TrainError::Cluster(format!("the job failed: {msg}")));
+                return Err(WorkerError::Cluster(format!("the job failed: {msg}")));
             }
             PlanState::Running(p) => p,
         };
@@ -335,7 +336,7 @@ async fn worker_loop(
                 let reason = e.to_string();
                 tracing::error!(generation = plan.generation, %reason, "generation failed");
                 // A device this worker cannot use: it leaves, and the job re-forms without it.
-                let leaving = matches!(e, TrainError::Device(_));
+                let leaving = matches!(e, WorkerError::Train(TrainError::Device(_)));
                 report_fault(client, &plan, worker_id, &reason, is_fatal(&e), leaving).await;
                 if is_fatal(&e) || leaving {
                     return Err(e);
@@ -346,10 +347,12 @@ async fn worker_loop(
 }
 
 /// Errors that a restart cannot fix.
-fn is_fatal(e: &TrainError) -> bool {
+fn is_fatal(e: &WorkerError) -> bool {
     matches!(
         e,
-        TrainError::Config { .. } | TrainError::Dataset(_) | TrainError::TooManySkips { .. }
+        WorkerError::Train(
+            TrainError::Config { .. } | TrainError::Dataset(_) | TrainError::TooManySkips { .. }
+        )
     )
 }
 
@@ -614,7 +617,7 @@ fn plan_job(opts: &WorkerOptions, plan: &WorkerPlan) -> Result<(JobConfig, candl
 /// A config that is wrong in itself is a [`TrainError::Config`] (the job's fault, fatal);
 /// one that only this worker's device cannot run is a [`TrainError::Device`] (the worker
 /// leaves, the job goes on without it).
-fn job_on_device(toml: &str, device: Option<crate::DeviceSpec>) -> Result<JobConfig> {
+fn job_on_device(toml: &str, device: Option<osrt_trainer::DeviceSpec>) -> Result<JobConfig> {
     let mut job = JobConfig::from_toml("plan from the coordinator", toml)?;
     job.validate()?;
     if let Some(d) = device.filter(|&d| d != job.train.device) {
@@ -630,12 +633,12 @@ fn job_on_device(toml: &str, device: Option<crate::DeviceSpec>) -> Result<JobCon
 
 /// How a generation ends after `e`: a failed round is an abort to report (or no fault of
 /// this rank's, if the coordinator moved on meanwhile); any other error fails it.
-fn aborted(live: &Liveness, e: TrainError) -> Result<Ended> {
+fn aborted(live: &Liveness, e: WorkerError) -> Result<Ended> {
     if let Some(a) = live.take_abort() {
         return Ok(a);
     }
     match e {
-        TrainError::Collective(err) => Ok(Ended::Aborted {
+        WorkerError::Collective(err) => Ok(Ended::Aborted {
             reason: err.to_string(),
             report: true,
         }),
@@ -713,7 +716,7 @@ async fn commit_and_report(
         })
         .await?;
         if Directive::try_from(sent.into_inner().action) != Ok(Directive::Continue) {
-            return Err(TrainError::Cluster(format!(
+            return Err(WorkerError::Cluster(format!(
                 "the coordinator took no records before checkpoint {step}: generation over"
             )));
         }
@@ -808,7 +811,7 @@ impl<T> AbortOnDrop<Result<T>> {
         let handle = self.0.take().expect("joined once");
         handle
             .await
-            .map_err(|e| TrainError::Cluster(format!("background task: {e}")))?
+            .map_err(|e| WorkerError::Cluster(format!("background task: {e}")))?
     }
 }
 
@@ -823,8 +826,8 @@ impl<T> Drop for AbortOnDrop<T> {
 #[cfg(test)]
 mod device_tests {
     use super::*;
-    use crate::DeviceSpec;
     use osrt_model::Precision;
+    use osrt_trainer::DeviceSpec;
 
     fn toml_of(f: impl FnOnce(&mut JobConfig)) -> String {
         let mut job = JobConfig::preset("tiny").unwrap();
@@ -841,14 +844,21 @@ mod device_tests {
             j.train.precision = Precision::Bf16;
         });
         let e = job_on_device(&bf16_gpu, Some(DeviceSpec::Cpu)).unwrap_err();
-        assert!(matches!(e, TrainError::Device(_)), "{e}");
+        assert!(
+            matches!(e, WorkerError::Train(TrainError::Device(_))),
+            "{e}"
+        );
         assert!(e.to_string().contains("--device cpu"), "{e}");
         assert!(job_on_device(&bf16_gpu, Some(DeviceSpec::Cuda(1))).is_ok());
         // The same job written for a CPU is wrong in itself.
         let bf16_cpu = toml_of(|j| j.train.precision = Precision::Bf16);
         let e = job_on_device(&bf16_cpu, None).unwrap_err();
-        assert!(matches!(e, TrainError::Config { .. }), "{e}");
-        assert!(!is_fatal(&TrainError::Device("x".into())));
+        assert!(
+            matches!(e, WorkerError::Train(TrainError::Config { .. })),
+            "{e}"
+        );
+        assert!(is_fatal(&e));
+        assert!(!is_fatal(&TrainError::Device("x".into()).into()));
     }
 
     #[test]
@@ -861,12 +871,5 @@ mod device_tests {
             Ok(h) => assert!(!h.is_empty() && h != "0.0.0.0", "{h}"),
             Err(e) => assert!(e.to_string().contains("--advertise"), "{e}"),
         }
-    }
-
-    #[cfg(not(feature = "cuda"))]
-    #[test]
-    fn opening_a_gpu_without_the_feature_is_a_device_error() {
-        let e = DeviceSpec::Cuda(0).open().unwrap_err();
-        assert!(matches!(e, TrainError::Device(_)), "{e}");
     }
 }

@@ -7,7 +7,17 @@
 //! - `s3://BUCKET/prefix` → [`AmazonS3Builder::from_env`], configured by the standard
 //!   `AWS_*` variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, `AWS_ACCESS_KEY_ID`, …).
 
-use crate::error::{DatasetError, Result};
+use thiserror::Error;
+
+/// A location that names no store this build opens, or a store that cannot be opened.
+#[derive(Debug, Error)]
+#[error("invalid location {location:?}: {reason}")]
+pub struct LocationError {
+    pub location: String,
+    pub reason: String,
+}
+
+pub type Result<T, E = LocationError> = std::result::Result<T, E>;
 use object_store::ObjectStore;
 #[cfg(test)]
 use object_store::ObjectStoreExt;
@@ -47,7 +57,7 @@ impl Location {
 
     /// Parses a local path or a `file://`, `memory://` or `s3://` URL.
     pub fn parse(location: &str) -> Result<Self> {
-        let err = |reason: String| DatasetError::Location {
+        let err = |reason: String| LocationError {
             location: location.to_string(),
             reason,
         };
@@ -97,7 +107,7 @@ impl Location {
     }
 
     fn local(dir: &std::path::Path, display: &str) -> Result<Self> {
-        let err = |reason: String| DatasetError::Location {
+        let err = |reason: String| LocationError {
             location: display.to_string(),
             reason,
         };

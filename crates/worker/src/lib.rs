@@ -1,0 +1,13 @@
+//! The osrt worker: the shell around a generation's [`osrt_trainer::learner::Learner`]
+//! (the training loop, which makes no RPC) that registers with the coordinator, asks for
+//! plans, carries the step's reduction over the ring all-reduce of `osrt-collective`,
+//! sends heartbeats and progress and checkpoint reports ([`worker`]), and the all-reduce
+//! benchmark ([`bench_allreduce`]).
+
+pub mod bench_allreduce;
+pub mod error;
+pub mod reduce;
+pub mod worker;
+
+pub use error::{Result, WorkerError};
+pub use worker::{WorkerOptions, run_worker, run_worker_until};
