@@ -444,7 +444,13 @@ impl Coordinator {
                 }
             }
         }
-        // Stopped by a signal: what the run folder lacks is written once more.
+        self.write_last(can_append).await?;
+        Ok(self.status())
+    }
+
+    /// What the run folder lacks, written once more (the job is over, or a signal stopped
+    /// the coordinator), and the lease released.
+    async fn write_last(&self, can_append: bool) -> Result<(), CoordinatorError> {
         let (job, metrics) = self.shared.with(|c, _| {
             let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
             let metrics = c.dirty_metrics.then(|| c.metrics_write(can_append));
@@ -462,7 +468,7 @@ impl Coordinator {
         if let Some(lease) = self.shared.lease.lock().await.take() {
             lease.release().await?;
         }
-        Ok(self.status())
+        Ok(())
     }
 
     /// Renews the run folder's lease when it is due. Losing the folder to another
