@@ -209,6 +209,17 @@ fn render_frames(
     })
 }
 
+/// `camera` of a `from`-sized view with its intrinsics rescaled to render at `to`.
+fn rescaled(mut camera: Camera, from: (u32, u32), to: (u32, u32)) -> Camera {
+    let sx = to.0 as f32 / from.0 as f32;
+    let sy = to.1 as f32 / from.1 as f32;
+    camera.intrinsics.fx *= sx;
+    camera.intrinsics.cx *= sx;
+    camera.intrinsics.fy *= sy;
+    camera.intrinsics.cy *= sy;
+    camera
+}
+
 pub async fn render(a: RenderArgs) -> Result<()> {
     if a.motion == Motion::Orbit && a.frames == 0 {
         bail!("--frames must be at least 1");
@@ -239,17 +250,7 @@ pub async fn render(a: RenderArgs) -> Result<()> {
     };
     let cameras: Vec<_> = cameras
         .into_iter()
-        .map(|(c, v)| {
-            // Rescale the intrinsics when rendering at another size than the dataset's.
-            let sx = size.0 as f32 / first.width as f32;
-            let sy = size.1 as f32 / first.height as f32;
-            let mut c = c;
-            c.intrinsics.fx *= sx;
-            c.intrinsics.cx *= sx;
-            c.intrinsics.fy *= sy;
-            c.intrinsics.cy *= sy;
-            (c, v)
-        })
+        .map(|(c, v)| (rescaled(c, (first.width, first.height), size), v))
         .collect();
     let donor = a.add_slot.map(|(_, k)| (&scenes[1], k));
     // With the run's kernels (`train.kernels`), as its evaluations were.

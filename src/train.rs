@@ -323,7 +323,13 @@ pub async fn train(a: TrainArgs) -> Result<()> {
         },
     })
     .await?;
-    let loc = Location::parse(&run)?;
+    print_outcome(&run, &status).await
+}
+
+/// What a finished `osrt train` says: the step it trained to, its restarts, where its
+/// checkpoints are, and its last validation.
+async fn print_outcome(run: &str, status: &osrt_coordinator::StatusSnapshot) -> Result<()> {
+    let loc = Location::parse(run)?;
     let metrics = osrt_run::read_file(&loc, osrt_run::METRICS_FILE)
         .await?
         .unwrap_or_default();

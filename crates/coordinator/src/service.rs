@@ -212,33 +212,7 @@ impl Coordinator {
                     "--resume: no job to resume in this run folder",
                 ));
             }
-            None => {
-                let metrics = read_file(&run, METRICS_FILE).await?;
-                if metrics.is_some_and(|m| !m.is_empty()) {
-                    return Err(run_err(
-                        &run,
-                        METRICS_FILE,
-                        "the run folder already holds a run; choose a new --run or pass --resume",
-                    ));
-                }
-                // Refused before anything is written.
-                gatherable(&spec, &run)?;
-                write_file(&run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
-                // The parameter count comes from rank 0: the coordinator never builds the
-                // model (the `paper` preset's weights and optimizer state are a gigabyte).
-                let info = RunInfo {
-                    data: spec.data.clone(),
-                    parameters: None,
-                    workers: spec.cluster.min_workers,
-                };
-                write_file(
-                    &run,
-                    INFO_FILE,
-                    serde_json::to_vec_pretty(&info).expect("serialises"),
-                )
-                .await?;
-                Core::new(spec, now)
-            }
+            None => Self::create(spec, &run, now).await?,
             Some(p) => {
                 let finished = p.state == "done" || p.state == "failed";
                 if finished && !resume {
@@ -301,6 +275,36 @@ impl Coordinator {
             }
         };
         Ok(core)
+    }
+
+    /// A new job in an empty run folder: refused before anything is written if it cannot
+    /// run; then its config and run info are written.
+    async fn create(spec: JobSpec, run: &Location, now: Instant) -> Result<Core, CoordinatorError> {
+        let metrics = read_file(run, METRICS_FILE).await?;
+        if metrics.is_some_and(|m| !m.is_empty()) {
+            return Err(run_err(
+                run,
+                METRICS_FILE,
+                "the run folder already holds a run; choose a new --run or pass --resume",
+            ));
+        }
+        // Refused before anything is written.
+        gatherable(&spec, run)?;
+        write_file(run, CONFIG_FILE, spec.job_toml.clone().into_bytes()).await?;
+        // The parameter count comes from rank 0: the coordinator never builds the
+        // model (the `paper` preset's weights and optimizer state are a gigabyte).
+        let info = RunInfo {
+            data: spec.data.clone(),
+            parameters: None,
+            workers: spec.cluster.min_workers,
+        };
+        write_file(
+            run,
+            INFO_FILE,
+            serde_json::to_vec_pretty(&info).expect("serialises"),
+        )
+        .await?;
+        Ok(Core::new(spec, now))
     }
 
     pub fn job_id(&self) -> String {

@@ -188,22 +188,29 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         protocol: protocol(opts),
         sample,
         by_objects: if segmentation {
-            seg_by_objects
-                .into_iter()
-                .map(|(objects, (scenes, s))| {
-                    let c = s.compute();
-                    ObjectCountScore {
-                        objects,
-                        scenes,
-                        fg_ari: c.fg_ari,
-                        ari: c.ari,
-                    }
-                })
-                .collect()
+            by_object_count(seg_by_objects)
         } else {
             Vec::new()
         },
     })
+}
+
+/// Segmentation scores per object count, from each count's scenes and their pooled
+/// segmentation.
+fn by_object_count(
+    seg: std::collections::BTreeMap<usize, (usize, Segmentation)>,
+) -> Vec<ObjectCountScore> {
+    seg.into_iter()
+        .map(|(objects, (scenes, s))| {
+            let c = s.compute();
+            ObjectCountScore {
+                objects,
+                scenes,
+                fg_ari: c.fg_ari,
+                ari: c.ari,
+            }
+        })
+        .collect()
 }
 
 /// The first target view of a whole-view batch of `scene` as a sample (its rays are the

@@ -143,20 +143,7 @@ impl Learner {
                 }
                 st
             }
-            None => CheckpointState {
-                step: 0,
-                epoch: 0,
-                epoch_start_step: 0,
-                world_size: world,
-                rng: String::new(),
-                adam_t: 0,
-                skipped_total: 0,
-                wall_s: 0.0,
-                train_s: 0.0,
-                config_hash: s.config_hash.clone(),
-                val_fg_ari: None,
-                val_psnr: None,
-            },
+            None => fresh_state(world, &s.config_hash),
         };
         // Another world size deals the data differently: continue with a fresh epoch.
         if state.world_size != world {
@@ -421,6 +408,24 @@ impl Learner {
 
     fn evaluate(&self) -> Result<EvalResult> {
         tokio::task::block_in_place(|| evaluate(&self.trainer.model, &self.val, &self.eval_opts))
+    }
+}
+
+/// The state of a job that starts from fresh weights.
+fn fresh_state(world: usize, config_hash: &str) -> CheckpointState {
+    CheckpointState {
+        step: 0,
+        epoch: 0,
+        epoch_start_step: 0,
+        world_size: world,
+        rng: String::new(),
+        adam_t: 0,
+        skipped_total: 0,
+        wall_s: 0.0,
+        train_s: 0.0,
+        config_hash: config_hash.to_string(),
+        val_fg_ari: None,
+        val_psnr: None,
     }
 }
 

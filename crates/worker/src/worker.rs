@@ -484,7 +484,7 @@ async fn run_generation(
     let (job, device) = plan_job(opts, plan)?;
     let c = job.cluster.clone();
     let run = Location::parse(&plan.run)?;
-    let (rank, world) = (plan.rank, plan.world());
+    let rank = plan.rank;
 
     let live = Arc::new(Liveness {
         step: AtomicU64::new(0),
@@ -497,23 +497,11 @@ async fn run_generation(
     let _stop_heartbeat = AbortOnDrop(Some(spawn_heartbeat(beats, plan, &live, mailbox)));
     let mut ring = open_ring(opts, plan, &c, mailbox)?;
 
-    let start = Start {
-        data: Location::parse(&plan.data)?,
-        run: run.clone(),
-        rank,
-        world,
-        resume_step: plan.resume_step,
-        config_hash: checkpoint::config_hash(&plan.job_config_toml),
-        restarts: plan.restarts,
-    };
-    let mut learner = Learner::open(job, device, start).await?;
-    if learner.is_fresh() {
-        // Every rank starts from rank 0's fresh weights.
-        let mut flat = learner.trainer.params.flatten()?;
-        if let Err(e) = broadcast_from_rank0(ring.as_mut(), 0, rank, &mut flat).await {
-            return aborted(&live, e);
-        }
-        learner.trainer.params.load_flat(&flat)?;
+    let mut learner = Learner::open(job, device, start_of(plan, &run)?).await?;
+    if learner.is_fresh()
+        && let Err(e) = take_rank0_weights(&mut learner, ring.as_mut(), rank).await
+    {
+        return aborted(&live, e);
     }
     // Records a report could not deliver go again with the next one (the coordinator
     // drops a record it already holds).
@@ -567,23 +555,9 @@ async fn run_generation(
             });
         }
         if let Some(snap) = end.snapshot {
-            if let Some(prev) = pending_save.take() {
-                prev.join().await?;
-            }
             let report = (client.clone(), plan.clone(), worker_id, unsent.clone());
-            let task = tokio::spawn(commit_and_report(
-                snap,
-                run.clone(),
-                report,
-                end.last,
-                c.keep_last,
-            ));
-            let task = AbortOnDrop(Some(task));
-            if end.last {
-                task.join().await?;
-            } else {
-                pending_save = Some(task);
-            }
+            let save = commit_and_report(snap, run.clone(), report, end.last, c.keep_last);
+            save_in_background(&mut pending_save, save, end.last).await?;
         }
         if end.last {
             break;
@@ -593,6 +567,50 @@ async fn run_generation(
         prev.join().await?;
     }
     Ok(Ended::Finished)
+}
+
+/// Where the plan's generation starts, and this rank in it.
+fn start_of(plan: &WorkerPlan, run: &Location) -> Result<Start> {
+    Ok(Start {
+        data: Location::parse(&plan.data)?,
+        run: run.clone(),
+        rank: plan.rank,
+        world: plan.world(),
+        resume_step: plan.resume_step,
+        config_hash: checkpoint::config_hash(&plan.job_config_toml),
+        restarts: plan.restarts,
+    })
+}
+
+/// Every rank starts from rank 0's fresh weights.
+async fn take_rank0_weights(
+    learner: &mut Learner,
+    ring: Option<&mut Ring>,
+    rank: usize,
+) -> Result<()> {
+    let mut flat = learner.trainer.params.flatten()?;
+    broadcast_from_rank0(ring, 0, rank, &mut flat).await?;
+    learner.trainer.params.load_flat(&flat)?;
+    Ok(())
+}
+
+/// Commits a checkpoint in the background, one at a time (the previous one finished
+/// first); the job's last one is awaited.
+async fn save_in_background(
+    pending: &mut Option<AbortOnDrop<Result<u64>>>,
+    save: impl std::future::Future<Output = Result<u64>> + Send + 'static,
+    last: bool,
+) -> Result<()> {
+    if let Some(prev) = pending.take() {
+        prev.join().await?;
+    }
+    let task = AbortOnDrop(Some(tokio::spawn(save)));
+    if last {
+        task.join().await?;
+    } else {
+        *pending = Some(task);
+    }
+    Ok(())
 }
 
 /// Puts validation pictures into the run folder (`RUN/eval/`), for the coordinator's
