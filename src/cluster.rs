@@ -383,22 +383,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             &token,
         )?);
     }
-    let bar = if std::io::stderr().is_terminal() {
-        let b = match max_steps {
-            Some(n) => ProgressBar::new(n),
-            None => ProgressBar::no_length(),
-        };
-        b.set_style(
-            ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
-            )
-            .expect("valid template")
-            .progress_chars("=> "),
-        );
-        b
-    } else {
-        ProgressBar::hidden()
-    };
+    let bar = step_bar(max_steps);
     let mut respawned = 0u32;
     // Ctrl-C or SIGTERM: stop the workers too (they would otherwise wait out the
     // coordinator timeout).
@@ -452,14 +437,38 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         }
     };
     bar.finish_and_clear();
-    for mut c in children {
-        match tokio::time::timeout(Duration::from_secs(10), c.wait()).await {
-            Ok(_) => {}
-            Err(_) => {
-                let _ = c.kill().await;
-            }
-        }
+    for c in children {
+        reap(c).await;
     }
     report_end(&status)?;
     Ok(status)
+}
+
+/// The launcher's progress bar over the job's steps (hidden off a terminal).
+fn step_bar(max_steps: Option<u64>) -> ProgressBar {
+    if !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let b = match max_steps {
+        Some(n) => ProgressBar::new(n),
+        None => ProgressBar::no_length(),
+    };
+    b.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] step {pos}/{len} {msg} ETA {eta}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    b
+}
+
+/// Waits 10 s for a worker the job is done with, then kills it.
+async fn reap(mut c: tokio::process::Child) {
+    if tokio::time::timeout(Duration::from_secs(10), c.wait())
+        .await
+        .is_err()
+    {
+        let _ = c.kill().await;
+    }
 }

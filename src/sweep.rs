@@ -152,33 +152,7 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
         })
         .await
         .with_context(|| format!("training sweep point {name}"))?;
-        let summary = RunSummary::load(&run_dir)?;
-        let req = crate::train::EvalRequest {
-            split: file.eval_split.clone(),
-            data: Some(file.data.clone()),
-            scenes: file.eval_scenes,
-            ..Default::default()
-        };
-        let (_, _, r) = crate::train::evaluate_run(&run, &req)
-            .await
-            .with_context(|| format!("evaluating sweep point {name}"))?;
-        let row = PointResult {
-            point: name.clone(),
-            settings: point.settings.clone(),
-            train_wall_s: summary.wall_s,
-            steps: summary.steps,
-            scenes_per_s: summary.scenes_per_s,
-            eval_split: file.eval_split.clone(),
-            eval_scenes: r.scenes,
-            psnr: r.psnr,
-            baseline_psnr: r.baseline_psnr,
-            fg_ari: r.fg_ari,
-            ari: r.ari,
-            fg_ari_2d: r.fg_ari_2d,
-            ratio: r.ratio,
-            render_fps: r.render_fps,
-            peak_rss_mb: summary.peak_rss_mb,
-        };
+        let (row, r) = evaluate_point(&file, &point, &run_dir).await?;
         row.save(&result_path)?;
         eprintln!(
             "[{}/{n}] {name}: PSNR {:.2} dB (baseline {:.2}), FG-ARI {}",
@@ -199,6 +173,43 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
         page.display()
     );
     Ok(())
+}
+
+/// Evaluates a trained sweep point: its result row, and the evaluation it comes from.
+async fn evaluate_point(
+    file: &SweepFile,
+    point: &osrt_sweep::Point,
+    run_dir: &Path,
+) -> Result<(PointResult, osrt_trainer::EvalResult)> {
+    let summary = RunSummary::load(run_dir)?;
+    let req = crate::train::EvalRequest {
+        split: file.eval_split.clone(),
+        data: Some(file.data.clone()),
+        scenes: file.eval_scenes,
+        ..Default::default()
+    };
+    let run = run_dir.to_string_lossy();
+    let (_, _, r) = crate::train::evaluate_run(&run, &req)
+        .await
+        .with_context(|| format!("evaluating sweep point {}", point.name()))?;
+    let row = PointResult {
+        point: point.name(),
+        settings: point.settings.clone(),
+        train_wall_s: summary.wall_s,
+        steps: summary.steps,
+        scenes_per_s: summary.scenes_per_s,
+        eval_split: file.eval_split.clone(),
+        eval_scenes: r.scenes,
+        psnr: r.psnr,
+        baseline_psnr: r.baseline_psnr,
+        fg_ari: r.fg_ari,
+        ari: r.ari,
+        fg_ari_2d: r.fg_ari_2d,
+        ratio: r.ratio,
+        render_fps: r.render_fps,
+        peak_rss_mb: summary.peak_rss_mb,
+    };
+    Ok((row, r))
 }
 
 /// Tables, charts and page of the sweep in `dir`, written into `out`.

@@ -128,7 +128,36 @@ impl JobConfig {
     /// Named presets: `clevr-lite-cpu` (the CPU model on clevr-lite), `clevr-lite-gpu`
     /// (the same model trained on one GPU), `paper`, `tiny`.
     pub fn preset(name: &str) -> Result<Self> {
-        let (model, train) = match name {
+        let Some((model, train)) = Self::preset_parts(name) else {
+            return Err(TrainError::Config {
+                path: format!("preset `{name}`"),
+                reason: "unknown preset: expected clevr-lite-cpu, clevr-lite-gpu, paper, clevr3d, \
+                         msn-hard or tiny"
+                    .into(),
+            });
+        };
+        let cluster = if name == "tiny" {
+            // Small enough to exercise every path in a test: hash and checkpoint often.
+            ClusterConfig {
+                hash_every: 1,
+                checkpoint_every: 5,
+                heartbeat_timeout_s: 3.0,
+                rpc_timeout_s: 5.0,
+                ..ClusterConfig::default()
+            }
+        } else {
+            ClusterConfig::default()
+        };
+        Ok(Self {
+            model,
+            train,
+            cluster,
+        })
+    }
+
+    /// The model and training settings of the preset `name`.
+    fn preset_parts(name: &str) -> Option<(osrt_model::Config, TrainConfig)> {
+        Some(match name {
             "clevr-lite-cpu" => (
                 osrt_model::Config::cpu(),
                 // lr 6e-4 after a 300-step warm-up, decaying 10× over 26,000 steps: about
@@ -213,32 +242,7 @@ impl JobConfig {
                     ..TrainConfig::reference()
                 },
             ),
-            other => {
-                return Err(TrainError::Config {
-                    path: format!("preset `{other}`"),
-                    reason:
-                        "unknown preset: expected clevr-lite-cpu, clevr-lite-gpu, paper, clevr3d, \
-                         msn-hard or tiny"
-                            .into(),
-                });
-            }
-        };
-        let cluster = if name == "tiny" {
-            // Small enough to exercise every path in a test: hash and checkpoint often.
-            ClusterConfig {
-                hash_every: 1,
-                checkpoint_every: 5,
-                heartbeat_timeout_s: 3.0,
-                rpc_timeout_s: 5.0,
-                ..ClusterConfig::default()
-            }
-        } else {
-            ClusterConfig::default()
-        };
-        Ok(Self {
-            model,
-            train,
-            cluster,
+            _ => return None,
         })
     }
 
