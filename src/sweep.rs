@@ -116,7 +116,7 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
             eprintln!("[{}/{n}] {name}: finished, skipped", i + 1);
             continue;
         }
-        let started = run_dir.join(osrt_coordinator::service::JOB_FILE).exists();
+        let started = run_dir.join(osrt_run::JOB_FILE).exists();
         if a.dry_run {
             let state = if started {
                 "interrupted: resumes"

@@ -233,6 +233,44 @@ impl Batch {
     }
 }
 
+impl Batch {
+    /// Appends the target ray through pixel `rest` (row-major) of view `vi` of `scene`
+    /// (`camera`: that view's camera in the batch's frame), with its colour, its mask
+    /// label where the batch has masks, and where it came from.
+    fn push_target(
+        &mut self,
+        scene: &Scene,
+        vi: usize,
+        camera: &Camera,
+        rest: usize,
+    ) -> Result<()> {
+        let view = &scene.views[vi];
+        let (u, row) = (
+            (rest % view.width as usize) as u32,
+            (rest / view.width as usize) as u32,
+        );
+        let (o, d) = pixel_ray(camera, u, row);
+        self.target_origins.extend_from_slice(&o);
+        self.target_directions.extend_from_slice(&d);
+        self.target_rgb.extend(
+            view.image[3 * rest..3 * rest + 3]
+                .iter()
+                .map(|&c| c as f32 / 255.0),
+        );
+        if let Some(m) = self.target_masks.as_mut() {
+            let mask = view.mask.as_ref().ok_or_else(|| {
+                DatasetError::Batch(format!(
+                    "scene {} view {vi} has no mask: read the split with masks for evaluation",
+                    scene.id
+                ))
+            })?;
+            m.push(mask[rest]);
+        }
+        self.target_pixels.push((vi as u32, rest as u32));
+        Ok(())
+    }
+}
+
 /// Builds one batch. The RNG draws input views (when random) then target rays, scene by
 /// scene in order, so the same RNG state and scenes give the same batch.
 pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> Result<Batch> {
@@ -323,30 +361,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
                 rest -= sizes[t];
                 t += 1;
             }
-            let vi = targets[t];
-            let view = &scene.views[vi];
-            let (u, row) = (
-                (rest % view.width as usize) as u32,
-                (rest / view.width as usize) as u32,
-            );
-            let (o, d) = pixel_ray(&cameras[vi], u, row);
-            batch.target_origins.extend_from_slice(&o);
-            batch.target_directions.extend_from_slice(&d);
-            batch.target_rgb.extend(
-                view.image[3 * rest..3 * rest + 3]
-                    .iter()
-                    .map(|&c| c as f32 / 255.0),
-            );
-            if let Some(m) = batch.target_masks.as_mut() {
-                let mask = view.mask.as_ref().ok_or_else(|| {
-                    DatasetError::Batch(format!(
-                        "scene {} view {vi} has no mask: read the split with masks for evaluation",
-                        scene.id
-                    ))
-                })?;
-                m.push(mask[rest]);
-            }
-            batch.target_pixels.push((vi as u32, rest as u32));
+            batch.push_target(scene, targets[t], &cameras[targets[t]], rest)?;
         }
         batch.scene_ids.push(scene.id);
     }

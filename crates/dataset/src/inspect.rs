@@ -5,7 +5,7 @@ use crate::manifest::Manifest;
 use crate::reader::SplitReader;
 use crate::scene::Scene;
 use crate::schema::Columns;
-use crate::store::Location;
+use osrt_store::Location;
 use serde::Serialize;
 use std::collections::BTreeMap;
 

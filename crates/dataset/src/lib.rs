@@ -7,7 +7,7 @@
 //! DATASET/manifest.json            counts, image size, generator settings (written last)
 //! DATASET/{train,val,test}/part-NNNNN.parquet
 //! ```
-//! One Parquet row is one scene; row groups are the unit the coordinator shards.
+//! One Parquet row is one scene; row groups are the unit the workers shard (each rank reads its own).
 
 pub mod batch;
 pub mod bench;
@@ -26,8 +26,6 @@ pub mod rays;
 pub mod reader;
 pub mod scene;
 pub mod schema;
-/// Locations moved to the crate `osrt-store`; kept under their former path.
-pub use osrt_store as store;
 pub mod writer;
 
 pub use batch::{Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch};
@@ -35,8 +33,8 @@ pub use camera::{Camera, Intrinsics};
 pub use error::{DatasetError, Result};
 pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};
 pub use manifest::{MANIFEST_FILE, Manifest, SplitInfo};
+pub use osrt_store::{Location, LocationError};
 pub use reader::{ReadStats, RowGroupRef, SplitReader, load_split};
 pub use scene::{ObjectMeta, Scene, View};
 pub use schema::{Columns, ImageCodec, SCHEMA_VERSION};
-pub use store::Location;
 pub use writer::{SplitWriter, WriterOptions};

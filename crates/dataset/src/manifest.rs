@@ -3,8 +3,8 @@
 
 use crate::error::{DatasetError, Result};
 use crate::schema::{ImageCodec, SCHEMA_VERSION};
-use crate::store::Location;
 use object_store::ObjectStoreExt;
+use osrt_store::Location;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 

@@ -44,9 +44,6 @@ impl Vec3 {
     pub fn mul_elem(self, o: Vec3) -> Vec3 {
         Vec3::new(self.x * o.x, self.y * o.y, self.z * o.z)
     }
-    pub fn max_elem(self) -> f64 {
-        self.x.max(self.y).max(self.z)
-    }
 }
 
 impl Add for Vec3 {

@@ -7,12 +7,12 @@ use crate::scene::Scene;
 use crate::schema::{
     Columns, ImageCodec, batch_to_scenes_with, check_schema, check_version, projection,
 };
-use crate::store::Location;
 use bytes::Bytes;
 use futures::future::BoxFuture;
 use futures::{FutureExt, TryStreamExt};
 use object_store::path::Path;
 use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt};
+use osrt_store::Location;
 use parquet::arrow::ParquetRecordBatchStreamBuilder;
 use parquet::arrow::arrow_reader::ArrowReaderOptions;
 use parquet::arrow::async_reader::{AsyncFileReader, MetadataSuffixFetch};

@@ -191,18 +191,12 @@ impl SlotAttention {
     }
 
     /// Initial slots. Learned init ignores `noise`; random init needs standard-normal
-    /// `noise: [b, k, slot_dim]` drawn by the caller's seeded RNG (candle's is unseedable).
+    /// `noise: [b, k, slot_dim]` drawn by the caller's seeded RNG (candle's is
+    /// unseedable); tokens init reads `normed: [b, n, input_dim]`, the LayerNorm'ed
+    /// inputs.
     ///
     /// # Shapes
     /// → `[b, k, slot_dim]`
-    pub fn initial_slots(&self, b: usize, noise: Option<&Tensor>) -> Result<Tensor> {
-        if self.init_from_tokens.is_some() {
-            candle_core::bail!("tokens slot init needs the inputs: use forward")
-        }
-        self.initial_slots_from(b, noise, None)
-    }
-
-    /// `normed: [b, n, input_dim]`, the LayerNorm'ed inputs (tokens init only).
     fn initial_slots_from(
         &self,
         b: usize,

@@ -126,7 +126,8 @@ pub struct JobConfig {
 
 impl JobConfig {
     /// Named presets: `clevr-lite-cpu` (the CPU model on clevr-lite), `clevr-lite-gpu`
-    /// (the same model trained on one GPU), `paper`, `tiny`.
+    /// (the same model trained on one GPU), `paper`, `clevr3d`, `msn-hard` (the paper's
+    /// settings for those datasets) and `tiny` (tests).
     pub fn preset(name: &str) -> Result<Self> {
         let Some((model, train)) = Self::preset_parts(name) else {
             return Err(TrainError::Config {

@@ -3,9 +3,11 @@
 //! together with a few control values, so that every replica derives the same averaged
 //! gradient, loss and decisions from the same bytes.
 //!
-//! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop]` where `n`
-//! is the rank's scene count. `evaluate` and `stop` are set by rank 0 only (its clock
-//! decides), so after the sum every rank sees rank 0's decision. A non-finite value on any
+//! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop, bad,
+//! bad_rank + 1]` where `n` is the rank's scene count ([`CONTROL_FLOATS`] after the
+//! gradient). `evaluate` and `stop` are set by rank 0 only (its clock decides), so after
+//! the sum every rank sees rank 0's decision. `bad` is 1 on a rank whose loss or gradient
+//! is not finite: the sums say how many and, when one, which. A non-finite value on any
 //! rank makes the sum non-finite on every rank, so all replicas skip the step together.
 
 use crate::error::Result;

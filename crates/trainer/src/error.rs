@@ -66,8 +66,8 @@ impl TrainError {
     }
 }
 
-impl From<osrt_dataset::store::LocationError> for TrainError {
-    fn from(e: osrt_dataset::store::LocationError) -> Self {
+impl From<osrt_dataset::LocationError> for TrainError {
+    fn from(e: osrt_dataset::LocationError) -> Self {
         Self::Dataset(e.into())
     }
 }
