@@ -108,8 +108,7 @@ fn absolute_local(data: &str) -> Result<String> {
     Ok(cwd.join(path).to_string_lossy().into_owned())
 }
 
-/// The job with the command line's overrides applied.
-/// The job as the coordinator receives it; a volumetric decoder's scene box, unless the
+/// The job as the coordinator receives it, the command line's overrides applied; a volumetric decoder's scene box, unless the
 /// job sets one, is read from the dataset's manifest here, so the run's saved config
 /// carries it.
 pub async fn spec(

@@ -6,7 +6,7 @@ use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
 use osrt_model::{Kernels, Precision, SlotInit};
 use osrt_run::MetricsRecord;
-use osrt_trainer::run::eval_options;
+use osrt_trainer::loaded::eval_options;
 use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
 use std::io::IsTerminal;
 use std::path::PathBuf;

@@ -7,9 +7,8 @@ pub mod auth;
 pub mod convert;
 pub mod tls;
 
-/// Protocol version: peers of another version are refused at registration.
-/// 2: the ring sends its chunks with the client-streaming `PushChunks`.
-/// 3: the unary `PushChunk` is gone.
+/// Protocol version: peers of another version are refused at registration. Version 3:
+/// the ring sends its chunks with the client-streaming `PushChunks` only.
 pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Largest chunk payload of the collective: 1 MiB of f32.

@@ -127,7 +127,7 @@ impl Learner {
         }
         let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
         if rank == 0
-            && let Err(e) = crate::run::record_parameters(&s.run, trainer.num_parameters()).await
+            && let Err(e) = osrt_run::record_parameters(&s.run, trainer.num_parameters()).await
         {
             tracing::warn!(error = %e, "could not record the parameter count in run.json");
         }
@@ -188,7 +188,7 @@ impl Learner {
             salient_fraction: t.salient_fraction,
             ray_frame: crate::config::ray_frame(&job.model),
         };
-        let eval_opts = crate::run::eval_options(&job);
+        let eval_opts = crate::loaded::eval_options(&job);
         let now = Instant::now();
         Ok(Self {
             trainer,

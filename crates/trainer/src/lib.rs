@@ -6,20 +6,20 @@
 //! `check-device` build without gRPC.
 
 pub mod bench;
-pub mod check;
 pub mod checkpoint;
 pub mod config;
 pub mod device;
+pub mod device_check;
 pub mod distributed;
 pub mod error;
 pub mod eval;
 pub mod learner;
+pub mod loaded;
 pub mod memory;
 pub mod optim;
 pub mod pictures;
 pub mod render;
 pub mod retry;
-pub mod run;
 pub mod shard;
 pub mod step;
 
@@ -27,5 +27,5 @@ pub use config::{ClusterConfig, JobConfig, TrainConfig};
 pub use device::DeviceSpec;
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
-pub use run::{LoadedRun, load_run, load_run_on, load_run_with_slots};
+pub use loaded::{LoadedRun, load_run, load_run_on, load_run_with_slots};
 pub use step::{ApplyOutcome, StepGradients, Trainer};

@@ -5,8 +5,8 @@
 
 use candle_core::Device;
 use osrt_model::Precision;
-use osrt_trainer::check::compare_with_cpu;
 use osrt_trainer::device::cuda_device_count;
+use osrt_trainer::device_check::compare_with_cpu;
 use osrt_trainer::{DeviceSpec, JobConfig};
 
 fn gpu() -> Option<Device> {

@@ -83,7 +83,7 @@ pub use osrt_run::unix_now;
 /// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
 /// or the connection lost during the call (tonic then answers `Unknown` with the
 /// transport error as the source).
-fn passing(s: &tonic::Status) -> bool {
+fn is_transient(s: &tonic::Status) -> bool {
     use std::error::Error;
     match s.code() {
         tonic::Code::Unavailable
@@ -108,7 +108,7 @@ where
             Ok(v) => return Ok(v),
             // Unreachable, cut off mid-call, or full until a lost member times out: all
             // pass. (Every call retried here is idempotent on the coordinator.)
-            Err(s) if passing(&s) && start.elapsed() < limit => {
+            Err(s) if is_transient(&s) && start.elapsed() < limit => {
                 tracing::debug!(what, status = %s, "coordinator unreachable, retrying");
                 tokio::time::sleep(Duration::from_millis(250)).await;
             }
@@ -130,7 +130,7 @@ enum Ended {
     /// Aborted; ask for the next plan. `report` = tell the coordinator why.
     Aborted { reason: String, report: bool },
     /// The coordinator no longer knows this worker (it restarted): register again.
-    Unknown,
+    Forgotten,
 }
 
 /// Runs a worker until the job is done (Ok) or failed (Err).
@@ -320,7 +320,7 @@ async fn worker_loop(
         let ended = run_generation(opts, client, mailbox, worker_id, &plan).await;
         match ended {
             Ok(Ended::Finished) => {}
-            Ok(Ended::Unknown) => {
+            Ok(Ended::Forgotten) => {
                 (job, worker_id) = register(opts, client, collective_addr).await?;
                 note(&job, worker_id, 0);
                 mailbox.set_job(&job);
@@ -449,7 +449,10 @@ fn spawn_heartbeat(
                     }
                 }
                 Err(s) if s.code() == tonic::Code::NotFound => {
-                    abort(Ended::Unknown, "the coordinator does not know this worker");
+                    abort(
+                        Ended::Forgotten,
+                        "the coordinator does not know this worker",
+                    );
                     return;
                 }
                 Err(s) => {

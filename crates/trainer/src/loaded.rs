@@ -1,6 +1,5 @@
 //! A trained run loaded for evaluation or rendering: the job config, and the model from
-//! its newest checkpoint that verifies. The folder's layout and files: `osrt_run`
-//! (re-exported here).
+//! its newest checkpoint that verifies. The folder's layout and files: `osrt_run`.
 
 use crate::checkpoint;
 use crate::config::JobConfig;
@@ -9,10 +8,7 @@ use crate::error::{Result, TrainError};
 use crate::eval::EvalOptions;
 use crate::step::Trainer;
 use osrt_dataset::Location;
-pub use osrt_run::{
-    CONFIG_FILE, INFO_FILE, JOB_FILE, METRICS_FILE, RunInfo, read_file, record_parameters,
-    write_file,
-};
+use osrt_run::{CONFIG_FILE, INFO_FILE, RunInfo, read_file};
 
 pub fn eval_options(job: &JobConfig) -> EvalOptions {
     EvalOptions {
