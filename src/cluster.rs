@@ -108,9 +108,9 @@ fn absolute_local(data: &str) -> Result<String> {
     Ok(cwd.join(path).to_string_lossy().into_owned())
 }
 
-/// The job as the coordinator receives it, the command line's overrides applied; a volumetric decoder's scene box, unless the
-/// job sets one, is read from the dataset's manifest here, so the run's saved config
-/// carries it.
+/// The job as the coordinator receives it, the command line's overrides applied; a
+/// volumetric decoder's scene box, unless the job sets one, is read from the dataset's
+/// manifest here, so the run's saved config carries it.
 pub async fn spec(
     mut job: JobConfig,
     data: &str,
