@@ -141,10 +141,7 @@ pub async fn spec(
 
 pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     let token = Token::from_env()?;
-    let mut job = match &a.config {
-        Some(p) => JobConfig::load(p)?,
-        None => JobConfig::preset(&a.preset)?,
-    };
+    let mut job = JobConfig::load_or_preset(a.config.as_deref(), &a.preset)?;
     let overrides = ClusterOverrides {
         min_workers: a.min_workers,
         max_workers: a.max_workers,
@@ -237,25 +234,34 @@ pub fn compute_thread_env(n: usize) -> [(&'static str, String); 2] {
 /// Replaces this process by itself with the workers' allocator settings unless they are
 /// set, so a benchmark measures what workers run with.
 pub fn reexec_with_worker_allocator() -> Result<()> {
-    use std::os::unix::process::CommandExt;
     if WORKER_MALLOC_ENV
         .iter()
         .all(|(k, _)| std::env::var_os(k).is_some())
     {
         return Ok(());
     }
+    reexec_with(WORKER_MALLOC_ENV, "with the workers' allocator settings")
+}
+
+/// Replaces this process by itself, same arguments, with `env` added; returns only if
+/// that fails.
+fn reexec_with<K, V>(env: impl IntoIterator<Item = (K, V)>, what: &str) -> Result<()>
+where
+    K: AsRef<std::ffi::OsStr>,
+    V: AsRef<std::ffi::OsStr>,
+{
+    use std::os::unix::process::CommandExt;
     let err = std::process::Command::new(std::env::current_exe()?)
         .args(std::env::args_os().skip(1))
-        .envs(WORKER_MALLOC_ENV)
+        .envs(env)
         .exec();
-    Err(err).context("re-executing with the workers' allocator settings")
+    Err(err).with_context(|| format!("re-executing {what}"))
 }
 
 /// Replaces this process by itself with [`compute_thread_env`]`(n)` unless already set so:
 /// candle sizes its thread pools from it once, at its first parallel op. `exec` keeps the
 /// process id, so signals (a pod's SIGTERM, a test's SIGKILL) still reach the worker.
 fn reexec_with_threads(n: usize) -> Result<()> {
-    use std::os::unix::process::CommandExt;
     let env = compute_thread_env(n);
     if env
         .iter()
@@ -263,11 +269,7 @@ fn reexec_with_threads(n: usize) -> Result<()> {
     {
         return Ok(());
     }
-    let err = std::process::Command::new(std::env::current_exe()?)
-        .args(std::env::args_os().skip(1))
-        .envs(env)
-        .exec();
-    Err(err).context("re-executing the worker with its thread count")
+    reexec_with(env, "the worker with its thread count")
 }
 
 pub async fn worker(a: WorkerArgs) -> Result<()> {

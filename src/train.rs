@@ -138,10 +138,7 @@ pub struct EvalArgs {
 }
 
 fn job_config(a: &TrainArgs) -> Result<JobConfig> {
-    let mut job = match &a.config {
-        Some(p) => JobConfig::load(p)?,
-        None => JobConfig::preset(&a.preset)?,
-    };
+    let mut job = JobConfig::load_or_preset(a.config.as_deref(), &a.preset)?;
     let t = &mut job.train;
     if let Some(v) = a.seed {
         t.seed = v;

@@ -12,8 +12,8 @@
 //! records past that checkpoint belong to the abandoned timeline and are dropped, so
 //! `metrics.jsonl` always describes the steps the final weights went through.
 
-use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
+use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
 pub use osrt_run::ClusterOverrides;
 use osrt_run::{ClusterConfig, MetricsRecord};
 use serde::{Deserialize, Serialize};
@@ -149,9 +149,6 @@ pub enum MetricsWrite {
     /// Write the file whole.
     Whole(String),
 }
-
-/// Records one progress report may carry (a worker holds at most as many unsent).
-pub const MAX_RECORDS_PER_CALL: usize = 10_000;
 
 /// The `step` of a metrics record line (`None`: not a record).
 pub fn record_step(line: &str) -> Option<u64> {
@@ -572,9 +569,9 @@ impl Core {
                 self.ring.iter().position(|&m| m == id)
             )));
         }
-        if records.len() > MAX_RECORDS_PER_CALL {
+        if records.len() > MAX_RECORDS_PER_REPORT {
             return Err(Status::invalid_argument(format!(
-                "{} records in one report, at most {MAX_RECORDS_PER_CALL}",
+                "{} records in one report, at most {MAX_RECORDS_PER_REPORT}",
                 records.len()
             )));
         }

@@ -331,7 +331,7 @@ impl Coordinator {
             CoordinatorServer::new(Service {
                 shared: self.shared.clone(),
             })
-            // Reports carry at most MAX_RECORDS_PER_CALL records of a few hundred bytes.
+            // Reports carry at most MAX_RECORDS_PER_REPORT records of a few hundred bytes.
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES),
             CheckToken::new(token, "coordinator"),

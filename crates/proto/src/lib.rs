@@ -11,6 +11,10 @@ pub mod tls;
 /// the ring sends its chunks with the client-streaming `PushChunks` only.
 pub const PROTOCOL_VERSION: u32 = 3;
 
+/// Metrics records one progress report may carry: the coordinator refuses more, and a
+/// worker holds at most as many unsent.
+pub const MAX_RECORDS_PER_REPORT: usize = 10_000;
+
 /// Largest chunk payload of the collective: 1 MiB of f32.
 pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
 

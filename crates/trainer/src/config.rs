@@ -259,6 +259,15 @@ impl JobConfig {
         Self::from_toml(&path.display().to_string(), &text)
     }
 
+    /// The job config file `config`, or else the preset `preset` (the command line's
+    /// `--config` and `--preset`).
+    pub fn load_or_preset(config: Option<&std::path::Path>, preset: &str) -> Result<Self> {
+        match config {
+            Some(p) => Self::load(p),
+            None => Self::preset(preset),
+        }
+    }
+
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("config serialises")
     }

@@ -18,12 +18,12 @@ use crate::error::{Result, WorkerError};
 use crate::reduce::{broadcast_from_rank0, reduce};
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::Location;
-use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
+use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
 use osrt_run::MetricsRecord;
 use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::{self, Snapshot};
@@ -668,7 +668,7 @@ fn aborted(live: &Liveness, e: WorkerError) -> Result<Ended> {
 }
 
 /// Reports a step's parameter hash and the records not yet delivered (`unsent`, emptied
-/// once delivered; beyond [`MAX_UNSENT_RECORDS`] the oldest are dropped); returns the
+/// once delivered; beyond [`MAX_RECORDS_PER_REPORT`] the oldest are dropped); returns the
 /// coordinator's answer (`None`: not delivered).
 async fn report_step(
     client: &mut Client,
@@ -678,8 +678,8 @@ async fn report_step(
     hash: Option<String>,
     unsent: &mut Vec<MetricsRecord>,
 ) -> Option<Directive> {
-    if unsent.len() > MAX_UNSENT_RECORDS {
-        let dropped = unsent.len() - MAX_UNSENT_RECORDS;
+    if unsent.len() > MAX_RECORDS_PER_REPORT {
+        let dropped = unsent.len() - MAX_RECORDS_PER_REPORT;
         tracing::warn!(
             dropped,
             "the coordinator took no records for long: oldest dropped"
@@ -797,10 +797,6 @@ fn progress_report(
         records: records.iter().map(MetricsRecord::to_line).collect(),
     }
 }
-
-/// Records a worker holds for a coordinator that does not answer, before dropping the
-/// oldest (the coordinator's limit per report).
-const MAX_UNSENT_RECORDS: usize = 10_000;
 
 /// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer
 /// (`None`: not delivered).

@@ -277,7 +277,7 @@ fn a_report_may_carry_a_bounded_number_of_records() {
     let mut c = Core::new(spec(1, 1, 1), t);
     let a = reg(&mut c, t);
     c.tick(t);
-    let many = vec!["{\"loss\":0.5,\"step\":1}".to_string(); MAX_RECORDS_PER_CALL + 1];
+    let many = vec!["{\"loss\":0.5,\"step\":1}".to_string(); MAX_RECORDS_PER_REPORT + 1];
     let e = c.progress(prog(a, 1, 0, 1, None, many), t).unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument);
     assert!(c.records.is_empty());
