@@ -10,6 +10,7 @@ use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
 use osrt_run::Location;
 use osrt_run::lease::{Holder, Lease, LeaseTiming};
+use osrt_run::retry::{Failing, RetryPolicy};
 use osrt_run::{
     CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
     write_file,
@@ -546,38 +547,33 @@ impl Coordinator {
 /// coordinator gives up (the job's state stays in memory meanwhile, and workers train on).
 pub const STORE_RETRY_BUDGET: Duration = Duration::from_secs(120);
 
-/// Backoff between failed writes of the run folder: 0.2 s doubling to 5 s, within
-/// [`STORE_RETRY_BUDGET`].
+/// Failed writes of the run folder, retried by the monitor loop under
+/// [`RetryPolicy::backoff`] within [`STORE_RETRY_BUDGET`].
 #[derive(Default)]
-struct StoreRetry {
-    failing_since: Option<Instant>,
-    next_try: Option<Instant>,
-    backoff: Duration,
-}
+struct StoreRetry(Failing);
 
 impl StoreRetry {
     fn due(&self) -> bool {
-        self.next_try.is_none_or(|t| Instant::now() >= t)
+        self.0.due()
     }
 
     fn failed(&mut self, e: CoordinatorError) -> Result<(), CoordinatorError> {
-        let since = *self.failing_since.get_or_insert_with(Instant::now);
-        if since.elapsed() >= STORE_RETRY_BUDGET {
-            tracing::error!(error = %e, "the run folder could not be written for {STORE_RETRY_BUDGET:?}");
-            return Err(e);
+        match self.0.failed(&RetryPolicy::backoff(STORE_RETRY_BUDGET)) {
+            Some(wait) => {
+                tracing::warn!(error = %e, retry_in = ?wait, "writing the run folder failed; retrying");
+                Ok(())
+            }
+            None => {
+                tracing::error!(error = %e, "the run folder could not be written for {STORE_RETRY_BUDGET:?}");
+                Err(e)
+            }
         }
-        self.backoff = (self.backoff * 2).clamp(Duration::from_millis(200), Duration::from_secs(5));
-        self.next_try = Some(Instant::now() + self.backoff);
-        tracing::warn!(error = %e, retry_in = ?self.backoff, "writing the run folder failed; retrying");
-        Ok(())
     }
 
     fn succeeded(&mut self) {
-        if let Some(since) = self.failing_since.take() {
-            tracing::info!(after = ?since.elapsed(), "the run folder is written again");
+        if let Some(after) = self.0.succeeded() {
+            tracing::info!(?after, "the run folder is written again");
         }
-        self.next_try = None;
-        self.backoff = Duration::ZERO;
     }
 }
 

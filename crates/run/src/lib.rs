@@ -18,6 +18,7 @@ pub mod cluster;
 pub mod error;
 pub mod lease;
 pub mod records;
+pub mod retry;
 pub mod tensorboard;
 
 pub use cluster::{ClusterConfig, ClusterOverrides};

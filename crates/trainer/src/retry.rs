@@ -3,8 +3,9 @@
 //! A permanent error (a missing file, a bad schema, a refused permission) fails at once.
 
 use crate::error::{Result, TrainError};
+use osrt_run::retry::RetryPolicy;
 use std::future::Future;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// How long a read may keep failing transiently before the error stands.
 pub const READ_RETRY_BUDGET: Duration = Duration::from_secs(60);
@@ -16,33 +17,16 @@ impl TrainError {
     }
 }
 
-/// Runs `call` until it succeeds, fails permanently, or `budget` is spent; waits 0.2 s
-/// after the first failure, doubling up to 5 s.
-pub async fn retry_transient<T, F, Fut>(what: &str, budget: Duration, mut call: F) -> Result<T>
+/// Runs `call` until it succeeds, fails permanently, or `budget` is spent, under
+/// [`RetryPolicy::backoff`] (0.2 s after the first failure, doubling up to 5 s).
+pub async fn retry_transient<T, F, Fut>(what: &str, budget: Duration, call: F) -> Result<T>
 where
     F: FnMut() -> Fut,
     Fut: Future<Output = Result<T>>,
 {
-    let start = Instant::now();
-    let mut wait = Duration::from_millis(200);
-    let mut failures = 0u32;
-    loop {
-        match call().await {
-            Ok(v) => {
-                if failures > 0 {
-                    tracing::info!(what, failures, "read succeeded after retries");
-                }
-                return Ok(v);
-            }
-            Err(e) if e.is_transient() && start.elapsed() + wait < budget => {
-                failures += 1;
-                tracing::warn!(what, error = %e, retry_in = ?wait, "transient read error");
-                tokio::time::sleep(wait).await;
-                wait = (wait * 2).min(Duration::from_secs(5));
-            }
-            Err(e) => return Err(e),
-        }
-    }
+    RetryPolicy::backoff(budget)
+        .run(what, TrainError::is_transient, call)
+        .await
 }
 
 #[cfg(test)]

@@ -25,6 +25,7 @@ use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
 use osrt_run::MetricsRecord;
+use osrt_run::retry::RetryPolicy;
 use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::{self, Snapshot};
 use osrt_trainer::config::{ClusterConfig, JobConfig};
@@ -97,30 +98,22 @@ fn is_transient(s: &tonic::Status) -> bool {
 }
 
 /// Retries `f` while the coordinator is unreachable, up to `limit`.
-async fn with_retry<T, F, Fut>(limit: Duration, what: &str, mut f: F) -> Result<T>
+async fn with_retry<T, F, Fut>(limit: Duration, what: &str, f: F) -> Result<T>
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = std::result::Result<T, tonic::Status>>,
 {
-    let start = Instant::now();
-    loop {
-        match f().await {
-            Ok(v) => return Ok(v),
-            // Unreachable, cut off mid-call, or full until a lost member times out: all
-            // pass. (Every call retried here is idempotent on the coordinator.)
-            Err(s) if is_transient(&s) && start.elapsed() < limit => {
-                tracing::debug!(what, status = %s, "coordinator unreachable, retrying");
-                tokio::time::sleep(Duration::from_millis(250)).await;
-            }
-            Err(s) => {
-                return Err(WorkerError::Coordinator {
-                    what: what.to_string(),
-                    code: s.code(),
-                    message: s.message().to_string(),
-                });
-            }
-        }
-    }
+    // Unreachable, cut off mid-call, or full until a lost member times out: all pass.
+    // (Every call retried here is idempotent on the coordinator.) Tried every 250 ms: a
+    // restarted coordinator is found at once.
+    RetryPolicy::every(Duration::from_millis(250), limit)
+        .run(what, is_transient, f)
+        .await
+        .map_err(|s| WorkerError::Coordinator {
+            what: what.to_string(),
+            code: s.code(),
+            message: s.message().to_string(),
+        })
 }
 
 /// How a generation ended.
