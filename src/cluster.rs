@@ -355,7 +355,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
     let addr = format!("http://{}", listener.local_addr()?);
     let status_view = coord.clone();
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let (mut stop_coordinator, stopped) = osrt_proto::Shutdown::new();
     let server = tokio::spawn(
         // Loopback only: no TLS.
         coord.serve(
@@ -363,9 +363,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             token.clone(),
             None,
             Duration::from_secs(2),
-            async {
-                let _ = stop_rx.await;
-            },
+            stopped,
         ),
     );
     // Worker k computes on GPU k (GPUs shared round-robin when there are fewer).
@@ -401,7 +399,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         tokio::select! {
             r = &mut server => break r??,
             _ = &mut ctrl_c => {
-                let _ = stop_tx.send(());
+                stop_coordinator.trigger();
                 bar.finish_and_clear();
                 for c in children.iter_mut() {
                     let _ = c.start_kill();
@@ -428,7 +426,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
                 && !over
             {
                 if respawned >= max_restarts {
-                    let _ = stop_tx.send(());
+                    stop_coordinator.trigger();
                     bail!("worker exited ({exit}) and {max_restarts} replacements are used up");
                 }
                 tracing::warn!(%exit, "worker exited; starting a replacement");

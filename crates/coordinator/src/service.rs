@@ -337,7 +337,7 @@ impl Coordinator {
             .max_encoding_message_size(MAX_MESSAGE_BYTES),
             CheckToken::new(token, "coordinator"),
         );
-        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let (mut stop_server, stopped) = osrt_proto::Shutdown::new();
         let mut builder = tonic::transport::Server::builder();
         if let Some(tls) = &tls {
             builder = builder.tls_config(tls.server()).map_err(|e| {
@@ -353,13 +353,11 @@ impl Coordinator {
                 .add_service(service)
                 .serve_with_incoming_shutdown(
                     tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-                    async {
-                        let _ = stop_rx.await;
-                    },
+                    stopped,
                 ),
         );
         let result = self.monitor(linger, shutdown).await;
-        let _ = stop_tx.send(());
+        stop_server.trigger();
         let _ = server.await;
         result
     }

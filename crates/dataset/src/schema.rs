@@ -239,6 +239,17 @@ pub fn scenes_to_batch_with(scenes: &[Scene], codec: ImageCodec) -> Result<Recor
     )
     .map_err(|e| DatasetError::Batch(format!("building views list: {e}")))?;
 
+    let objects = objects_column(scenes)?;
+
+    RecordBatch::try_new(
+        arrow_schema(),
+        vec![Arc::new(ids), Arc::new(views), Arc::new(objects)],
+    )
+    .map_err(|e| DatasetError::Batch(format!("building record batch: {e}")))
+}
+
+/// The `objects` column: each scene's object list (null where the scene has none).
+fn objects_column(scenes: &[Scene]) -> Result<ListArray> {
     let objs: Vec<&ObjectMeta> = scenes
         .iter()
         .flat_map(|s| s.objects.iter().flatten())
@@ -259,7 +270,7 @@ pub fn scenes_to_batch_with(scenes: &[Scene], codec: ImageCodec) -> Result<Recor
     ];
     let objects_struct = StructArray::try_new(object_fields(), object_columns, None)
         .map_err(|e| DatasetError::Batch(format!("building objects: {e}")))?;
-    let objects = ListArray::try_new(
+    ListArray::try_new(
         Arc::new(Field::new(
             "element",
             DataType::Struct(object_fields()),
@@ -275,13 +286,7 @@ pub fn scenes_to_batch_with(scenes: &[Scene], codec: ImageCodec) -> Result<Recor
             scenes.iter().map(|s| s.objects.is_some()),
         )),
     )
-    .map_err(|e| DatasetError::Batch(format!("building objects list: {e}")))?;
-
-    RecordBatch::try_new(
-        arrow_schema(),
-        vec![Arc::new(ids), Arc::new(views), Arc::new(objects)],
-    )
-    .map_err(|e| DatasetError::Batch(format!("building record batch: {e}")))
+    .map_err(|e| DatasetError::Batch(format!("building objects list: {e}")))
 }
 
 /// Checks a file's key-value metadata for a schema version this build reads; returns
@@ -448,29 +453,8 @@ pub fn batch_to_scenes_with(
     let heights = column(vs, "height", path)?
         .as_primitive_opt::<UInt32Type>()
         .ok_or_else(|| DatasetError::schema(path, "`views.height` is not UInt32"))?;
-    let images = column(vs, "image", path)?
-        .as_binary_opt::<i32>()
-        .ok_or_else(|| DatasetError::schema(path, "`views.image` is not Binary"))?;
-    let masks = match vs.column_by_name("mask") {
-        Some(m) => Some(
-            m.as_binary_opt::<i32>()
-                .ok_or_else(|| DatasetError::schema(path, "`views.mask` is not Binary"))?,
-        ),
-        None => None,
-    };
-    let pos = f32_rows(
-        column(vs, "camera_position", path)?,
-        3,
-        "views.camera_position",
-        path,
-    )?;
-    let rot = f32_rows(
-        column(vs, "camera_rotation", path)?,
-        9,
-        "views.camera_rotation",
-        path,
-    )?;
-    let intr = f32_rows(column(vs, "intrinsics", path)?, 4, "views.intrinsics", path)?;
+    let (images, masks) = image_columns(vs, path)?;
+    let (pos, rot, intr) = camera_columns(vs, path)?;
 
     let objects = batch
         .column_by_name("objects")
@@ -563,6 +547,45 @@ fn decode_pngs(
 }
 
 /// The camera of view `i` from the flattened position, rotation and intrinsics columns.
+/// The views' image bytes and, where the file has them, their mask bytes.
+fn image_columns<'a>(
+    vs: &'a StructArray,
+    path: &str,
+) -> Result<(&'a BinaryArray, Option<&'a BinaryArray>)> {
+    let images = column(vs, "image", path)?
+        .as_binary_opt::<i32>()
+        .ok_or_else(|| DatasetError::schema(path, "`views.image` is not Binary"))?;
+    let masks = match vs.column_by_name("mask") {
+        Some(m) => Some(
+            m.as_binary_opt::<i32>()
+                .ok_or_else(|| DatasetError::schema(path, "`views.mask` is not Binary"))?,
+        ),
+        None => None,
+    };
+    Ok((images, masks))
+}
+
+/// The views' camera positions, rotations and intrinsics as flat rows of 3, 9 and 4.
+fn camera_columns<'a>(
+    vs: &'a StructArray,
+    path: &str,
+) -> Result<(&'a [f32], &'a [f32], &'a [f32])> {
+    let pos = f32_rows(
+        column(vs, "camera_position", path)?,
+        3,
+        "views.camera_position",
+        path,
+    )?;
+    let rot = f32_rows(
+        column(vs, "camera_rotation", path)?,
+        9,
+        "views.camera_rotation",
+        path,
+    )?;
+    let intr = f32_rows(column(vs, "intrinsics", path)?, 4, "views.intrinsics", path)?;
+    Ok((pos, rot, intr))
+}
+
 fn camera_at(pos: &[f32], rot: &[f32], intr: &[f32], i: usize) -> Camera {
     let r = &rot[9 * i..9 * i + 9];
     Camera {

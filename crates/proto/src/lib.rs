@@ -7,6 +7,27 @@ pub mod auth;
 pub mod convert;
 pub mod tls;
 
+/// The stop of a server that the coordinator, a worker or the local launcher runs:
+/// [`Shutdown::new`] gives the trigger and the future the server's graceful shutdown
+/// awaits. Triggering the stop, or dropping the trigger, resolves the future.
+pub struct Shutdown(Option<tokio::sync::oneshot::Sender<()>>);
+
+impl Shutdown {
+    pub fn new() -> (Self, impl std::future::Future<Output = ()> + Send + 'static) {
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        (Self(Some(tx)), async move {
+            let _ = rx.await;
+        })
+    }
+
+    /// Stops the server (once; later calls do nothing).
+    pub fn trigger(&mut self) {
+        if let Some(tx) = self.0.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
 /// Protocol version: peers of another version are refused at registration. Version 3:
 /// the ring sends its chunks with the client-streaming `PushChunks` only.
 pub const PROTOCOL_VERSION: u32 = 3;

@@ -23,7 +23,7 @@ use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
-use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
+use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION, Shutdown};
 use osrt_run::MetricsRecord;
 use osrt_run::retry::RetryPolicy;
 use osrt_trainer::TrainError;
@@ -154,15 +154,13 @@ pub async fn run_worker_until(
     let collective_addr = format!("{scheme}://{host}:{}", local.port());
     // The job id is learnt at registration; the mailbox takes it then.
     let mailbox = Mailbox::new("");
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let (mut stop_server, stopped) = Shutdown::new();
     let server = tokio::spawn(serve(
         listener,
         mailbox.clone(),
         opts.token.clone(),
         opts.tls.clone(),
-        async {
-            let _ = stop_rx.await;
-        },
+        stopped,
     ));
     let mut client = coordinator_client(&opts.coordinator, opts.token.clone(), opts.tls.as_ref())?;
     let member: Mutex<Option<Membership>> = Mutex::new(None);
@@ -191,7 +189,7 @@ pub async fn run_worker_until(
             Err(WorkerError::Cluster("stopped by a signal".into()))
         }
     };
-    let _ = stop_tx.send(());
+    stop_server.trigger();
     let _ = server.await;
     result
 }
