@@ -6,6 +6,7 @@
 
 pub mod bench_allreduce;
 pub mod error;
+pub mod link;
 pub mod reduce;
 pub mod worker;
 

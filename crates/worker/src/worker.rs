@@ -15,6 +15,7 @@
 //! ([`osrt_trainer::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
 
 use crate::error::{Result, WorkerError};
+use crate::link::CoordinatorLink;
 use crate::reduce::{broadcast_from_rank0, reduce};
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::Location;
@@ -23,7 +24,7 @@ use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
-use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION, Shutdown};
+use osrt_proto::{PROTOCOL_VERSION, Shutdown};
 use osrt_run::MetricsRecord;
 use osrt_run::retry::RetryPolicy;
 use osrt_trainer::TrainError;
@@ -98,7 +99,7 @@ fn is_transient(s: &tonic::Status) -> bool {
 }
 
 /// Retries `f` while the coordinator is unreachable, up to `limit`.
-async fn with_retry<T, F, Fut>(limit: Duration, what: &str, f: F) -> Result<T>
+pub(crate) async fn with_retry<T, F, Fut>(limit: Duration, what: &str, f: F) -> Result<T>
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = std::result::Result<T, tonic::Status>>,
@@ -320,7 +321,9 @@ async fn worker_loop(
             Ok(Ended::Aborted { reason, report }) => {
                 tracing::warn!(generation = plan.generation, %reason, "generation aborted");
                 if report {
-                    report_fault(client, &plan, worker_id, &reason, false, false).await;
+                    CoordinatorLink::new(client.clone(), &plan, worker_id)
+                        .fault(&reason, false, false)
+                        .await;
                 }
             }
             Err(e) => {
@@ -328,7 +331,9 @@ async fn worker_loop(
                 tracing::error!(generation = plan.generation, %reason, "generation failed");
                 // A device this worker cannot use: it leaves, and the job re-forms without it.
                 let leaving = matches!(e, WorkerError::Train(TrainError::Device(_)));
-                report_fault(client, &plan, worker_id, &reason, is_fatal(&e), leaving).await;
+                CoordinatorLink::new(client.clone(), &plan, worker_id)
+                    .fault(&reason, is_fatal(&e), leaving)
+                    .await;
                 if is_fatal(&e) || leaving {
                     return Err(e);
                 }
@@ -345,29 +350,6 @@ fn is_fatal(e: &WorkerError) -> bool {
             TrainError::Config { .. } | TrainError::Dataset(_) | TrainError::TooManySkips { .. }
         )
     )
-}
-
-async fn report_fault(
-    client: &mut Client,
-    plan: &WorkerPlan,
-    worker_id: u64,
-    reason: &str,
-    fatal: bool,
-    leaving: bool,
-) {
-    let r = client
-        .report_fault(v1::FaultReport {
-            job: plan.job.clone(),
-            worker_id,
-            generation: plan.generation,
-            reason: reason.to_string(),
-            fatal,
-            leaving,
-        })
-        .await;
-    if let Err(s) = r {
-        tracing::warn!(status = %s, "could not report the fault");
-    }
 }
 
 /// Shared between the training loop and the heartbeat task.
@@ -492,6 +474,7 @@ async fn run_generation(
     let mut ring = open_ring(opts, plan, &c, mailbox)?;
 
     let mut learner = Learner::open(job, device, start_of(plan, &run)?).await?;
+    let mut link = CoordinatorLink::new(client.clone(), plan, worker_id);
     if learner.is_fresh()
         && let Err(e) = take_rank0_weights(&mut learner, ring.as_mut(), rank).await
     {
@@ -502,7 +485,7 @@ async fn run_generation(
     let mut unsent: Vec<MetricsRecord> = learner.begin()?.into_iter().collect();
     put_pictures(&run, learner.take_pictures()).await;
     if !unsent.is_empty() {
-        report_step(client, plan, worker_id, 0, None, &mut unsent).await;
+        link.step(0, None, &mut unsent).await;
     }
 
     // Resumed at (or past) the step limit, e.g. a job that was stopped after its final
@@ -510,7 +493,7 @@ async fn run_generation(
     // job's last one, and rank 0 reports it as final so the job ends instead of waiting.
     if plan.max_steps.is_some_and(|m| learner.step() >= m) {
         if rank == 0 {
-            report_checkpoint(client, plan, worker_id, learner.step(), true).await?;
+            link.checkpoint(learner.step(), true).await?;
         }
         return Ok(Ended::Finished);
     }
@@ -540,8 +523,7 @@ async fn run_generation(
         live.step.store(step, Ordering::Relaxed);
         unsent.extend(end.records);
         if (end.hash.is_some() || !unsent.is_empty())
-            && report_step(client, plan, worker_id, step, end.hash, &mut unsent).await
-                == Some(Directive::Stop)
+            && link.step(step, end.hash, &mut unsent).await == Some(Directive::Stop)
         {
             return Ok(Ended::Aborted {
                 reason: "the coordinator stopped the job".into(),
@@ -549,8 +531,14 @@ async fn run_generation(
             });
         }
         if let Some(snap) = end.snapshot {
-            let report = (client.clone(), plan.clone(), worker_id, unsent.clone());
-            let save = commit_and_report(snap, run.clone(), report, end.last, c.keep_last);
+            let save = commit_and_report(
+                snap,
+                run.clone(),
+                link.clone(),
+                unsent.clone(),
+                end.last,
+                c.keep_last,
+            );
             save_in_background(&mut pending_save, save, end.last).await?;
         }
         if end.last {
@@ -658,32 +646,6 @@ fn aborted(live: &Liveness, e: WorkerError) -> Result<Ended> {
     }
 }
 
-/// Reports a step's parameter hash and the records not yet delivered (`unsent`, emptied
-/// once delivered; beyond [`MAX_RECORDS_PER_REPORT`] the oldest are dropped); returns the
-/// coordinator's answer (`None`: not delivered).
-async fn report_step(
-    client: &mut Client,
-    plan: &WorkerPlan,
-    worker_id: u64,
-    step: u64,
-    hash: Option<String>,
-    unsent: &mut Vec<MetricsRecord>,
-) -> Option<Directive> {
-    if unsent.len() > MAX_RECORDS_PER_REPORT {
-        let dropped = unsent.len() - MAX_RECORDS_PER_REPORT;
-        tracing::warn!(
-            dropped,
-            "the coordinator took no records for long: oldest dropped"
-        );
-        unsent.drain(..dropped);
-    }
-    let directive = send_records(client, plan, worker_id, step, hash, unsent).await;
-    if directive.is_some() {
-        unsent.clear();
-    }
-    directive
-}
-
 /// The generation's ring (none for a world of one).
 fn open_ring(
     opts: &WorkerOptions,
@@ -715,100 +677,22 @@ fn open_ring(
 async fn commit_and_report(
     snap: Snapshot,
     run: Location,
-    (mut client, plan, worker_id, unsent): (Client, WorkerPlan, u64, Vec<MetricsRecord>),
+    link: CoordinatorLink,
+    unsent: Vec<MetricsRecord>,
     last: bool,
     keep_last: usize,
 ) -> Result<u64> {
     let step = snap.commit(&run).await?;
     if !unsent.is_empty() {
-        let sent = with_retry(CHECKPOINT_REPORT_RETRY, "sending held records", || {
-            let mut c = client.clone();
-            let r = progress_report(&plan, worker_id, step, None, &unsent);
-            async move { c.report_progress(r).await }
-        })
-        .await?;
-        if Directive::try_from(sent.into_inner().action) != Ok(Directive::Continue) {
-            return Err(WorkerError::Cluster(format!(
-                "the coordinator took no records before checkpoint {step}: generation over"
-            )));
-        }
+        link.held_records(step, &unsent).await?;
     }
-    report_checkpoint(&mut client, &plan, worker_id, step, last).await?;
+    link.checkpoint(step, last).await?;
     match checkpoint::apply_retention(&run, keep_last).await {
         Ok(deleted) if !deleted.is_empty() => tracing::debug!(?deleted, "old checkpoints deleted"),
         Ok(_) => {}
         Err(e) => tracing::warn!(error = %e, "retention failed"),
     }
     Ok(step)
-}
-
-/// How long a checkpoint report is retried while the coordinator is unreachable: a
-/// dropped connection passes within it; a coordinator gone for longer fails the
-/// generation (a restarted one does not know this worker anyway).
-const CHECKPOINT_REPORT_RETRY: Duration = Duration::from_secs(10);
-
-/// Tells the coordinator that checkpoint `step` is committed.
-async fn report_checkpoint(
-    client: &mut Client,
-    plan: &WorkerPlan,
-    worker_id: u64,
-    step: u64,
-    last: bool,
-) -> Result<()> {
-    let report = v1::CheckpointReport {
-        job: plan.job.clone(),
-        worker_id,
-        generation: plan.generation,
-        step,
-        r#final: last,
-    };
-    let what = format!("reporting checkpoint {step}");
-    with_retry(CHECKPOINT_REPORT_RETRY, &what, || {
-        let mut c = client.clone();
-        let r = report.clone();
-        async move { c.report_checkpoint(r).await.map(|_| ()) }
-    })
-    .await
-}
-
-fn progress_report(
-    plan: &WorkerPlan,
-    worker_id: u64,
-    step: u64,
-    param_hash: Option<String>,
-    records: &[MetricsRecord],
-) -> v1::ProgressReport {
-    v1::ProgressReport {
-        job: plan.job.clone(),
-        worker_id,
-        generation: plan.generation,
-        rank: plan.rank as u32,
-        step,
-        param_hash,
-        records: records.iter().map(MetricsRecord::to_line).collect(),
-    }
-}
-
-/// Sends metrics records (rank 0) and the parameter hash; returns the coordinator's answer
-/// (`None`: not delivered).
-async fn send_records(
-    client: &mut Client,
-    plan: &WorkerPlan,
-    worker_id: u64,
-    step: u64,
-    param_hash: Option<String>,
-    records: &[MetricsRecord],
-) -> Option<Directive> {
-    let r = client
-        .report_progress(progress_report(plan, worker_id, step, param_hash, records))
-        .await;
-    match r {
-        Ok(a) => Directive::try_from(a.into_inner().action).ok(),
-        Err(s) => {
-            tracing::warn!(status = %s, "progress report failed");
-            None
-        }
-    }
 }
 
 /// A task that is cancelled if its handle is dropped before it is joined.
