@@ -15,7 +15,7 @@ use crate::optim::GradSummary;
 use crate::step::{Gradient, StepGradients};
 
 /// Floats appended after the gradient.
-pub const CONTROL_FLOATS: usize = 6;
+pub use crate::step::CONTROL_FLOATS;
 
 /// Decisions rank 0 contributes to a step (ignored on other ranks).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]

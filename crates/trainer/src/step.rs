@@ -98,6 +98,10 @@ impl Gradient {
     }
 }
 
+/// Floats the reduction appends after a flat gradient (`crate::distributed`'s control
+/// values): a flat gradient is allocated with room for them, so appending does not move it.
+pub const CONTROL_FLOATS: usize = 6;
+
 /// What [`Trainer::apply`] did.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum ApplyOutcome {
@@ -297,7 +301,7 @@ impl Trainer {
         let flat = if crate::device::is_cpu(&self.device) {
             // Room for the all-reduce's control values, so that appending them does not
             // move the buffer.
-            let cap = self.num_parameters() + crate::distributed::CONTROL_FLOATS;
+            let cap = self.num_parameters() + CONTROL_FLOATS;
             let mut flat = Vec::with_capacity(cap);
             for (_, var) in self.params.vars() {
                 // Taken out of the store: each gradient is freed once copied.

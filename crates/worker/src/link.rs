@@ -1,14 +1,79 @@
 //! A worker's reports to the coordinator within one generation: progress (the step, the
 //! parameter hash, rank 0's records), checkpoints and faults, each naming the job, the
-//! worker and the generation the link was made for.
+//! worker and the generation the link was made for; the client they go through, and
+//! how a call is retried while the coordinator is unreachable.
 
 use crate::error::{Result, WorkerError};
-use crate::worker::{Client, with_retry};
 use osrt_proto::MAX_RECORDS_PER_REPORT;
+use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::convert::{Directive, WorkerPlan};
+use osrt_proto::tls::Tls;
 use osrt_proto::v1;
+use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use osrt_run::MetricsRecord;
+use osrt_run::retry::RetryPolicy;
 use std::time::Duration;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+
+pub type Client = CoordinatorClient<InterceptedService<Channel, AttachToken>>;
+
+/// Connects to the coordinator with the job's token on every call.
+pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result<Client> {
+    let bad = |e: tonic::transport::Error| {
+        WorkerError::Cluster(format!("coordinator address {addr}: {e}"))
+    };
+    let mut endpoint = Endpoint::from_shared(addr.to_string()).map_err(bad)?;
+    if let Some(tls) = tls {
+        endpoint = endpoint.tls_config(tls.client()).map_err(bad)?;
+    }
+    let endpoint = endpoint
+        .connect_timeout(Duration::from_secs(5))
+        .timeout(Duration::from_secs(30))
+        .http2_keep_alive_interval(osrt_collective::KEEP_ALIVE_INTERVAL)
+        .keep_alive_timeout(osrt_collective::KEEP_ALIVE_TIMEOUT)
+        .keep_alive_while_idle(true)
+        .tcp_nodelay(true);
+    Ok(CoordinatorClient::with_interceptor(
+        endpoint.connect_lazy(),
+        AttachToken(token),
+    ))
+}
+
+/// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
+/// or the connection lost during the call (tonic then answers `Unknown` with the
+/// transport error as the source).
+fn is_transient(s: &tonic::Status) -> bool {
+    use std::error::Error;
+    match s.code() {
+        tonic::Code::Unavailable
+        | tonic::Code::DeadlineExceeded
+        | tonic::Code::ResourceExhausted => true,
+        tonic::Code::Unknown => s
+            .source()
+            .is_some_and(|e| e.downcast_ref::<tonic::transport::Error>().is_some()),
+        _ => false,
+    }
+}
+
+/// Retries `f` while the coordinator is unreachable, up to `limit`.
+pub async fn with_retry<T, F, Fut>(limit: Duration, what: &str, f: F) -> Result<T>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = std::result::Result<T, tonic::Status>>,
+{
+    // Unreachable, cut off mid-call, or full until a lost member times out: all pass.
+    // (Every call retried here is idempotent on the coordinator.) Tried every 250 ms: a
+    // restarted coordinator is found at once.
+    RetryPolicy::every(Duration::from_millis(250), limit)
+        .run(what, is_transient, f)
+        .await
+        .map_err(|s| WorkerError::Coordinator {
+            what: what.to_string(),
+            code: s.code(),
+            message: s.message().to_string(),
+        })
+}
 
 /// How long a checkpoint report is retried while the coordinator is unreachable: a
 /// dropped connection passes within it; a coordinator gone for longer fails the

@@ -15,18 +15,16 @@
 //! ([`osrt_trainer::distributed`]). Rank 0 writes checkpoints and sends the metrics records.
 
 use crate::error::{Result, WorkerError};
-use crate::link::CoordinatorLink;
+use crate::link::{Client, CoordinatorLink, coordinator_client, with_retry};
 use crate::reduce::{broadcast_from_rank0, reduce};
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::Location;
-use osrt_proto::auth::{AttachToken, Token};
+use osrt_proto::auth::Token;
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
-use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use osrt_proto::{PROTOCOL_VERSION, Shutdown};
 use osrt_run::MetricsRecord;
-use osrt_run::retry::RetryPolicy;
 use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::{self, Snapshot};
 use osrt_trainer::config::{ClusterConfig, JobConfig};
@@ -35,10 +33,6 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
-
-pub type Client = CoordinatorClient<InterceptedService<Channel, AttachToken>>;
 
 pub struct WorkerOptions {
     /// `http://host:port` of the coordinator.
@@ -58,64 +52,7 @@ pub struct WorkerOptions {
     pub coordinator_timeout: Duration,
 }
 
-/// Connects to the coordinator with the job's token on every call.
-pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result<Client> {
-    let bad = |e: tonic::transport::Error| {
-        WorkerError::Cluster(format!("coordinator address {addr}: {e}"))
-    };
-    let mut endpoint = Endpoint::from_shared(addr.to_string()).map_err(bad)?;
-    if let Some(tls) = tls {
-        endpoint = endpoint.tls_config(tls.client()).map_err(bad)?;
-    }
-    let endpoint = endpoint
-        .connect_timeout(Duration::from_secs(5))
-        .timeout(Duration::from_secs(30))
-        .http2_keep_alive_interval(osrt_collective::KEEP_ALIVE_INTERVAL)
-        .keep_alive_timeout(osrt_collective::KEEP_ALIVE_TIMEOUT)
-        .keep_alive_while_idle(true)
-        .tcp_nodelay(true);
-    Ok(CoordinatorClient::with_interceptor(
-        endpoint.connect_lazy(),
-        AttachToken(token),
-    ))
-}
-
 pub use osrt_run::unix_now;
-
-/// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
-/// or the connection lost during the call (tonic then answers `Unknown` with the
-/// transport error as the source).
-fn is_transient(s: &tonic::Status) -> bool {
-    use std::error::Error;
-    match s.code() {
-        tonic::Code::Unavailable
-        | tonic::Code::DeadlineExceeded
-        | tonic::Code::ResourceExhausted => true,
-        tonic::Code::Unknown => s
-            .source()
-            .is_some_and(|e| e.downcast_ref::<tonic::transport::Error>().is_some()),
-        _ => false,
-    }
-}
-
-/// Retries `f` while the coordinator is unreachable, up to `limit`.
-pub(crate) async fn with_retry<T, F, Fut>(limit: Duration, what: &str, f: F) -> Result<T>
-where
-    F: FnMut() -> Fut,
-    Fut: std::future::Future<Output = std::result::Result<T, tonic::Status>>,
-{
-    // Unreachable, cut off mid-call, or full until a lost member times out: all pass.
-    // (Every call retried here is idempotent on the coordinator.) Tried every 250 ms: a
-    // restarted coordinator is found at once.
-    RetryPolicy::every(Duration::from_millis(250), limit)
-        .run(what, is_transient, f)
-        .await
-        .map_err(|s| WorkerError::Coordinator {
-            what: what.to_string(),
-            code: s.code(),
-            message: s.message().to_string(),
-        })
-}
 
 /// How a generation ended.
 enum Ended {
