@@ -11,7 +11,7 @@
 use crate::error::{DatasetError, Result};
 use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
-use std::sync::{Arc, LazyLock};
+use std::sync::Arc;
 
 /// Where one record lies: 24 bytes, the file shared (an index of MSN-Hard's million
 /// records takes about 24 MB).
@@ -23,28 +23,10 @@ pub struct RecordRef {
     pub len: u64,
 }
 
-static TABLE: LazyLock<[u32; 256]> = LazyLock::new(|| {
-    let mut t = [0u32; 256];
-    for (i, e) in t.iter_mut().enumerate() {
-        let mut c = i as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                0x82F6_3B78 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-        }
-        *e = c;
-    }
-    t
-});
-
 /// CRC-32C (Castagnoli, reflected) of `data`.
 pub fn crc32c(data: &[u8]) -> u32 {
-    let t = &*TABLE;
-    !data.iter().fold(!0u32, |c, &b| {
-        t[((c ^ b as u32) & 0xff) as usize] ^ (c >> 8)
-    })
+    const CRC32C: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISCSI);
+    CRC32C.checksum(data)
 }
 
 /// TFRecord's masked CRC-32C.
