@@ -177,6 +177,21 @@ pub fn worker(port: u16) -> Proc {
 }
 
 pub fn worker_env(coordinator: &str, env: &[(String, String)]) -> Proc {
+    Proc(
+        worker_command(coordinator, env)
+            .spawn()
+            .expect("start worker"),
+    )
+}
+
+/// A worker whose log (stderr) goes to `log`, for tests that read what it said.
+pub fn worker_logging_to(coordinator: &str, log: &Path) -> Proc {
+    let file = std::fs::File::create(log).expect("worker log");
+    let mut cmd = worker_command(coordinator, &[]);
+    Proc(cmd.stderr(file).spawn().expect("start worker"))
+}
+
+fn worker_command(coordinator: &str, env: &[(String, String)]) -> Command {
     let mut cmd = Command::new(bin());
     cmd.envs(env.iter().map(|(k, v)| (k.as_str(), v.as_str())));
     cmd.args([
@@ -190,7 +205,7 @@ pub fn worker_env(coordinator: &str, env: &[(String, String)]) -> Proc {
     ])
     .env("OSRT_TOKEN", TOKEN)
     .stdout(Stdio::null());
-    Proc(cmd.spawn().expect("start worker"))
+    cmd
 }
 
 /// Polls `RUN/job.json` until `pred` holds.
