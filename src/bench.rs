@@ -235,10 +235,11 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
                 None => "not counted".into(),
             };
             println!(
-                "    optimiser {:.1} ms median; peak heap {}, peak resident {}",
+                "    optimiser {:.1} ms median; peak heap {}, peak resident {}; estimated peak {}",
                 ms("median_optimizer_s"),
                 gib("peak_heap_gib"),
                 gib("peak_rss_gib"),
+                gib("estimated_peak_gib"),
             );
             if let Some(n) = s["skipped_steps"].as_u64().filter(|&n| n > 0) {
                 println!(

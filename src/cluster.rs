@@ -108,6 +108,45 @@ fn absolute_local(data: &str) -> Result<String> {
     Ok(cwd.join(path).to_string_lossy().into_owned())
 }
 
+/// Prints the estimated peak memory of one worker's step (`world` workers, `threads`
+/// threads each) on the dataset's images, and refuses a job whose `here` workers on this
+/// machine need more memory than it has, unless `skip`. Only the fused CPU step's
+/// estimate is checked against measured peaks (`tests/memory_estimate.rs`): for the
+/// others an excess is a warning.
+pub async fn memory_check(
+    job: &JobConfig,
+    data: &str,
+    (here, world): (usize, usize),
+    threads: usize,
+    skip: bool,
+) -> Result<()> {
+    let Ok(manifest) = osrt_dataset::Manifest::read(&osrt_dataset::Location::parse(data)?).await
+    else {
+        // The workers report a missing or unreadable dataset with its reason.
+        return Ok(());
+    };
+    let Some(m) = osrt_trainer::footprint::estimate(job, manifest.image_size, world, threads)
+    else {
+        eprintln!("no memory estimate for this model (a volumetric decoder)");
+        return Ok(());
+    };
+    eprintln!("{}", m.describe());
+    if here == 0 {
+        return Ok(());
+    }
+    let Some((available, what)) = osrt_trainer::footprint::machine_memory(job.train.device) else {
+        return Ok(());
+    };
+    let Some(why) = osrt_trainer::footprint::refusal(&m, here, (available, &what)) else {
+        return Ok(());
+    };
+    if skip || !m.checked {
+        eprintln!("warning: {why}");
+        return Ok(());
+    }
+    bail!("{why}")
+}
+
 /// The job as the coordinator receives it, the command line's overrides applied; a
 /// volumetric decoder's scene box, unless the job sets one, is read from the dataset's
 /// manifest here, so the run's saved config carries it.
@@ -151,6 +190,9 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     if a.max_steps.is_none() && a.max_minutes.is_none() && !a.resume {
         bail!("give the job a limit: --max-steps N and/or --max-minutes M");
     }
+    // The workers' machines are not known here: the figure only, at one thread each.
+    let world = job.cluster.min_workers.max(1);
+    memory_check(&job, &a.data, (0, world), 1, true).await?;
     let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes).await?;
     spec.cluster_overrides = overrides;
     let opts = OpenOptions {

@@ -103,6 +103,9 @@ pub struct TrainArgs {
     /// Override the validation subset size.
     #[arg(long)]
     pub eval_scenes: Option<usize>,
+    /// Start even where the step's estimated peak memory exceeds this machine's.
+    #[arg(long)]
+    pub skip_memory_check: bool,
 }
 
 #[derive(Args)]
@@ -307,6 +310,14 @@ pub async fn train(a: TrainArgs) -> Result<()> {
             ""
         },
     );
+    // Every worker of a CPU job shares this machine's RAM; GPU workers have a GPU each.
+    let here = if job.train.device.is_cuda() {
+        1
+    } else {
+        workers
+    };
+    crate::cluster::memory_check(&job, &a.data, (here, workers), threads, a.skip_memory_check)
+        .await?;
     let mut spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes).await?;
     spec.cluster_overrides = overrides;
     let status = crate::cluster::run_local(crate::cluster::LocalJob {

@@ -389,3 +389,61 @@ fn msn_hard_shards_import_with_their_cameras_and_checksums() {
         "{err}"
     );
 }
+
+/// CLEVR-3D's own 320×240 views with the `tiny` preset: the encoder's self-attention over
+/// 160 × 120 tokens needs tens of GiB, so on a 24 GiB machine `osrt train` refuses the
+/// job with the figures and what to change, before the coordinator or any worker
+/// starts (no run folder). The same job at 32×24 starts.
+#[test]
+fn a_job_too_big_for_the_machine_is_refused_before_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let train = |data: &Path, run: &Path| {
+        Command::new(common::bin())
+            .args([
+                "train",
+                "--preset",
+                "tiny",
+                "--workers",
+                "1",
+                "--max-steps",
+                "1",
+            ])
+            .arg("--data")
+            .arg(data)
+            .arg("--run")
+            .arg(run)
+            .env("OSRT_MEMORY_LIMIT_GIB", "24")
+            .output()
+            .unwrap()
+    };
+    let big = python_fixture("make_obsurf.py", dir.path(), "big", &["12", "320", "240"]);
+    let data = dir.path().join("big-data");
+    let out = import(&big, &data, &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let run = dir.path().join("big-run");
+    let out = train(&data, &run);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    for needle in [
+        "OSRT_MEMORY_LIMIT_GIB=24 is 24.00 GiB",
+        "at 320×240 px",
+        "--batch-size",
+        "--rays-per-scene",
+    ] {
+        assert!(err.contains(needle), "{needle:?} missing from: {err}");
+    }
+    assert!(!run.exists(), "the refused job made its run folder");
+
+    let small = release(dir.path(), 12);
+    let data = dir.path().join("small-data");
+    assert!(import(&small, &data, &[]).status.success());
+    let run = dir.path().join("small-run");
+    let out = train(&data, &run);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("estimated peak host RAM per worker"), "{err}");
+}

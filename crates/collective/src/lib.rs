@@ -400,34 +400,8 @@ impl Ring {
                 data = self.mailbox.take(key, self.cfg.timeout), if hop.is_some() => {
                     let hop = hop.expect("enabled only with a chunk to receive");
                     let data = hop.check(data, rank, w, self.cfg.timeout)?;
-                    let add = hop.id.phase() == Phase::ReduceScatter;
-                    // The range was lent out earlier (sent in reduce-scatter round 0, or
-                    // forwarded after its sum): the successor has long received it, for
-                    // this chunk depends on it, but the transport must have dropped the
-                    // loan before the range is written. Should the call end meanwhile, its
-                    // status is the better error.
-                    let write = shared.write(hop.range.clone(), self.cfg.timeout, |dst| {
-                        apply_le(dst, &data, add)
-                    });
-                    tokio::select! {
-                        biased;
-                        status = call.ended() => return Err(send_error(status)),
-                        written = write => written.map_err(|e| CollectiveError::StillLent {
-                            rank,
-                            range: e.0,
-                            timeout: self.cfg.timeout,
-                        })?,
-                    }
-                    if let Some(id) = hop.forward {
-                        // A sum is lent from the buffer; a final segment is passed on as
-                        // the bytes that brought it.
-                        let out = if add {
-                            Outgoing::Lend(hop.range.clone())
-                        } else {
-                            Outgoing::Forward(data)
-                        };
-                        ready.insert(id, out);
-                    }
+                    let to = (&mut *shared, &mut call, &mut ready);
+                    hop.take_in(data, to, (rank, self.cfg.timeout), &send_error).await?;
                     received += 1;
                 }
             }
@@ -577,6 +551,49 @@ impl Hop {
             ));
         }
         Ok(data)
+    }
+}
+
+impl Hop {
+    /// Adds (reduce-scatter) or writes (all-gather) a received chunk into its range, and
+    /// queues what it lets this rank forward.
+    async fn take_in(
+        &self,
+        data: Bytes,
+        (shared, call, ready): (
+            &mut LentBuffer,
+            &mut chunk_wire::ChunkCall,
+            &mut BTreeMap<ChunkId, Outgoing>,
+        ),
+        (rank, timeout): (usize, Duration),
+        send_error: &impl Fn(tonic::Status) -> CollectiveError,
+    ) -> Result<(), CollectiveError> {
+        let add = self.id.phase() == Phase::ReduceScatter;
+        // The range was lent out earlier (sent in reduce-scatter round 0, or forwarded
+        // after its sum): the successor has long received it, for this chunk depends on
+        // it, but the transport must have dropped the loan before the range is written.
+        // Should the call end meanwhile, its status is the better error.
+        let write = shared.write(self.range.clone(), timeout, |dst| apply_le(dst, &data, add));
+        tokio::select! {
+            biased;
+            status = call.ended() => return Err(send_error(status)),
+            written = write => written.map_err(|e| CollectiveError::StillLent {
+                rank,
+                range: e.0,
+                timeout,
+            })?,
+        }
+        if let Some(id) = self.forward {
+            // A sum is lent from the buffer; a final segment is passed on as the bytes
+            // that brought it.
+            let out = if add {
+                Outgoing::Lend(self.range.clone())
+            } else {
+                Outgoing::Forward(data)
+            };
+            ready.insert(id, out);
+        }
+        Ok(())
     }
 }
 

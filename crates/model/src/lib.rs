@@ -11,6 +11,7 @@
 
 pub mod decoder;
 pub mod encoder;
+pub mod footprint;
 pub mod metrics;
 pub mod nn;
 pub mod osrt;

@@ -54,6 +54,10 @@ pub struct StepFigures {
     /// optimiser state included (the memory pool's high-water mark, the counterpart of
     /// `torch.cuda.max_memory_allocated`); `None` on the CPU.
     pub peak_gib: Option<f64>,
+    /// The step's peak as `osrt train` estimates it before a job starts
+    /// ([`crate::footprint::estimate`]): host RAM on the CPU (beside `peak_heap_gib`),
+    /// device memory on a GPU (beside `peak_gib`); `None` for a model it cannot count.
+    pub estimated_peak_gib: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -193,6 +197,13 @@ pub fn bench_step(
         peak_heap_gib: peak_heap.map(gib),
         peak_rss_gib: crate::memory::peak_rss_mb().map(|mb| mb / 1024.0),
         peak_gib: peak_device.map(|b| gib(b as usize)),
+        estimated_peak_gib: crate::footprint::estimate(
+            job,
+            [image_size, image_size],
+            1,
+            rayon::current_num_threads(),
+        )
+        .map(|m| m.total() / (1u64 << 30) as f64),
         skipped_steps,
         skip_reason,
     })

@@ -241,6 +241,27 @@ fn open_cuda(ordinal: usize) -> Result<Device> {
     )))
 }
 
+/// GPU `ordinal`'s total memory in bytes; `None` without the `cuda` feature, a driver or
+/// that device.
+pub fn gpu_memory(ordinal: usize) -> Option<f64> {
+    #[cfg(feature = "cuda")]
+    {
+        use candle_core::cuda_backend::cudarc::driver::result;
+        result::init().ok()?;
+        let dev = result::device::get(i32::try_from(ordinal).ok()?).ok()?;
+        #[allow(unsafe_code)]
+        // SAFETY: `dev` is a device handle the driver just returned; the call only
+        // writes the size into a local.
+        let bytes = unsafe { result::device::total_mem(dev) }.ok()?;
+        Some(bytes as f64)
+    }
+    #[cfg(not(feature = "cuda"))]
+    {
+        let _ = ordinal;
+        None
+    }
+}
+
 /// CUDA devices the driver reports (0 without the `cuda` feature or a driver).
 pub fn cuda_device_count() -> usize {
     #[cfg(feature = "cuda")]

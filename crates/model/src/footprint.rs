@@ -1,0 +1,492 @@
+//! How much memory a train step's forward and backward passes hold at their peak, from
+//! the model's configuration and the batch's shapes alone, before anything is allocated.
+//!
+//! The count follows what the step keeps, op by op: every op's output is held by the
+//! autograd graph until the step ends (candle keeps the graph whole through the backward
+//! pass), and the one-node kernels of `osrt_kernels` keep their own saved buffers (im2col
+//! columns, attention weights, an MLP's hidden layers) until their backward pass takes
+//! them. On top of what is held, each op briefly needs room of its own: the attention
+//! kernel's per-task copies in the forward pass, the gradients of its operands in the
+//! backward pass. The ledger below replays the forward pass in order and the backward
+//! pass in reverse and reports the largest sum.
+//!
+//! Three op paths keep different tensors: the f32 fused CPU kernels (`Kernels::Fused`,
+//! the default on a CPU), candle's composed ops on the CPU (`Kernels::Composed`: softmax
+//! and LayerNorm composed too, and their backward passes' temporaries, counted as
+//! measured), and a GPU step (composed, but LayerNorm, softmax, the bias-activation and
+//! the attention core are one node each). The fused count is checked against the
+//! counted peak heap of `osrt bench model` in `tests/memory_estimate.rs`; the other two
+//! are counts from the code (docs/performance.md has how close they come).
+
+use crate::decoder;
+use crate::encoder::{self, RayInput};
+use crate::nn::TransformerConfig;
+use crate::osrt::Config;
+
+/// The shapes of one worker's train step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StepShape {
+    /// Scenes per worker step.
+    pub batch: usize,
+    pub input_views: usize,
+    /// Input image height and width in pixels.
+    pub height: usize,
+    pub width: usize,
+    /// Target rays per scene.
+    pub rays: usize,
+    /// Threads the step's kernels run on (the attention backward works on one batch
+    /// element per thread at a time).
+    pub threads: usize,
+}
+
+/// Which implementation of the ops the step runs: they keep different tensors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OpPath {
+    /// The one-node f32 CPU kernels of `osrt_kernels`.
+    Fused,
+    /// candle's composed ops on the CPU.
+    Composed,
+    /// A CUDA step; `bf16` where the matrix products cast their operands.
+    Gpu { bf16: bool },
+}
+
+/// What one step's forward and backward passes hold.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Footprint {
+    /// The peak of the activations and gradients (fused ops: the packed parameters too),
+    /// in bytes; the weights and the optimiser's state are not included.
+    pub activations: f64,
+    /// The parameters the ops reach: the model's parameter count.
+    pub parameters: usize,
+}
+
+/// The footprint of one step of `cfg` on `shape`; `None` for a decoder without a count
+/// (volumetric).
+pub fn step(cfg: &Config, shape: &StepShape, path: OpPath) -> Option<Footprint> {
+    let mut l = Ledger::new(path, shape.threads);
+    encode(&mut l, cfg, shape);
+    decode(&mut l, cfg, shape)?;
+    Some(Footprint {
+        activations: l.peak(),
+        parameters: l.ops.iter().map(|o| o.params).sum(),
+    })
+}
+
+/// Bytes of `n` f32 values.
+fn f32s(n: usize) -> f64 {
+    4.0 * n as f64
+}
+
+/// One op of the forward pass, as the ledger books it.
+#[derive(Debug, Clone, Copy, Default)]
+struct Op {
+    /// The output (and any operand copies) the graph holds until the step ends.
+    held: f64,
+    /// What the op keeps for its backward pass and frees there.
+    saved: f64,
+    /// Room the forward pass needs above `held + saved` while the op runs.
+    forward_extra: f64,
+    /// Room the backward pass needs while the op's gradient is computed.
+    backward_extra: f64,
+    /// Parameters the op's gradient reaches: their gradients stay from there on.
+    params: usize,
+}
+
+/// The forward pass replayed in order, the backward pass in reverse.
+struct Ledger {
+    path: OpPath,
+    threads: usize,
+    ops: Vec<Op>,
+    live: f64,
+    forward_peak: f64,
+    /// Forward-pass locals freed when their function returns (not held by the graph).
+    locals: f64,
+}
+
+impl Ledger {
+    fn new(path: OpPath, threads: usize) -> Self {
+        Self {
+            path,
+            threads: threads.max(1),
+            ops: Vec::new(),
+            live: 0.0,
+            forward_peak: 0.0,
+            locals: 0.0,
+        }
+    }
+
+    fn fused(&self) -> bool {
+        self.path == OpPath::Fused
+    }
+
+    fn gpu(&self) -> bool {
+        matches!(self.path, OpPath::Gpu { .. })
+    }
+
+    fn op(&mut self, op: Op) {
+        self.live += op.held + op.saved;
+        self.forward_peak = self.forward_peak.max(self.live + op.forward_extra);
+        self.ops.push(op);
+    }
+
+    /// An op output of `n` values held to the end of the step.
+    fn node(&mut self, n: usize) {
+        self.op(Op {
+            held: f32s(n),
+            backward_extra: 2.0 * f32s(n),
+            ..Op::default()
+        });
+    }
+
+    /// A forward local of `n` values (no graph holds it), live until [`Self::drop_locals`].
+    fn local(&mut self, n: usize) {
+        self.live += f32s(n);
+        self.locals += f32s(n);
+        self.forward_peak = self.forward_peak.max(self.live);
+    }
+
+    /// Books `f`'s ops as a repeat of ops already booked: the same parameters, whose
+    /// gradients are already counted.
+    fn repeat(&mut self, f: impl FnOnce(&mut Self)) {
+        let from = self.ops.len();
+        f(self);
+        self.ops[from..].iter_mut().for_each(|op| op.params = 0);
+    }
+
+    fn drop_locals(&mut self) {
+        self.live -= self.locals;
+        self.locals = 0.0;
+    }
+
+    /// A matrix product's operand cast to bf16 (composed path with bf16 products).
+    fn cast(&mut self, n: usize) {
+        if let OpPath::Gpu { bf16: true } = self.path {
+            self.op(Op {
+                held: 2.0 * n as f64,
+                ..Op::default()
+            });
+        }
+    }
+
+    /// The largest sum: the forward pass's, or the backward pass's, which starts from
+    /// everything held and frees each op's saved buffers as it passes the op.
+    fn peak(&self) -> f64 {
+        let mut live = self.live;
+        let mut peak = self.forward_peak;
+        for op in self.ops.iter().rev() {
+            live += f32s(op.params);
+            peak = peak.max(live + op.backward_extra);
+            live -= op.saved;
+        }
+        peak
+    }
+}
+
+/// A linear layer `[rows, i] → [rows, o]` (fused: one node; composed: the product, and
+/// the bias add as a second node).
+fn linear(l: &mut Ledger, rows: usize, i: usize, o: usize, bias: bool) {
+    l.cast(rows * i);
+    l.op(Op {
+        held: f32s(rows * o),
+        backward_extra: f32s(2 * rows * o + rows * i),
+        params: i * o + if bias { o } else { 0 },
+        ..Op::default()
+    });
+    if bias && !l.fused() {
+        l.node(rows * o);
+    }
+}
+
+/// A LayerNorm over `[rows, d]`: one node for the fused CPU kernel and on a GPU; composed,
+/// the centred input, its square, the normalised and the scaled input besides.
+fn layer_norm(l: &mut Ledger, rows: usize, d: usize) {
+    if l.path == OpPath::Composed {
+        l.node(4 * rows * d);
+    }
+    l.op(Op {
+        held: f32s(rows * d),
+        saved: f32s(2 * rows),
+        backward_extra: 3.0 * f32s(rows * d),
+        params: 2 * d,
+        ..Op::default()
+    });
+}
+
+/// An MLP `dims[0] → … → dims[last]` over `rows` rows: fused, one node keeping each
+/// hidden layer's pre-activation and activation; composed, a linear layer and an
+/// activation node per layer.
+fn mlp(l: &mut Ledger, rows: usize, dims: &[usize]) {
+    let hidden: usize = dims[1..dims.len() - 1].iter().sum();
+    let out = dims[dims.len() - 1];
+    if l.fused() {
+        // The parameters enter packed into one tensor, which the graph holds, and leave
+        // the backward pass as one gradient that is then split.
+        let params: usize = dims.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
+        let widest = dims.iter().copied().max().unwrap_or(0);
+        l.op(Op {
+            held: f32s(rows * out + params),
+            saved: 2.0 * f32s(rows * hidden),
+            forward_extra: f32s(rows * widest),
+            backward_extra: f32s(3 * rows * widest + params),
+            params,
+        });
+        return;
+    }
+    for w in dims.windows(2) {
+        // On a GPU the bias add and the activation are one node.
+        linear(l, rows, w[0], w[1], !l.gpu());
+    }
+    l.node(rows * hidden);
+}
+
+/// A pre-LayerNorm transformer block over `b` elements of `n` query rows of width `d`,
+/// attending to `m` context rows of width `dc` (`None`: self-attention).
+fn block(
+    l: &mut Ledger,
+    t: &TransformerConfig,
+    (b, n, d): (usize, usize, usize),
+    ctx: Option<(usize, usize)>,
+) {
+    let (m, dc) = ctx.unwrap_or((n, d));
+    let (rows, ctx_rows) = (b * n, b * m);
+    let inner = t.heads * t.head_dim;
+    let weights = b * t.heads * n * m;
+    // The weights one backward task holds at a time, two of them (dP, dS) per thread.
+    let per_thread = 2 * t.heads * n * m * b.min(l.threads);
+    if l.fused() {
+        // The attention's forward tasks each hold their output and, with fewer than eight
+        // elements (row-block tasks), their weights until copied into place.
+        let copies = if b < 8 && n > 128 { weights } else { 0 };
+        let params = 4 * d + 2 * inner * (d + dc) + d + 2 * d * t.mlp_hidden + t.mlp_hidden + d;
+        l.op(Op {
+            held: f32s(rows * d + params),
+            params,
+            saved: f32s(
+                2 * rows * d
+                    + 2 * rows * inner
+                    + 2 * ctx_rows * inner
+                    + weights
+                    + rows * d
+                    + 2 * rows * t.mlp_hidden,
+            ),
+            forward_extra: f32s(rows * inner + copies),
+            backward_extra: f32s(
+                per_thread
+                    + 3 * rows * inner
+                    + 2 * ctx_rows * inner
+                    + 3 * rows * d
+                    + ctx_rows * dc
+                    + params,
+            ),
+        });
+        return;
+    }
+    layer_norm(l, rows, d);
+    let source = if ctx.is_some() { ctx_rows } else { rows };
+    linear(l, rows, d, inner, false);
+    linear(l, source, dc, inner, false);
+    linear(l, source, dc, inner, false);
+    // The heads split (three copies), the attention core, the heads merged.
+    l.node(rows * inner + 2 * ctx_rows * inner);
+    l.cast(rows * inner + 2 * ctx_rows * inner);
+    if l.gpu() {
+        // One node keeping the weights; its backward pass makes dP and dS at once.
+        l.op(Op {
+            held: f32s(rows * inner),
+            saved: f32s(weights),
+            backward_extra: f32s(2 * weights + 3 * rows * inner),
+            ..Op::default()
+        });
+    } else {
+        // Logits, scaled logits and the composed softmax's shifted logits, exponentials
+        // and quotient; its backward pass's temporaries, as measured: eleven more.
+        l.op(Op {
+            held: f32s(5 * weights + rows * inner),
+            backward_extra: f32s(11 * weights),
+            ..Op::default()
+        });
+    }
+    l.node(rows * inner);
+    linear(l, rows, inner, d, true);
+    l.node(rows * d);
+    layer_norm(l, rows, d);
+    mlp(l, rows, &[d, t.mlp_hidden, d]);
+    l.node(rows * d);
+}
+
+fn transformer(
+    l: &mut Ledger,
+    t: &TransformerConfig,
+    rows: (usize, usize, usize),
+    ctx: Option<(usize, usize)>,
+) {
+    for _ in 0..t.layers {
+        block(l, t, rows, ctx);
+    }
+}
+
+/// A 3×3 or 1×1 convolution (NHWC) of `images` inputs of `h × w × c_in` to `c_out`
+/// channels: the im2col columns (kept for the weight gradient), the product.
+fn conv(
+    l: &mut Ledger,
+    images: usize,
+    (h, w, c_in): (usize, usize, usize),
+    kernel: usize,
+    c_out: usize,
+) {
+    let cols = images * h * w * kernel * kernel * c_in;
+    let out = images * h * w * c_out;
+    let params = kernel * kernel * c_in * c_out;
+    if l.fused() {
+        l.op(Op {
+            held: f32s(out),
+            saved: f32s(cols),
+            backward_extra: f32s(cols + 2 * out),
+            params,
+            ..Op::default()
+        });
+    } else {
+        l.node(cols);
+        l.cast(cols);
+        l.op(Op {
+            held: f32s(out),
+            backward_extra: f32s(cols + 2 * out),
+            params,
+            ..Op::default()
+        });
+    }
+}
+
+/// The SRT encoder and slot attention (`Osrt::encode`).
+fn encode(l: &mut Ledger, cfg: &Config, s: &StepShape) {
+    let e = cfg.ray_encoding.dim();
+    let enc = &cfg.encoder;
+    let images = s.batch * s.input_views;
+    let (mut h, mut w) = (s.height, s.width);
+    // The input views' ray encoding, a constant: concatenated to the images, it lives
+    // while the encoder runs; added as a patch embedding, the graph holds it.
+    let mut c_in = match (enc.poses, enc.ray_input) {
+        (encoder::Poses::Absolute, RayInput::Concat) => {
+            l.local(images * h * w * e);
+            l.node(images * h * w * (3 + e));
+            3 + e
+        }
+        (encoder::Poses::Absolute, RayInput::Add) => {
+            l.node(images * h * w * e);
+            3
+        }
+        (encoder::Poses::Unposed, _) => 3,
+    };
+    for &c in &enc.conv_channels {
+        conv(l, images, (h, w, c_in), 3, c);
+        l.node(images * h * w * c);
+        (h, w) = (h.div_ceil(2), w.div_ceil(2));
+        conv(l, images, (h, w, c), 3, 2 * c);
+        l.node(images * h * w * 2 * c);
+        c_in = 2 * c;
+    }
+    conv(l, images, (h, w, c_in), 1, enc.dim);
+    let tokens = s.input_views * h * w;
+    if enc.poses == encoder::Poses::Absolute && enc.ray_input == RayInput::Add {
+        let stride = enc.stride();
+        conv(l, images, (h, w, e), stride, enc.dim);
+        l.node(s.batch * tokens * enc.dim);
+    }
+    transformer(l, &enc.transformer, (s.batch, tokens, enc.dim), None);
+    l.drop_locals();
+    slot_attention(l, cfg, s.batch, tokens);
+}
+
+/// Slot attention over `tokens` set-latent tokens per scene.
+fn slot_attention(l: &mut Ledger, cfg: &Config, b: usize, tokens: usize) {
+    let sa = &cfg.slot_attention;
+    let (d, ds, k) = (cfg.encoder.dim, sa.slot_dim, sa.num_slots);
+    let rows = b * tokens;
+    layer_norm(l, rows, d);
+    linear(l, rows, d, ds, false);
+    linear(l, rows, d, ds, false);
+    l.node(rows * ds); // keys transposed
+    let logits = b * k * tokens;
+    // The initial slots.
+    l.op(Op {
+        held: f32s(b * k * ds),
+        params: k * ds,
+        ..Op::default()
+    });
+    let iteration = |l: &mut Ledger| {
+        layer_norm(l, b * k, ds);
+        linear(l, b * k, ds, ds, false);
+        l.cast(b * k * ds + rows * ds);
+        // Logits, scaled, softmax over slots, plus ε, renormalised over the inputs.
+        l.node(5 * logits);
+        l.cast(logits + rows * ds);
+        l.node(b * k * ds);
+        // The GRU cell on `[b·k, ds]`: its gates and their products, small beside the rest.
+        l.op(Op {
+            held: f32s(12 * b * k * ds),
+            params: 6 * ds * ds + 6 * ds,
+            ..Op::default()
+        });
+        layer_norm(l, b * k, ds);
+        mlp(l, b * k, &[ds, sa.mlp_hidden, ds]);
+        l.node(b * k * ds);
+    };
+    iteration(l);
+    for _ in 1..sa.iterations {
+        l.repeat(iteration);
+    }
+}
+
+/// The decoder on `rays` target rays per scene, and the loss.
+fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
+    let e = cfg.ray_encoding.dim();
+    let (b, r) = (s.batch, s.rays);
+    let rows = b * r;
+    let (ds, k) = (cfg.slot_attention.slot_dim, cfg.slot_attention.num_slots);
+    match &cfg.decoder {
+        decoder::Config::SlotMixer(c) => {
+            l.node(rows * e); // the rays' encoding
+            mlp(l, rows, &[e, c.query_hidden, e]);
+            transformer(l, &c.allocation, (b, r, e), Some((k, ds)));
+            // Slot mixing: the queries' projection, the weights over slots, the mix.
+            l.op(Op {
+                held: f32s(rows * ds + rows * k),
+                saved: f32s(rows * ds + rows * k),
+                backward_extra: f32s(3 * rows * ds + 2 * rows * e),
+                params: e * ds + ds * ds,
+                ..Op::default()
+            });
+            let mut dims = vec![ds + e];
+            dims.extend(&c.render_hidden);
+            dims.push(3);
+            if !l.fused() {
+                l.node(rows * (ds + e));
+            }
+            mlp(l, rows, &dims);
+        }
+        decoder::Config::Transformer(c) => {
+            l.node(rows * e);
+            mlp(l, rows, &[e, c.query_hidden, e]);
+            transformer(l, &c.transformer, (b, r, e), Some((k, ds)));
+            let mut dims = vec![e];
+            dims.extend(&c.render_hidden);
+            dims.push(3);
+            mlp(l, rows, &dims);
+        }
+        decoder::Config::SpatialBroadcast(c) => {
+            l.node(rows * e);
+            let pairs = rows * k;
+            l.node(pairs * (e + ds));
+            let mut dims = vec![e + ds];
+            dims.extend(&c.hidden);
+            dims.push(4);
+            mlp(l, pairs, &dims);
+            // Colours, weights, their product.
+            l.node(pairs * 7);
+        }
+        decoder::Config::Volumetric(_) => return None,
+    }
+    // Sigmoid, the difference to the target, its square.
+    l.node(3 * rows * 3);
+    Some(())
+}

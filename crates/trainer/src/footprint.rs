@@ -1,0 +1,184 @@
+//! A train step's peak memory per worker, estimated before anything is allocated, and
+//! the memory of the machine it would run on: `osrt train` and the workers refuse a job
+//! that cannot fit, with the figures and what to change.
+//!
+//! The estimate adds to the activations' peak ([`osrt_model::footprint`]) the weights,
+//! AdamW's two moments and the batch (as built on the host and as the step's tensors).
+//! On a GPU the weights, moments, batch tensors and activations are device memory; the
+//! host keeps the batch and the gradient's copy for the all-reduce.
+
+use crate::config::JobConfig;
+use crate::device::DeviceSpec;
+use osrt_model::footprint::{OpPath, StepShape};
+use osrt_model::{Kernels, Precision};
+
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// The estimated peak of one worker's train step, in bytes, by part.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepMemory {
+    /// `host RAM` or `GPU memory`.
+    pub kind: &'static str,
+    pub weights: f64,
+    /// AdamW's first and second moments.
+    pub optimizer: f64,
+    /// The batch as built on the host and as the step's tensors.
+    pub batch: f64,
+    /// Activations and gradients at the forward or backward pass's peak.
+    pub activations: f64,
+    /// The shapes it was computed for.
+    pub shape: StepShape,
+    /// Whether this op path's estimate is checked against measured peaks (the fused
+    /// CPU step's is, in `tests/memory_estimate.rs`); the others are counts from the code.
+    pub checked: bool,
+}
+
+impl StepMemory {
+    pub fn total(&self) -> f64 {
+        self.weights + self.optimizer + self.batch + self.activations
+    }
+
+    /// One line for people: the total and its parts.
+    pub fn describe(&self) -> String {
+        let s = &self.shape;
+        format!(
+            "{}estimated peak {} per worker: {:.2} GiB (weights {:.2}, optimiser {:.2}, batch {:.2}, activations {:.2}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
+            if self.checked { "" } else { "(unchecked) " },
+            self.kind,
+            self.total() / GIB,
+            self.weights / GIB,
+            self.optimizer / GIB,
+            self.batch / GIB,
+            self.activations / GIB,
+            s.batch,
+            s.input_views,
+            s.width,
+            s.height,
+            s.rays,
+        )
+    }
+}
+
+/// The estimate for one worker of `world` running `job` on `[width, height]` images
+/// with `threads` threads; `None` for a model whose activations have no count (the
+/// volumetric decoder).
+pub fn estimate(
+    job: &JobConfig,
+    image: [u32; 2],
+    world: usize,
+    threads: usize,
+) -> Option<StepMemory> {
+    let t = &job.train;
+    let batch = crate::shard::local_batch_sizes(t.batch_size, world.max(1))[0];
+    let shape = StepShape {
+        batch,
+        input_views: t.input_views,
+        height: image[1] as usize,
+        width: image[0] as usize,
+        rays: t.rays_per_scene,
+        threads,
+    };
+    let gpu = t.device.is_cuda();
+    let path = if !gpu && t.kernels == Kernels::Fused && t.precision == Precision::F32 {
+        OpPath::Fused
+    } else {
+        if gpu {
+            OpPath::Gpu {
+                bf16: t.precision == Precision::Bf16,
+            }
+        } else {
+            OpPath::Composed
+        }
+    };
+    let f = osrt_model::footprint::step(&job.model, &shape, path)?;
+    let params = f.parameters as f64;
+    // Images, origins and directions of the input views, origins, directions and
+    // colours of the target rays: f32; the targets' pixel coordinates.
+    let pixels = (batch * t.input_views * shape.height * shape.width) as f64;
+    let rays = (batch * t.rays_per_scene) as f64;
+    let host_batch = 4.0 * (9.0 * pixels + 9.0 * rays) + 8.0 * rays;
+    Some(StepMemory {
+        kind: if gpu { "GPU memory" } else { "host RAM" },
+        weights: 4.0 * params,
+        optimizer: 8.0 * params,
+        batch: if gpu {
+            host_batch - 8.0 * rays
+        } else {
+            2.0 * host_batch
+        },
+        activations: f.activations,
+        shape,
+        checked: path == OpPath::Fused,
+    })
+}
+
+/// Where set, the memory (GiB) the workers on this machine may use in all, in place of
+/// what the machine has: room left for other work, or a smaller machine's figure.
+pub const MEMORY_LIMIT_ENV: &str = "OSRT_MEMORY_LIMIT_GIB";
+
+/// The memory a worker on this machine may use for `device`, and what it is: the host's
+/// (the smaller of `MemTotal` and the cgroup's limit, which is what a container gets), or
+/// the GPU's, or [`MEMORY_LIMIT_ENV`]'s; `None` where it cannot be read.
+pub fn machine_memory(device: DeviceSpec) -> Option<(f64, String)> {
+    if let Some(gib) = std::env::var(MEMORY_LIMIT_ENV)
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+    {
+        return Some((gib * GIB, format!("the limit {MEMORY_LIMIT_ENV}={gib}")));
+    }
+    match device {
+        DeviceSpec::Cpu => host_memory().map(|b| (b, "this machine's RAM".to_string())),
+        DeviceSpec::Cuda(i) => {
+            crate::device::gpu_memory(i).map(|b| (b, format!("GPU {i}'s memory")))
+        }
+    }
+}
+
+fn host_memory() -> Option<f64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let total = line.split_whitespace().nth(1)?.parse::<f64>().ok()? * 1024.0;
+    let limit = [
+        "/sys/fs/cgroup/memory.max",
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+    ]
+    .iter()
+    .filter_map(|p| std::fs::read_to_string(p).ok())
+    .filter_map(|s| s.trim().parse::<f64>().ok())
+    .fold(f64::INFINITY, f64::min);
+    Some(total.min(limit))
+}
+
+/// The resident memory of a worker whose step's heap peaks at `step` bytes: the pages the
+/// allocator keeps after a step (the workers' allocator settings keep freed tensors'
+/// pages; `osrt bench model` measured resident peaks of 1.1–1.5 × the heap's on the CPU
+/// presets at 32–256 px, 2026-11-27), the binary, its runtime and its data.
+pub fn with_headroom(step: f64) -> f64 {
+    1.35 * step + 0.5 * GIB
+}
+
+/// Why `workers` workers of `m` each cannot run in `available` bytes of `what`, and what
+/// to change; `None` where they fit with [`with_headroom`].
+pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -> Option<String> {
+    let need = with_headroom(m.total()) * workers as f64;
+    if need <= available {
+        return None;
+    }
+    let each = if workers > 1 {
+        format!(
+            " ({workers} workers of {:.2} GiB)",
+            with_headroom(m.total()) / GIB
+        )
+    } else {
+        String::new()
+    };
+    Some(format!(
+        "the job needs about {:.2} GiB{each} and {what} is {:.2} GiB. {}; a worker's \
+         resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller: --batch-size (scenes per step), \
+         --rays-per-scene (the decoder's share), --precision bf16 (GPU), fewer workers on \
+         this machine, or a dataset of smaller images; --skip-memory-check runs it anyway",
+        need / GIB,
+        available / GIB,
+        m.describe()
+    ))
+}
