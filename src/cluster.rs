@@ -82,6 +82,9 @@ pub struct WorkerArgs {
     /// Compute threads (candle's pool); the process re-executes itself to apply it.
     #[arg(long, env = "OSRT_THREADS")]
     pub threads: Option<usize>,
+    /// Join a job even where its step's estimated peak memory exceeds this machine's.
+    #[arg(long, env = "OSRT_SKIP_MEMORY_CHECK")]
+    pub skip_memory_check: bool,
     /// Where this worker computes: cpu, cuda or cuda:N (default: the job config's
     /// `train.device`). Each worker owns one GPU.
     #[arg(long, env = "OSRT_DEVICE")]
@@ -339,6 +342,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
             tls: Tls::from_env()?,
             name: format!("{host}:{}", std::process::id()),
             coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
+            memory_check: !a.skip_memory_check,
         },
         shutdown_signal(),
     )
@@ -351,13 +355,15 @@ pub struct LocalJob {
     pub spec: JobSpec,
     pub workers: usize,
     pub threads_per_worker: usize,
+    /// The workers join whatever their estimated memory (`--skip-memory-check`).
+    pub skip_memory_check: bool,
     /// `--resume`, `--take-over`.
     pub open: OpenOptions,
 }
 
 fn spawn_worker(
     coordinator: &str,
-    threads: usize,
+    (threads, skip_memory_check): (usize, bool),
     device: DeviceSpec,
     token: &Token,
 ) -> Result<tokio::process::Child> {
@@ -377,6 +383,9 @@ fn spawn_worker(
     cmd.env(TOKEN_ENV, token.as_str())
         .envs(compute_thread_env(threads))
         .kill_on_drop(true);
+    if skip_memory_check {
+        cmd.env("OSRT_SKIP_MEMORY_CHECK", "true");
+    }
     for (k, v) in WORKER_MALLOC_ENV {
         if std::env::var_os(k).is_none() {
             cmd.env(k, v);
@@ -415,14 +424,10 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         0
     };
     let device_of = |k: usize| device.for_local_worker(k, gpus);
+    let per_worker = (job.threads_per_worker, job.skip_memory_check);
     let mut children = Vec::new();
     for k in 0..job.workers {
-        children.push(spawn_worker(
-            &addr,
-            job.threads_per_worker,
-            device_of(k),
-            &token,
-        )?);
+        children.push(spawn_worker(&addr, per_worker, device_of(k), &token)?);
     }
     let bar = step_bar(max_steps);
     let mut respawned = 0u32;
@@ -472,7 +477,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
                     bail!("worker exited ({exit}) and {max_restarts} replacements are used up");
                 }
                 tracing::warn!(%exit, "worker exited; starting a replacement");
-                *child = spawn_worker(&addr, job.threads_per_worker, device_of(k), &token)?;
+                *child = spawn_worker(&addr, per_worker, device_of(k), &token)?;
                 respawned += 1;
             }
         }

@@ -145,6 +145,7 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
             spec,
             workers: file.workers,
             threads_per_worker: threads,
+            skip_memory_check: false,
             open: osrt_coordinator::OpenOptions {
                 resume: started,
                 ..Default::default()

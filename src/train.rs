@@ -324,6 +324,7 @@ pub async fn train(a: TrainArgs) -> Result<()> {
         spec,
         workers,
         threads_per_worker: threads,
+        skip_memory_check: a.skip_memory_check,
         open: osrt_coordinator::OpenOptions {
             resume: a.resume,
             take_over: a.take_over,

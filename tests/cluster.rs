@@ -555,7 +555,7 @@ fn records_of_failed_reports_are_delivered_later() {
     let port = free_port();
     let proxy = CutProxy::to(port);
     let mut coord = coordinator(port, &data, &run, &["--max-steps", "400"]);
-    let mut w = worker_logging_to(&format!("http://127.0.0.1:{}", proxy.port), &log);
+    let mut w = worker_logging_to(&format!("http://127.0.0.1:{}", proxy.port), &log, &[]);
     let (mut seen, mut since) = (0, Instant::now());
     let status = loop {
         if let Some(s) = coord.0.try_wait().unwrap() {
@@ -583,6 +583,39 @@ fn records_of_failed_reports_are_delivered_later() {
     assert!(
         failed > 0,
         "no progress report failed: the cuts missed them"
+    );
+}
+
+/// A worker whose machine cannot hold the job's step (here: a 1 MiB limit) leaves the job
+/// before allocating anything, saying why; with no other worker the job fails after its
+/// wait timeout.
+#[test]
+fn a_worker_without_the_memory_for_the_step_leaves_the_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 16);
+    let run = dir.path().join("run");
+    let config = dir.path().join("job.toml");
+    let mut job = osrt_trainer::JobConfig::preset("tiny").unwrap();
+    job.cluster.wait_timeout_s = 3.0;
+    std::fs::write(&config, job.to_toml()).unwrap();
+    let port = free_port();
+    let config = config.to_str().unwrap();
+    let mut coord = coordinator(port, &data, &run, &["--config", config, "--max-steps", "3"]);
+    let log = dir.path().join("worker.log");
+    let limit = [("OSRT_MEMORY_LIMIT_GIB".to_string(), "0.001".to_string())];
+    let mut w = worker_logging_to(&format!("http://127.0.0.1:{port}"), &log, &limit);
+    assert!(!w.wait_for_exit(Duration::from_secs(60)).success());
+    let said = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        said.contains("this worker's machine cannot hold the job's step"),
+        "{said}"
+    );
+    assert!(said.contains("OSRT_MEMORY_LIMIT_GIB=0.001"), "{said}");
+    assert!(!coord.wait_for_exit(Duration::from_secs(60)).success());
+    let checkpoints = std::fs::read_dir(run.join("checkpoints"));
+    assert!(
+        checkpoints.map_or(true, |mut d| d.next().is_none()),
+        "a step was taken"
     );
 }
 

@@ -185,9 +185,9 @@ pub fn worker_env(coordinator: &str, env: &[(String, String)]) -> Proc {
 }
 
 /// A worker whose log (stderr) goes to `log`, for tests that read what it said.
-pub fn worker_logging_to(coordinator: &str, log: &Path) -> Proc {
+pub fn worker_logging_to(coordinator: &str, log: &Path, env: &[(String, String)]) -> Proc {
     let file = std::fs::File::create(log).expect("worker log");
-    let mut cmd = worker_command(coordinator, &[]);
+    let mut cmd = worker_command(coordinator, env);
     Proc(cmd.stderr(file).spawn().expect("start worker"))
 }
 

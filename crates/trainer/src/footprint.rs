@@ -42,20 +42,29 @@ impl StepMemory {
     pub fn describe(&self) -> String {
         let s = &self.shape;
         format!(
-            "{}estimated peak {} per worker: {:.2} GiB (weights {:.2}, optimiser {:.2}, batch {:.2}, activations {:.2}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
+            "{}estimated peak {} per worker: {} (weights {}, optimiser {}, batch {}, activations {}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
             if self.checked { "" } else { "(unchecked) " },
             self.kind,
-            self.total() / GIB,
-            self.weights / GIB,
-            self.optimizer / GIB,
-            self.batch / GIB,
-            self.activations / GIB,
+            size(self.total()),
+            size(self.weights),
+            size(self.optimizer),
+            size(self.batch),
+            size(self.activations),
             s.batch,
             s.input_views,
             s.width,
             s.height,
             s.rays,
         )
+    }
+}
+
+/// `bytes` for people: GiB from 1 GiB up, MiB below.
+fn size(bytes: f64) -> String {
+    if bytes >= GIB {
+        format!("{:.2} GiB", bytes / GIB)
+    } else {
+        format!("{:.1} MiB", bytes / (1u64 << 20) as f64)
     }
 }
 
@@ -181,4 +190,65 @@ pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -
         available / GIB,
         m.describe()
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The ledger reaches every parameter once: its count is the model's, for every
+    /// preset and every counted decoder.
+    #[test]
+    fn the_ledger_counts_every_parameter_once() {
+        for preset in ["tiny", "clevr-lite-cpu", "paper", "msn-hard"] {
+            for decoder in ["slot_mixer", "transformer", "spatial_broadcast"] {
+                let mut job = JobConfig::preset(preset).unwrap();
+                job.model = job.model.with_decoder(decoder).unwrap();
+                let p = osrt_model::Params::new(0);
+                osrt_model::Osrt::new(&job.model, p.var_builder(&candle_core::Device::Cpu))
+                    .unwrap();
+                let params = p.num_elements();
+                let m = estimate(&job, [64, 64], 1, 2).unwrap();
+                assert_eq!(m.weights, 4.0 * params as f64, "{preset} with {decoder}");
+            }
+        }
+    }
+
+    /// More pixels, scenes or rays never need less; the encoder's attention grows with
+    /// the square of the tokens; a volumetric decoder has no estimate.
+    #[test]
+    fn the_estimate_grows_with_the_step() {
+        let job = JobConfig::preset("tiny").unwrap();
+        let at = |job: &JobConfig, w: u32, h: u32| estimate(job, [w, h], 1, 2).unwrap().total();
+        let (small, big) = (at(&job, 64, 64), at(&job, 128, 128));
+        assert!(big > 10.0 * small, "{small} → {big}");
+        assert!(at(&job, 128, 64) > small && at(&job, 128, 64) < big);
+        let mut more = job.clone();
+        more.train.batch_size *= 2;
+        more.train.rays_per_scene *= 4;
+        assert!(at(&more, 64, 64) > small);
+        let mut v = job.clone();
+        v.model = v.model.with_decoder("volumetric").unwrap();
+        assert!(estimate(&v, [64, 64], 1, 2).is_none());
+    }
+
+    /// The refusal names the figures, the limit and what to change; a job that fits with
+    /// its headroom is not refused.
+    #[test]
+    fn a_refusal_says_what_is_needed_and_what_to_change() {
+        let job = JobConfig::preset("tiny").unwrap();
+        let m = estimate(&job, [320, 240], 2, 1).unwrap();
+        let why = refusal(&m, 2, (24.0 * GIB, "this machine's RAM")).expect("refused");
+        for needle in [
+            "2 workers of",
+            "this machine's RAM is 24.00 GiB",
+            "--batch-size",
+            "--skip-memory-check",
+        ] {
+            assert!(why.contains(needle), "{needle:?} in {why}");
+        }
+        let need = with_headroom(m.total()) * 2.0;
+        assert!(refusal(&m, 2, (need, "x")).is_none());
+        assert!(refusal(&m, 2, (need * 0.99, "x")).is_some());
+    }
 }

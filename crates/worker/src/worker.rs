@@ -50,6 +50,9 @@ pub struct WorkerOptions {
     pub name: String,
     /// Give up when the coordinator cannot be reached for this long.
     pub coordinator_timeout: Duration,
+    /// Leave a job whose step's estimated peak memory this machine cannot hold
+    /// (`osrt_trainer::footprint`), before allocating anything.
+    pub memory_check: bool,
 }
 
 pub use osrt_run::unix_now;
@@ -394,7 +397,7 @@ async fn run_generation(
     worker_id: u64,
     plan: &WorkerPlan,
 ) -> Result<Ended> {
-    let (job, device) = plan_job(opts, plan)?;
+    let (job, device) = plan_job(opts, plan).await?;
     let c = job.cluster.clone();
     let run = Location::parse(&plan.run)?;
     let rank = plan.rank;
@@ -543,9 +546,47 @@ async fn put_pictures(run: &Location, pictures: Vec<(u64, &'static str, Vec<u8>)
     }
 }
 
-/// The plan's job config (with this worker's `--device`), checked, and its device.
-fn plan_job(opts: &WorkerOptions, plan: &WorkerPlan) -> Result<(JobConfig, candle_core::Device)> {
+/// Fails with a [`TrainError::Device`] (this worker leaves the job; another machine may
+/// hold it) where the plan's step, as estimated, needs more memory than this machine has.
+/// Only the fused CPU step's estimate is checked against measured peaks: for other op
+/// paths an excess is logged.
+async fn check_memory(job: &JobConfig, plan: &WorkerPlan, threads: usize) -> Result<()> {
+    let Ok(data) = osrt_dataset::Location::parse(&plan.data) else {
+        return Ok(());
+    };
+    // A dataset that cannot be read fails later, with its reason.
+    let Ok(manifest) = osrt_dataset::Manifest::read(&data).await else {
+        return Ok(());
+    };
+    let footprint =
+        osrt_trainer::footprint::estimate(job, manifest.image_size, plan.world(), threads);
+    let memory = osrt_trainer::footprint::machine_memory(job.train.device);
+    let (Some(m), Some((available, what))) = (footprint, memory) else {
+        return Ok(());
+    };
+    let Some(why) = osrt_trainer::footprint::refusal(&m, 1, (available, &what)) else {
+        return Ok(());
+    };
+    if !m.checked {
+        tracing::warn!("{why}");
+        return Ok(());
+    }
+    Err(TrainError::Device(format!(
+        "this worker's machine cannot hold the job's step: {why}"
+    ))
+    .into())
+}
+
+/// The plan's job config (with this worker's `--device`), checked (its memory too, unless
+/// told not to), and its device.
+async fn plan_job(
+    opts: &WorkerOptions,
+    plan: &WorkerPlan,
+) -> Result<(JobConfig, candle_core::Device)> {
     let job = job_on_device(&plan.job_config_toml, opts.device)?;
+    if opts.memory_check {
+        check_memory(&job, plan, opts.threads).await?;
+    }
     let device = job.train.device.open()?;
     Ok((job, device))
 }
