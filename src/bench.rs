@@ -342,12 +342,12 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     }
     println!(
         "ring all-reduce, 2 ranks over gRPC on loopback, vs bare TCP sockets copying the same \
-         bytes in the same ring into message-sized buffers (the target's baseline), the same \
-         ring discarding what it reads, and a one-way copy of the buffer:"
+         bytes in the same ring into message-sized buffers (the target's baseline) and the same \
+         ring discarding what it reads:"
     );
     for r in &rows {
         println!(
-            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | TCP ring discarding {:>8.2} ms, ratio {:.2} (paired {:.2}) | one-way copy {:>8.2} ms, ratio {:.2} | busy cores: all-reduce {:.2} (user {:.2}), TCP ring {:.2}",
+            "  {:>10} floats: all-reduce {:>8.2} ms ({:.2} GB/s) | TCP ring {:>8.2} ms, ratio {:.2} (paired {:.2}, {} repeats) | TCP ring discarding {:>8.2} ms, ratio {:.2} (paired {:.2}) | busy cores: all-reduce {:.2} (user {:.2}), TCP ring {:.2}",
             r.floats,
             r.median_allreduce_s * 1e3,
             r.allreduce_gb_per_s,
@@ -358,8 +358,6 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
             r.median_tcp_ring_discard_s * 1e3,
             r.ratio_discard,
             r.ratio_discard_paired,
-            r.median_tcp_copy_s * 1e3,
-            r.ratio_one_way,
             r.allreduce_busy_cores,
             r.allreduce_user_cores,
             r.tcp_ring_busy_cores

@@ -394,6 +394,98 @@ fn spawn_worker(
     Ok(cmd.spawn()?)
 }
 
+/// One local worker slot's SIGKILLs: a worker killed twice at the same step of the job
+/// (the kernel's out-of-memory killer, most likely: it kills with SIGKILL) would be
+/// killed again however often it is replaced.
+#[derive(Default)]
+struct Kills {
+    /// The job's step when this slot's worker was last killed.
+    at_step: Option<u64>,
+    /// The worker's resident memory when last sampled, in MiB.
+    rss_mb: Option<f64>,
+}
+
+impl Kills {
+    /// Samples the running worker's resident memory (Linux: `VmRSS`).
+    fn sample(&mut self, child: &tokio::process::Child) {
+        let rss = child.id().and_then(|pid| {
+            let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+            let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+            line.split_whitespace().nth(1)?.parse::<f64>().ok()
+        });
+        if let Some(kib) = rss {
+            self.rss_mb = Some(kib / 1024.0);
+        }
+    }
+
+    /// Why the job must end, where worker `k`'s `exit` is its second SIGKILL at `step`.
+    fn killed_again(
+        &mut self,
+        k: usize,
+        exit: std::process::ExitStatus,
+        step: u64,
+    ) -> Option<String> {
+        use std::os::unix::process::ExitStatusExt;
+        if exit.signal() != Some(9) {
+            self.at_step = None;
+            return None;
+        }
+        if self.at_step.replace(step) != Some(step) {
+            return None;
+        }
+        let rss = self.rss_mb.map_or(String::new(), |mb| {
+            format!(", last seen at {:.2} GiB resident", mb / 1024.0)
+        });
+        let machine = osrt_trainer::footprint::machine_memory(DeviceSpec::Cpu)
+            .map_or(String::new(), |(b, what)| {
+                format!(" ({what}: {:.2} GiB)", b / (1u64 << 30) as f64)
+            });
+        Some(format!(
+            "worker {k} was killed by SIGKILL twice at step {step}{rss}{machine}: the kernel's \
+             out-of-memory killer, most likely, and a replacement would meet the same end. \
+             Make the step smaller (--batch-size, --rays-per-scene, fewer workers, smaller \
+             images) or run on a machine with more memory"
+        ))
+    }
+}
+
+/// The replacements of exited workers the launcher has started, and how many it may.
+struct Replacements<'a> {
+    used: &'a mut u32,
+    max: u32,
+}
+
+/// Replaces each local worker that exited while the job runs (as a Job controller
+/// would), or fails the job where a replacement would be killed the same way; an error
+/// once the replacements are used up.
+fn replace_exited(
+    children: &mut [tokio::process::Child],
+    kills: &mut [Kills],
+    (coord, step): (&Coordinator, u64),
+    r: Replacements,
+    spawn: impl Fn(usize) -> Result<tokio::process::Child>,
+) -> Result<()> {
+    for (k, child) in children.iter_mut().enumerate() {
+        let Ok(Some(exit)) = child.try_wait() else {
+            continue;
+        };
+        if let Some(why) = kills[k].killed_again(k, exit, step) {
+            coord.fail(why);
+            return Ok(());
+        }
+        if *r.used >= r.max {
+            bail!(
+                "worker exited ({exit}) and {} replacements are used up",
+                r.max
+            );
+        }
+        tracing::warn!(%exit, "worker exited; starting a replacement");
+        *child = spawn(k)?;
+        *r.used += 1;
+    }
+    Ok(())
+}
+
 /// Runs the job on loopback; returns the final status.
 pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let token = Token::generate();
@@ -418,12 +510,10 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         ),
     );
     // Worker k computes on GPU k (GPUs shared round-robin when there are fewer).
-    let gpus = if device.is_cuda() {
-        osrt_trainer::device::cuda_device_count()
-    } else {
-        0
-    };
-    let device_of = |k: usize| device.for_local_worker(k, gpus);
+    let gpus = device
+        .is_cuda()
+        .then(osrt_trainer::device::cuda_device_count);
+    let device_of = |k: usize| device.for_local_worker(k, gpus.unwrap_or(0));
     let per_worker = (job.threads_per_worker, job.skip_memory_check);
     let mut children = Vec::new();
     for k in 0..job.workers {
@@ -431,6 +521,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     }
     let bar = step_bar(max_steps);
     let mut respawned = 0u32;
+    let mut kills: Vec<Kills> = (0..job.workers).map(|_| Kills::default()).collect();
     // Ctrl-C or SIGTERM: stop the workers too (they would otherwise wait out the
     // coordinator timeout).
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
@@ -463,23 +554,29 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
                 r.loss, r.scenes_per_s, s.generation
             ));
         }
-        // A worker that died while the job runs is replaced (as a Job controller would).
         let over = matches!(
             v1::JobState::try_from(s.state),
             Ok(v1::JobState::Done | v1::JobState::Failed)
         );
-        for (k, child) in children.iter_mut().enumerate() {
-            if let Ok(Some(exit)) = child.try_wait()
-                && !over
-            {
-                if respawned >= max_restarts {
-                    stop_coordinator.trigger();
-                    bail!("worker exited ({exit}) and {max_restarts} replacements are used up");
-                }
-                tracing::warn!(%exit, "worker exited; starting a replacement");
-                *child = spawn_worker(&addr, per_worker, device_of(k), &token)?;
-                respawned += 1;
+        if !over {
+            let spawn = |k: usize| spawn_worker(&addr, per_worker, device_of(k), &token);
+            let replacements = Replacements {
+                used: &mut respawned,
+                max: max_restarts,
+            };
+            if let Err(e) = replace_exited(
+                &mut children,
+                &mut kills,
+                (&status_view, s.step),
+                replacements,
+                spawn,
+            ) {
+                stop_coordinator.trigger();
+                return Err(e);
             }
+        }
+        for (child, k) in children.iter().zip(kills.iter_mut()) {
+            k.sample(child);
         }
     };
     bar.finish_and_clear();

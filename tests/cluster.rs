@@ -867,3 +867,75 @@ fn a_job_runs_over_mutual_tls_and_plaintext_is_refused() {
     assert_eq!(job["state"], "done", "{job}");
     assert_eq!(job["hash_checks"], 8, "{job}");
 }
+
+/// The pids of `parent`'s child processes (Linux `/proc`).
+fn children_of(parent: u32) -> Vec<u32> {
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|pid| {
+            // `pid (comm) state ppid …`: the comm may hold spaces, so split after it.
+            std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+                s.rsplit_once(')')
+                    .and_then(|(_, rest)| rest.split_whitespace().nth(1)?.parse::<u32>().ok())
+                    == Some(parent)
+            })
+        })
+        .collect()
+}
+
+/// A local worker killed by SIGKILL twice at the same step of the job (what the kernel's
+/// out-of-memory killer does to a worker whose step cannot fit) ends the job with the
+/// cause, in `job.json` and in `osrt train`'s error, instead of being replaced forever.
+/// The test kills every worker the launcher starts as soon as it appears.
+#[test]
+fn a_worker_killed_twice_at_one_step_ends_the_job_with_the_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 16);
+    let run = dir.path().join("run");
+    let mut launcher = std::process::Command::new(bin());
+    launcher
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--workers",
+            "1",
+            "--max-steps",
+            "50",
+        ])
+        .arg("--data")
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped());
+    let mut launcher = Proc(launcher.spawn().unwrap());
+    let (start, mut killed) = (Instant::now(), 0);
+    let status = loop {
+        if let Some(s) = launcher.0.try_wait().unwrap() {
+            break s;
+        }
+        for pid in children_of(launcher.0.id()) {
+            let mut kill = std::process::Command::new("kill");
+            kill.args(["-KILL", &pid.to_string()]);
+            killed += usize::from(kill.status().is_ok_and(|s| s.success()));
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "still running");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut launcher.0.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(!status.success(), "{err}");
+    assert!(killed >= 2, "{killed} workers killed");
+    assert!(err.contains("killed by SIGKILL twice at step 0"), "{err}");
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "failed", "{job}");
+    assert!(
+        job["message"]
+            .as_str()
+            .unwrap()
+            .contains("out-of-memory killer"),
+        "{job}"
+    );
+}

@@ -302,7 +302,9 @@ impl Core {
         matches!(self.phase, Phase::Done | Phase::Failed(_))
     }
 
-    fn fail(&mut self, reason: String) {
+    /// Fails the job for a reason found outside the protocol (the local launcher's
+    /// verdict on its worker processes); nothing once the job is over.
+    pub fn fail(&mut self, reason: String) {
         if !self.is_over() {
             tracing::error!(%reason, "job failed");
             self.phase = Phase::Failed(reason);

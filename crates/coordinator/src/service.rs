@@ -312,6 +312,12 @@ impl Coordinator {
         self.shared.core.lock().expect("state").spec.job_id.clone()
     }
 
+    /// Fails the job with `reason` (written to `job.json` like a fatal fault); the
+    /// server then ends as after any failure.
+    pub fn fail(&self, reason: String) {
+        self.shared.with(|c, _| c.fail(reason));
+    }
+
     pub fn status(&self) -> StatusSnapshot {
         status_of(&self.shared.core.lock().expect("state"), Instant::now())
     }

@@ -1,7 +1,7 @@
 //! `osrt bench allreduce`: ring all-reduce throughput of 2 ranks over gRPC on loopback,
 //! beside raw TCP moving the same bytes between sockets of the same machine.
 //!
-//! Three baselines, all on sockets connected before the first repeat (as the all-reduce
+//! Two baselines, both on sockets connected before the first repeat (as the all-reduce
 //! reuses its connections):
 //! - the **TCP ring** (the target's): the all-reduce's own traffic over bare sockets. A
 //!   ring all-reduce of `N` floats on `W` ranks has every rank send `2·(W−1)/W·N` floats
@@ -14,7 +14,6 @@
 //! - the same ring **discarding** what it receives (every read into one reused 1 MiB
 //!   buffer that stays in cache): the sockets' own speed, a bound no real receiver
 //!   reaches; reported for comparison with the figures of 2026-11-25.
-//! - a **one-way** copy (one socket copying `N·4` bytes), for older figures.
 
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::bench::median;
@@ -46,11 +45,6 @@ pub struct AllReduceFigures {
     pub ratio_discard_paired: f64,
     /// Timed repeats behind the medians.
     pub repeats: usize,
-    /// One socket copying the buffer's bytes once, one way.
-    pub median_tcp_copy_s: f64,
-    pub tcp_gb_per_s: f64,
-    /// all-reduce throughput / one-way copy throughput.
-    pub ratio_one_way: f64,
     /// Busy cores during the timed all-reduces: this process's CPU time (user + system,
     /// all threads) over their wall time. Near the machine's core count, the all-reduce is
     /// bound by work (copies, reduction, framing); well below it, by waiting.
@@ -87,7 +81,7 @@ struct Link {
 
 /// A ring of `world` ranks over loopback sockets, connected once and reused for every
 /// repeat, as the all-reduce reuses its connections (no connection set-up or TCP slow
-/// start in either figure). A ring of one rank sends to itself: the one-way copy.
+/// start in either figure).
 struct TcpRing {
     links: Vec<Link>,
     discard: bool,
@@ -228,15 +222,13 @@ pub async fn bench_allreduce(
     let mut rings = loopback_rings(chunk_floats).await;
     let bytes = floats * 4;
     let repeats = repeats.max(1) * (10_000_000 / floats.max(1)).clamp(1, 20);
-    let (mut times, mut tcp, mut ring, mut discard) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut times, mut ring, mut discard) = (Vec::new(), Vec::new(), Vec::new());
     // CPU seconds of the timed all-reduces and TCP rings.
     let (mut allreduce_cpu, mut allreduce_user, mut ring_cpu) = (0.0, 0.0, 0.0);
     // W = 2: each rank sends 2·(W−1)/W·N = N floats, as in the ring baseline.
     let mut tcp_ring = TcpRing::connect(2, bytes, false).await;
     let mut tcp_ring_discard = TcpRing::connect(2, bytes, true).await;
-    let mut tcp_copy = TcpRing::connect(1, bytes, false).await;
-    // The three measurements take turns, so a noisy spell of a shared machine hits them
+    // The measurements take turns, so a noisy spell of a shared machine hits them
     // alike and the ratios stay meaningful.
     for step in 0..=repeats as u64 {
         // Each rank on its own task, as each is its own process in a job (and as the
@@ -263,20 +255,17 @@ pub async fn bench_allreduce(
         }
         let elapsed = t.elapsed().as_secs_f64();
         let cpu1 = process_cpu_s();
-        let copy_s = tcp_copy.run().await;
-        let cpu2 = process_cpu_s();
         let ring_s = tcp_ring.run().await;
-        let cpu3 = process_cpu_s();
+        let cpu2 = process_cpu_s();
         let discard_s = tcp_ring_discard.run().await;
         // Step 0 warms up connections and allocator.
         if step > 0 {
-            if let (Some(c0), Some(c1), Some(c2), Some(c3)) = (cpu0, cpu1, cpu2, cpu3) {
+            if let (Some(c0), Some(c1), Some(c2)) = (cpu0, cpu1, cpu2) {
                 allreduce_cpu += (c1.0 - c0.0) + (c1.1 - c0.1);
                 allreduce_user += c1.0 - c0.0;
-                ring_cpu += (c3.0 - c2.0) + (c3.1 - c2.1);
+                ring_cpu += (c2.0 - c1.0) + (c2.1 - c1.1);
             }
             times.push(elapsed);
-            tcp.push(copy_s);
             ring.push(ring_s);
             discard.push(discard_s);
         }
@@ -287,7 +276,7 @@ pub async fn bench_allreduce(
     let tcp_ring_busy_cores = ring_cpu / ring.iter().sum::<f64>();
     let paired = |base: &[f64]| median(times.iter().zip(base).map(|(a, r)| r / a).collect());
     let (paired_ring, paired_discard) = (paired(&ring), paired(&discard));
-    let (ar, tc, tr, td) = (median(times), median(tcp), median(ring), median(discard));
+    let (ar, tr, td) = (median(times), median(ring), median(discard));
     AllReduceFigures {
         floats,
         chunk_floats,
@@ -301,9 +290,6 @@ pub async fn bench_allreduce(
         ratio_discard: td / ar,
         ratio_discard_paired: paired_discard,
         repeats,
-        median_tcp_copy_s: tc,
-        tcp_gb_per_s: bytes as f64 / tc / 1e9,
-        ratio_one_way: tc / ar,
         allreduce_busy_cores,
         allreduce_user_cores,
         tcp_ring_busy_cores,
