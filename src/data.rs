@@ -51,6 +51,23 @@ pub struct ImportArgs {
     /// Scenes per part file (the unit of resumption and of memory).
     #[arg(long, default_value_t = 64)]
     pub scenes_per_part: usize,
+    /// Shrink every view to WIDTHxHEIGHT (e.g. 32x24): colours averaged over each pixel's
+    /// area, masks by the nearest pixel, the cameras' intrinsics scaled.
+    #[arg(long, value_parser = parse_size)]
+    pub resize: Option<[u32; 2]>,
+}
+
+/// `WIDTHxHEIGHT`, e.g. `32x24`.
+fn parse_size(s: &str) -> std::result::Result<[u32; 2], String> {
+    let (w, h) = s
+        .split_once(['x', 'X', '×'])
+        .ok_or_else(|| format!("`{s}`: expected WIDTHxHEIGHT, e.g. 32x24"))?;
+    let side = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("`{s}`: `{v}` is not a pixel count"))
+    };
+    Ok([side(w)?, side(h)?])
 }
 
 #[derive(Args)]
@@ -229,6 +246,7 @@ async fn import_cmd(a: ImportArgs) -> Result<()> {
     opts.limit = a.limit;
     opts.codec = a.codec;
     opts.scenes_per_part = a.scenes_per_part.max(1);
+    opts.resize = a.resize;
     let src: std::sync::Arc<dyn Source> = match a.format {
         Format::Clevr3d | Format::MsnEasy => std::sync::Arc::new(ObsurfSource::open(&a.src)?),
         Format::MsnHard => {

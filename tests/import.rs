@@ -393,9 +393,9 @@ fn msn_hard_shards_import_with_their_cameras_and_checksums() {
 /// CLEVR-3D's own 320×240 views with the `tiny` preset: the encoder's self-attention over
 /// 160 × 120 tokens needs tens of GiB, so on a 24 GiB machine `osrt train` refuses the
 /// job with the figures and what to change, before the coordinator or any worker
-/// starts (no run folder). The same job at 32×24 starts.
+/// starts (no run folder). Imported with `--resize 32x24` it trains.
 #[test]
-fn a_job_too_big_for_the_machine_is_refused_before_it_starts() {
+fn a_job_too_big_for_the_machine_is_refused_and_trains_resized() {
     let dir = tempfile::tempdir().unwrap();
     let train = |data: &Path, run: &Path| {
         Command::new(common::bin())
@@ -406,7 +406,7 @@ fn a_job_too_big_for_the_machine_is_refused_before_it_starts() {
                 "--workers",
                 "1",
                 "--max-steps",
-                "1",
+                "2",
             ])
             .arg("--data")
             .arg(data)
@@ -416,9 +416,10 @@ fn a_job_too_big_for_the_machine_is_refused_before_it_starts() {
             .output()
             .unwrap()
     };
-    let big = python_fixture("make_obsurf.py", dir.path(), "big", &["12", "320", "240"]);
+    let args = ["12", "320", "240", "32", "24"];
+    let src = python_fixture("make_obsurf.py", dir.path(), "big", &args);
     let data = dir.path().join("big-data");
-    let out = import(&big, &data, &[]);
+    let out = import(&src, &data, &[]);
     assert!(
         out.status.success(),
         "{}",
@@ -438,12 +439,74 @@ fn a_job_too_big_for_the_machine_is_refused_before_it_starts() {
     }
     assert!(!run.exists(), "the refused job made its run folder");
 
-    let small = release(dir.path(), 12);
     let data = dir.path().join("small-data");
-    assert!(import(&small, &data, &[]).status.success());
+    let out = import(&src, &data, &["--resize", "32x24"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    check_resized(&src, &data);
     let run = dir.path().join("small-run");
     let out = train(&data, &run);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
-    assert!(err.contains("estimated peak host RAM per worker"), "{err}");
+    assert!(err.contains("at 32×24 px"), "{err}");
+    // A resize that would enlarge is refused by name.
+    let out = import(&src, &dir.path().join("big2"), &["--resize", "640x480"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("only shrinks"),
+        "{err}"
+    );
+}
+
+/// The 32×24 import of the 320×240 release `src`: each image as Pillow's area-averaging
+/// BOX filter shrinks it (within 1 of 255: rounding), each mask pixel the source's id at
+/// the centre of its 10 × 10 block, each pixel's ray the camera model's at 32×24.
+fn check_resized(src: &Path, data: &Path) {
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(data.join("manifest.json")).unwrap())
+            .unwrap();
+    assert_eq!(m["image_size"], serde_json::json!([32, 24]), "{m}");
+    let rays = read_npz(&zip_of(&src.join("expected_small/rays.npy")), "rays").unwrap();
+    let rays = numbers(&rays["expected_rays"].values);
+    for s in read(data, "train") {
+        let id = s.id as usize;
+        for (v, view) in s.views.iter().enumerate() {
+            assert_eq!((view.width, view.height), (32, 24));
+            let pil = image::open(src.join(format!("expected_small/img_{id}_{v}.png")))
+                .unwrap()
+                .into_rgb8()
+                .into_raw();
+            let worst = view
+                .image
+                .iter()
+                .zip(&pil)
+                .map(|(a, b)| a.abs_diff(*b))
+                .max();
+            assert!(
+                worst <= Some(1),
+                "scene {id} view {v}: {worst:?} from Pillow's BOX"
+            );
+            let spelling = if id == 3 { "mask" } else { "masks" };
+            let mask = image::open(src.join(format!("masks/{spelling}_{id}_{v}.png")))
+                .unwrap()
+                .into_luma8();
+            let ours = view.mask.as_ref().unwrap();
+            for (i, id_here) in ours.iter().enumerate() {
+                let (x, y) = ((i % 32) as u32, (i / 32) as u32);
+                assert_eq!(*id_here, mask.get_pixel(10 * x + 5, 10 * y + 5).0[0]);
+            }
+            let ours = osrt_dataset::rays::view_rays(&view.camera, 32, 24);
+            let base = (id * 3 + v) * 24 * 32 * 3;
+            let worst = ours
+                .directions
+                .iter()
+                .zip(&rays[base..base + 24 * 32 * 3])
+                .map(|(a, b)| (*a as f64 - b).abs())
+                .fold(0.0, f64::max);
+            assert!(worst < 1e-5, "scene {id} view {v}: rays off by {worst}");
+        }
+    }
 }

@@ -24,6 +24,7 @@ pub mod math;
 pub mod palette;
 pub mod rays;
 pub mod reader;
+pub mod resize;
 pub mod scene;
 pub mod schema;
 pub mod writer;

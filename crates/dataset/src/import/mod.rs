@@ -148,6 +148,9 @@ pub struct ImportOptions {
     pub codec: ImageCodec,
     pub scenes_per_part: usize,
     pub scenes_per_row_group: usize,
+    /// `[width, height]` the views are shrunk to (`--resize`), `None`: the release's size.
+    #[serde(default)]
+    pub resize: Option<[u32; 2]>,
 }
 
 impl ImportOptions {
@@ -163,6 +166,7 @@ impl ImportOptions {
             codec: ImageCodec::Png,
             scenes_per_part: 64,
             scenes_per_row_group: 32,
+            resize: None,
         }
     }
 }
@@ -246,8 +250,15 @@ pub async fn import(
     opts: &ImportOptions,
     progress: bool,
 ) -> Result<Manifest> {
-    claim(out, opts).await?;
     let size = src.image_size()?;
+    if let Some(to) = opts.resize {
+        crate::resize::check_target(size, to).map_err(|reason| DatasetError::Import {
+            path: out.display.clone(),
+            reason,
+        })?;
+    }
+    claim(out, opts).await?;
+    let resize = opts.resize;
     let per_part = opts.scenes_per_part.max(1);
     let splits: Vec<(&str, Vec<u64>)> = opts
         .splits
@@ -277,7 +288,13 @@ pub async fn import(
             let (src, part) = (src.clone(), part.to_vec());
             let scenes: Vec<Scene> = tokio::task::spawn_blocking(move || {
                 part.par_iter()
-                    .map(|&i| same_size(src.scene(i)?, i, size))
+                    .map(|&i| {
+                        let scene = same_size(src.scene(i)?, i, size)?;
+                        Ok(match resize {
+                            Some(to) => crate::resize::resize_scene(scene, to),
+                            None => scene,
+                        })
+                    })
                     .collect::<Result<Vec<_>>>()
             })
             .await
@@ -314,7 +331,7 @@ pub async fn import(
     } else {
         objects
     };
-    let mut m = Manifest::new(src.image_size()?, views, objects).with_codec(opts.codec);
+    let mut m = Manifest::new(resize.unwrap_or(size), views, objects).with_codec(opts.codec);
     m.has_masks = src.has_masks();
     m.splits = manifest_splits;
     m.write(out).await?;
