@@ -444,7 +444,7 @@ impl Kills {
             "worker {k} was killed by SIGKILL twice at step {step}{rss}{machine}: the kernel's \
              out-of-memory killer, most likely, and a replacement would meet the same end. \
              Make the step smaller (--batch-size, --rays-per-scene, fewer workers, smaller \
-             images) or run on a machine with more memory"
+             images: osrt data import --resize) or run on a machine with more memory"
         ))
     }
 }

@@ -185,7 +185,7 @@ pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -
         "the job needs about {:.2} GiB{each} and {what} is {:.2} GiB. {}; a worker's \
          resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller: --batch-size (scenes per step), \
          --rays-per-scene (the decoder's share), --precision bf16 (GPU), fewer workers on \
-         this machine, or a dataset of smaller images; --skip-memory-check runs it anyway",
+         this machine, or smaller images (osrt data import --resize WxH); --skip-memory-check runs it anyway",
         need / GIB,
         available / GIB,
         m.describe()
