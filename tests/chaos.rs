@@ -57,8 +57,9 @@ fn signal(p: &Proc, sig: &str) {
 }
 
 fn final_bytes(run: &Path) -> (Vec<u8>, Vec<u8>) {
-    let dir = run.join(format!("checkpoints/step-{STEPS:09}"));
-    let read = |f: &str| std::fs::read(dir.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
+    let read = |f: &str| {
+        std::fs::read(checkpoint_file(run, STEPS, f)).unwrap_or_else(|e| panic!("{f}: {e}"))
+    };
     (read("model.safetensors"), read("optimizer.safetensors"))
 }
 

@@ -50,7 +50,7 @@ fn losses(run: &Path) -> Vec<(u64, f64)> {
 }
 
 fn checkpoint_bytes(run: &Path, step: u64, file: &str) -> Vec<u8> {
-    std::fs::read(run.join(format!("checkpoints/step-{step:09}/{file}"))).unwrap()
+    std::fs::read(checkpoint_file(run, step, file)).unwrap()
 }
 
 #[test]
@@ -136,7 +136,7 @@ fn a_torn_or_corrupt_checkpoint_is_skipped() {
     let run = dir.path().join("run");
     train(&data, &run, 15, &[]);
     // Corrupt step 15 (one byte of the weights) and tear step 10 (no manifest).
-    let model = run.join("checkpoints/step-000000015/model.safetensors");
+    let model = checkpoint_file(&run, 15, "model.safetensors");
     let mut bytes = std::fs::read(&model).unwrap();
     let n = bytes.len();
     bytes[n - 1] ^= 0x55;

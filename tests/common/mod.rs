@@ -111,6 +111,20 @@ pub fn train_tiny(data: &Path, run: &Path, steps: u64, extra: &[&str]) -> Output
     osrt(&args)
 }
 
+/// The file of a local run's checkpoint at `step` that holds `name` (`model.safetensors`,
+/// …): the object its manifest names (each writer's files have names of their own).
+pub fn checkpoint_file(run: &Path, step: u64, name: &str) -> std::path::PathBuf {
+    let dir = run.join(format!("checkpoints/step-{step:09}"));
+    let manifest = read_json(&dir.join("MANIFEST.json")).expect("a committed checkpoint");
+    let entry = manifest["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["name"] == name)
+        .unwrap_or_else(|| panic!("{name} not in {manifest}"));
+    dir.join(entry["object"].as_str().unwrap_or(name))
+}
+
 /// A free loopback port (bound and released; the race is harmless in tests).
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

@@ -4,15 +4,21 @@
 //! tensor, so the coordinator can list and verify checkpoints without a model.
 //!
 //! ```text
-//! RUN/checkpoints/step-000000120/model.safetensors      weights, by parameter name
-//! RUN/checkpoints/step-000000120/optimizer.safetensors  AdamW moments `m`, `v` (flat)
-//! RUN/checkpoints/step-000000120/state.json             step, epoch, data cursor, …
-//! RUN/checkpoints/step-000000120/MANIFEST.json          written last, PutMode::Create
+//! RUN/checkpoints/step-000000120/model.W.safetensors      weights, by parameter name
+//! RUN/checkpoints/step-000000120/optimizer.W.safetensors  AdamW moments `m`, `v` (flat)
+//! RUN/checkpoints/step-000000120/state.W.json             step, epoch, data cursor, …
+//! RUN/checkpoints/step-000000120/MANIFEST.json            written last
 //! ```
 //!
-//! A checkpoint exists only if its manifest is present and every file it lists has the
-//! listed size and SHA-256: a crash mid-write leaves no manifest, a corrupted file fails
-//! its hash, and either is skipped with a warning — never loaded.
+//! Every object is written create-only (`PutMode::Create`), the data files under names
+//! unique to their writer (`W`: 16 hex digits drawn per commit), so two writers at one
+//! step (a second job on the folder, a replayed step) never overwrite each other's files,
+//! and the first manifest wins; the loser deletes its files and adopts the winner's
+//! checkpoint if it holds the same bytes. The manifest names each file by what it is
+//! (`model.safetensors`, …) and by the object holding it. A checkpoint exists only if
+//! its manifest is present and every file it lists has the listed size and SHA-256: a
+//! crash mid-write leaves no manifest, a corrupted file fails its hash, and either is
+//! skipped with a warning — never loaded.
 
 use crate::error::{Result, RunError};
 use bytes::Bytes;
@@ -57,9 +63,44 @@ pub struct CheckpointState {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ManifestEntry {
+    /// What the file is: [`MODEL`], [`OPTIMIZER`] or [`STATE`].
     pub name: String,
+    /// The object in the checkpoint's folder that holds it (its writer's name); empty in
+    /// manifests written before objects were named per writer, whose object is `name`.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub object: String,
     pub size: u64,
     pub sha256: String,
+}
+
+impl ManifestEntry {
+    pub fn object(&self) -> &str {
+        if self.object.is_empty() {
+            &self.name
+        } else {
+            &self.object
+        }
+    }
+}
+
+/// `model.safetensors` as written by `writer`: `model.<writer>.safetensors`.
+fn object_name(name: &str, writer: &str) -> String {
+    match name.rsplit_once('.') {
+        Some((stem, ext)) => format!("{stem}.{writer}.{ext}"),
+        None => format!("{name}.{writer}"),
+    }
+}
+
+/// 16 hex digits, fresh for every commit.
+fn writer_tag() -> String {
+    format!("{:016x}", rand::random::<u64>())
+}
+
+fn create() -> PutOptions {
+    PutOptions {
+        mode: PutMode::Create,
+        ..Default::default()
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -123,16 +164,23 @@ pub async fn commit(
         // writing over its files.
         Err(e) => return Err(store_err(run, &manifest_path, e)),
     }
+    let writer = writer_tag();
     let mut entries = Vec::new();
-    for (name, bytes) in files {
-        let path = format!("{dir}/{name}");
+    for (name, bytes) in &files {
+        let object = object_name(name, &writer);
+        let path = format!("{dir}/{object}");
         entries.push(ManifestEntry {
             name: name.to_string(),
+            object,
             size: bytes.len() as u64,
-            sha256: sha256_hex(&bytes),
+            sha256: sha256_hex(bytes),
         });
         run.store
-            .put(&run.path(&path), PutPayload::from_bytes(bytes))
+            .put_opts(
+                &run.path(&path),
+                PutPayload::from_bytes(bytes.clone()),
+                create(),
+            )
             .await
             .map_err(|e| store_err(run, &path, e))?;
     }
@@ -141,17 +189,24 @@ pub async fn commit(
         files: entries,
     };
     let bytes = serde_json::to_vec_pretty(&manifest).expect("serialises");
-    run.store
-        .put_opts(
-            &run.path(&manifest_path),
-            PutPayload::from(bytes),
-            PutOptions {
-                mode: PutMode::Create,
-                ..Default::default()
-            },
-        )
+    match run
+        .store
+        .put_opts(&run.path(&manifest_path), PutPayload::from(bytes), create())
         .await
-        .map_err(|e| store_err(run, &manifest_path, e))?;
+    {
+        Ok(_) => {}
+        // Another writer committed this step meanwhile: its checkpoint stands; ours goes.
+        Err(object_store::Error::AlreadyExists { .. }) => {
+            for e in &manifest.files {
+                let path = format!("{dir}/{}", e.object);
+                if let Err(err) = run.store.delete(&run.path(&path)).await {
+                    tracing::warn!(path, error = %err, "could not delete a losing writer's file");
+                }
+            }
+            return adopt(run, state, &files).await;
+        }
+        Err(e) => return Err(store_err(run, &manifest_path, e)),
+    }
     tracing::info!(step, dir = %run.describe(&run.path(&dir)), "checkpoint committed");
     Ok(step)
 }
@@ -229,19 +284,13 @@ pub async fn list_steps(run: &Location) -> Result<Vec<u64>> {
 pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>> {
     let dir = step_dir(step);
     let mpath = format!("{dir}/{MANIFEST}");
-    let bytes = match run.store.get(&run.path(&mpath)).await {
-        Ok(r) => r.bytes().await.map_err(|e| store_err(run, &mpath, e))?,
-        Err(object_store::Error::NotFound { .. }) => {
-            return Err(store_err(
-                run,
-                &dir,
-                "no MANIFEST.json: the checkpoint was not finished (torn)",
-            ));
-        }
-        Err(e) => return Err(store_err(run, &mpath, e)),
+    let Some(manifest) = read_manifest(run, step).await? else {
+        return Err(store_err(
+            run,
+            &dir,
+            "no MANIFEST.json: the checkpoint was not finished (torn)",
+        ));
     };
-    let manifest: Manifest = serde_json::from_slice(&bytes)
-        .map_err(|e| store_err(run, &mpath, format!("unreadable manifest: {e}")))?;
     if manifest.step != step {
         return Err(store_err(
             run,
@@ -254,7 +303,7 @@ pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>>
     }
     let mut files = HashMap::new();
     for e in &manifest.files {
-        let path = format!("{dir}/{}", e.name);
+        let path = format!("{dir}/{}", e.object());
         let data = run
             .store
             .get(&run.path(&path))
@@ -292,6 +341,34 @@ pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>>
     Ok(files)
 }
 
+/// The manifest of the checkpoint at `step`, unverified; `None` where there is none.
+pub async fn read_manifest(run: &Location, step: u64) -> Result<Option<Manifest>> {
+    let mpath = format!("{}/{MANIFEST}", step_dir(step));
+    let bytes = match run.store.get(&run.path(&mpath)).await {
+        Ok(r) => r.bytes().await.map_err(|e| store_err(run, &mpath, e))?,
+        Err(object_store::Error::NotFound { .. }) => return Ok(None),
+        Err(e) => return Err(store_err(run, &mpath, e)),
+    };
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| store_err(run, &mpath, format!("unreadable manifest: {e}")))
+}
+
+/// The path under `run` of the object holding file `name` ([`MODEL`], …) of the
+/// checkpoint at `step`, as its manifest names it.
+pub async fn object_of(run: &Location, step: u64, name: &str) -> Result<String> {
+    let dir = step_dir(step);
+    let manifest = read_manifest(run, step)
+        .await?
+        .ok_or_else(|| store_err(run, &dir, "no MANIFEST.json"))?;
+    let entry = manifest
+        .files
+        .iter()
+        .find(|e| e.name == name)
+        .ok_or_else(|| store_err(run, &dir, format!("the manifest lists no {name}")))?;
+    Ok(format!("{dir}/{}", entry.object()))
+}
+
 /// The newest checkpoint that verifies (torn or corrupt ones are skipped with a warning),
 /// optionally the newest at or below `at_most`.
 pub async fn latest_verified(run: &Location, at_most: Option<u64>) -> Result<Option<u64>> {
@@ -321,10 +398,24 @@ pub async fn discard_after(run: &Location, step: Option<u64>) -> Result<Vec<u64>
     Ok(discarded)
 }
 
-/// Deletes one checkpoint folder, the manifest first (a half-deleted folder is torn).
+/// Deletes one checkpoint folder, the manifest first (a half-deleted folder is torn),
+/// then every object in it (every writer's).
 async fn delete_checkpoint(run: &Location, step: u64) -> Result<()> {
     let dir = step_dir(step);
-    for name in [MANIFEST, MODEL, OPTIMIZER, STATE] {
+    let mut names = vec![MANIFEST.to_string()];
+    let listing = run
+        .store
+        .list_with_delimiter(Some(&run.path(&dir)))
+        .await
+        .map_err(|e| store_err(run, &dir, e))?;
+    names.extend(
+        listing
+            .objects
+            .iter()
+            .filter_map(|o| o.location.filename().map(str::to_string))
+            .filter(|n| n != MANIFEST),
+    );
+    for name in names {
         let path = format!("{dir}/{name}");
         match run.store.delete(&run.path(&path)).await {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
@@ -354,7 +445,9 @@ pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64
     }
     let mut best: Option<(u64, (f64, f64))> = None;
     for &s in &steps {
-        let path = format!("{}/{STATE}", step_dir(s));
+        let Ok(path) = object_of(run, s, STATE).await else {
+            continue;
+        };
         let Ok(r) = run.store.get(&run.path(&path)).await else {
             continue;
         };

@@ -77,7 +77,11 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
     }
     assert_eq!(latest_verified(&run, None).await.unwrap(), Some(3));
     // Corrupt step 3's optimiser file; tear step 2 (manifest gone).
-    let p = run.path("checkpoints/step-000000003/optimizer.safetensors");
+    let p = run.path(
+        &checkpoint::object_of(&run, 3, checkpoint::OPTIMIZER)
+            .await
+            .unwrap(),
+    );
     let mut bytes = run
         .store
         .get(&p)
@@ -119,7 +123,11 @@ async fn a_committed_checkpoint_is_adopted_only_if_it_is_this_jobs() {
     let run = Location::parse("memory://ckpt-adopt/run").unwrap();
     let t = trainer();
     commit(&t, &run, state(5, None)).await;
-    let model = run.path("checkpoints/step-000000005/model.safetensors");
+    let model = run.path(
+        &checkpoint::object_of(&run, 5, checkpoint::MODEL)
+            .await
+            .unwrap(),
+    );
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     // The same step replayed: adopted.
     let mut again = state(5, None);
@@ -178,7 +186,11 @@ async fn a_transient_error_before_a_commit_never_overwrites() {
     let run = Location::new(store.clone(), "run");
     let t = trainer();
     commit(&t, &run, state(5, None)).await;
-    let model = run.path("checkpoints/step-000000005/model.safetensors");
+    let model = run.path(
+        &checkpoint::object_of(&run, 5, checkpoint::MODEL)
+            .await
+            .unwrap(),
+    );
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     store.fail_heads.store(1, Ordering::SeqCst);
     let other = trainer_with_seed(7);
@@ -228,4 +240,46 @@ async fn retention_keeps_the_newest_and_the_best() {
     for s in [50, 40, 20] {
         checkpoint::verify(&run, s).await.unwrap();
     }
+}
+
+/// Two writers commit one step at once (a second job on the folder): each writes its own
+/// create-only files, the first manifest wins, the loser is told and leaves nothing
+/// behind, and the winner's checkpoint verifies with the winner's bytes. Two writers of
+/// the same bytes both succeed.
+#[tokio::test]
+async fn two_writers_at_one_step_never_overwrite_each_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = Location::parse(dir.path().join("run").to_str().unwrap()).unwrap();
+    for round in 0..8u64 {
+        let (a, b) = (trainer(), trainer_with_seed(99 + round));
+        let step = 10 + round;
+        let (ra, rb) = tokio::join!(
+            Snapshot::take(&a, state(step, None)).unwrap().commit(&run),
+            Snapshot::take(&b, state(step, None)).unwrap().commit(&run),
+        );
+        assert!(ra.is_ok() != rb.is_ok(), "round {round}: {ra:?} / {rb:?}");
+        let loser = ra.as_ref().err().or(rb.as_ref().err()).unwrap().to_string();
+        assert!(loser.contains("another checkpoint is committed"), "{loser}");
+        let winner = if ra.is_ok() { &a } else { &b };
+        let mut loaded = trainer_with_seed(7);
+        checkpoint::load(&run, step, &mut loaded).await.unwrap();
+        let (got, want) = (
+            loaded.params.flatten().unwrap(),
+            winner.params.flatten().unwrap(),
+        );
+        assert!(got == want, "round {round}: the winner's weights");
+        let folder = dir.path().join(format!("run/checkpoints/step-{step:09}"));
+        let objects = std::fs::read_dir(&folder).unwrap().count();
+        assert_eq!(
+            objects, 4,
+            "round {round}: the manifest and the winner's 3 files"
+        );
+    }
+    let t = trainer();
+    let (ra, rb) = tokio::join!(
+        Snapshot::take(&t, state(40, None)).unwrap().commit(&run),
+        Snapshot::take(&t, state(40, None)).unwrap().commit(&run),
+    );
+    assert_eq!((ra.unwrap(), rb.unwrap()), (40, 40));
+    checkpoint::verify(&run, 40).await.unwrap();
 }
