@@ -77,13 +77,20 @@ struct MailboxState {
     /// pair only, for a peer cannot get past a step without this rank — and their bytes.
     early: Option<(u64, u64)>,
     early_bytes: usize,
-    /// Bytes of the last gradient this mailbox saw reduced (bounds `early_bytes`).
+    /// Bytes of the last gradient this mailbox saw reduced, and the most chunks of it
+    /// this rank receives in one all-reduce (together they bound `early_bytes`).
     gradient_bytes: usize,
+    gradient_chunks: usize,
 }
 
 /// Bound of unchecked early chunks before any gradient size is known: the round-0 share
 /// of a 2-worker ring at 67 M parameters (the `paper` preset's is 41 M floats).
 const EARLY_BYTES_DEFAULT: usize = 256 << 20;
+
+/// What an early chunk costs beside its payload (its key, its `Bytes` handle, its slot in
+/// the map), counted against the bound: chunks of a few bytes, or none, cannot pile up
+/// past it in numbers.
+const EARLY_ENTRY_COST: usize = 128;
 
 impl MailboxState {
     fn early_limit(&self) -> usize {
@@ -91,7 +98,9 @@ impl MailboxState {
             EARLY_BYTES_DEFAULT
         } else {
             // A peer sends at most its share of one step before it needs this rank's.
-            self.gradient_bytes + (MAX_CHUNK_FLOATS * 4)
+            self.gradient_bytes
+                + (MAX_CHUNK_FLOATS * 4)
+                + EARLY_ENTRY_COST * (self.gradient_chunks + 1)
         }
     }
 
@@ -107,7 +116,7 @@ impl MailboxState {
             .iter()
             .filter(|(k, _)| self.is_early(k))
             .collect();
-        self.early_bytes = early.iter().map(|(_, b)| b.len()).sum();
+        self.early_bytes = early.iter().map(|(_, b)| b.len() + EARLY_ENTRY_COST).sum();
         self.early = early.iter().map(|(k, _)| (k.0, k.1)).max();
     }
 }
@@ -157,6 +166,13 @@ impl Mailbox {
         let mut s = self.state.lock().expect("mailbox");
         s.min_step = step;
         s.gradient_bytes = layout.buckets.iter().map(|b| b.len() * 4).sum();
+        // Per bucket, 2 (W − 1) rounds of one segment, each in chunks of `chunk_floats`.
+        let (w, per) = (layout.world.max(1), layout.chunk_floats.max(1));
+        s.gradient_chunks = layout
+            .buckets
+            .iter()
+            .map(|b| 2 * (w - 1) * (b.len().div_ceil(w * per) + 1))
+            .sum();
         s.layout = Some(layout);
         let generation = s.generation;
         s.chunks.retain(|k, _| k.0 > generation || k.1 >= step);
@@ -184,16 +200,17 @@ impl Mailbox {
             s.recount_early();
         }
         let limit = s.early_limit();
-        if s.early_bytes + data.len() > limit {
+        let cost = data.len() + EARLY_ENTRY_COST;
+        if s.early_bytes + cost > limit {
             return Err(Status::resource_exhausted(format!(
                 "{} bytes of early chunks would exceed {limit}",
-                s.early_bytes + data.len()
+                s.early_bytes + cost
             )));
         }
         s.early = Some(pair);
-        s.early_bytes += data.len();
+        s.early_bytes += cost;
         if let Some(old) = s.chunks.insert(key, data) {
-            s.early_bytes -= old.len();
+            s.early_bytes -= old.len() + EARLY_ENTRY_COST;
         }
         Ok(())
     }

@@ -350,6 +350,39 @@ async fn chunks_kept_for_later_are_bounded() {
     assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e}");
 }
 
+/// Early chunks are bounded in number as well as bytes: a stream of empty chunks under
+/// distinct keys is refused once their bookkeeping reaches the bound.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn empty_early_chunks_cannot_pile_up() {
+    let nodes = start(2, "test-job").await;
+    let rings: Vec<Ring> = (0..2)
+        .map(|r| {
+            let cfg = config(&nodes, r, 1000, 1000, Duration::from_secs(5));
+            Ring::new(cfg, nodes[r].mailbox.clone()).unwrap()
+        })
+        .collect();
+    let tasks: Vec<Waiting> = rings
+        .into_iter()
+        .map(|r| all_reduce_in_background(r, 0))
+        .collect();
+    for t in tasks {
+        t.await.unwrap().0.unwrap();
+    }
+    nodes[1].mailbox.set_generation(2, 1);
+    let mut client = client_of(&nodes[1]).await;
+    // After an 8-float gradient the bound is about 1 MiB: some 8,200 entries.
+    for i in 0..20_000 {
+        let mut c = chunk("test-job", 2, 0, 0, vec![]);
+        c.tag.as_mut().unwrap().chunk = i;
+        if let Err(e) = push_one(&mut client, c).await {
+            assert_eq!(e.code(), tonic::Code::ResourceExhausted, "chunk {i}: {e}");
+            assert!(i > 1000, "refused after {i}");
+            return;
+        }
+    }
+    panic!("20,000 empty early chunks were all kept");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dead_peer_fails_the_round_within_the_deadline() {
     let nodes = start(2, "test-job").await;

@@ -21,6 +21,9 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 use tonic::Status;
 
+/// Steps whose parameter hashes the coordinator holds while waiting for every rank's.
+pub const MAX_PENDING_HASH_STEPS: usize = 64;
+
 /// What the job is: fixed for its lifetime (a `--resume` may extend the limits).
 #[derive(Debug, Clone)]
 pub struct JobSpec {
@@ -601,6 +604,13 @@ impl Core {
         }
         if let Some(h) = param_hash {
             let world = self.ring.len();
+            // A rank whose reports never arrive leaves every step short: the oldest go, so
+            // the map stays bounded whatever the job's length.
+            if !self.hashes.contains_key(&step) {
+                while self.hashes.len() >= MAX_PENDING_HASH_STEPS {
+                    self.hashes.pop_first();
+                }
+            }
             let entry = self.hashes.entry(step).or_default();
             entry.insert(rank, h);
             if entry.len() == world {

@@ -442,3 +442,23 @@ fn hashes_of_steps_that_can_no_longer_complete_are_dropped() {
         c.hashes.keys().collect::<Vec<_>>()
     );
 }
+
+/// A rank that never reports its hashes (every report lost) leaves every step short:
+/// the coordinator holds at most `MAX_PENDING_HASH_STEPS` of them, the newest.
+#[test]
+fn hashes_a_rank_never_reports_stay_bounded() {
+    let t = Instant::now();
+    let mut c = Core::new(spec(2, 2, 1), t);
+    let a = reg(&mut c, t);
+    let _b = reg(&mut c, t);
+    c.tick(t);
+    for step in 1..=1000 {
+        c.progress(prog(a, 1, 0, step, Some("h"), vec![]), t)
+            .unwrap();
+    }
+    assert_eq!(c.hashes.len(), MAX_PENDING_HASH_STEPS);
+    assert_eq!(
+        c.hashes.keys().next(),
+        Some(&(1001 - MAX_PENDING_HASH_STEPS as u64))
+    );
+}
