@@ -486,6 +486,32 @@ fn replace_exited(
     Ok(())
 }
 
+/// How long an interrupted `osrt train` waits for its coordinator's final write.
+const FINAL_WRITE_WAIT: Duration = Duration::from_secs(30);
+
+/// Stops an interrupted local job: the workers are killed, and the coordinator writes
+/// what it holds and releases the run folder's lease before this process ends (waited
+/// for, within [`FINAL_WRITE_WAIT`]: a store may hang). Returns the error to end with.
+async fn interrupted<T>(
+    mut stop: osrt_proto::Shutdown,
+    children: &mut [tokio::process::Child],
+    server: &mut tokio::task::JoinHandle<T>,
+) -> anyhow::Error {
+    stop.trigger();
+    for c in children.iter_mut() {
+        let _ = c.start_kill();
+    }
+    if tokio::time::timeout(FINAL_WRITE_WAIT, server)
+        .await
+        .is_err()
+    {
+        eprintln!("the coordinator's final write did not finish within {FINAL_WRITE_WAIT:?}");
+    }
+    anyhow::anyhow!(
+        "interrupted; the job continues from its last checkpoint with `osrt train --resume --run RUN`"
+    )
+}
+
 /// Runs the job on loopback; returns the final status.
 pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let token = Token::generate();
@@ -537,12 +563,8 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         tokio::select! {
             r = &mut server => break r??,
             _ = &mut ctrl_c => {
-                stop_coordinator.trigger();
                 bar.finish_and_clear();
-                for c in children.iter_mut() {
-                    let _ = c.start_kill();
-                }
-                bail!("interrupted; the job continues from its last checkpoint with `osrt train --resume --run RUN`");
+                return Err(interrupted(stop_coordinator, &mut children, &mut server).await);
             }
             _ = tokio::time::sleep(Duration::from_millis(250)) => {}
         }

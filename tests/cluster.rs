@@ -939,3 +939,49 @@ fn a_worker_killed_twice_at_one_step_ends_the_job_with_the_cause() {
         "{job}"
     );
 }
+
+/// SIGTERM stops `osrt train` gracefully: its coordinator writes what it holds (every
+/// record up to the last checkpoint) and releases the run folder's lease before the
+/// process ends, so `--resume` starts at once.
+#[test]
+fn osrt_train_stopped_by_sigterm_waits_for_its_final_write() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let mut launcher = std::process::Command::new(bin());
+    launcher
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--workers",
+            "2",
+            "--threads",
+            "1",
+        ])
+        .args(["--max-minutes", "2", "--data"])
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null());
+    let launcher = Proc(launcher.spawn().unwrap());
+    wait_job(&run, Duration::from_secs(60), |j| {
+        j["last_checkpoint"].as_u64().is_some_and(|s| s >= 10)
+    });
+    signal(&launcher, "TERM");
+    let mut launcher = launcher;
+    let status = launcher.wait_for_exit(Duration::from_secs(40));
+    assert_eq!(status.signal(), None, "handled, not killed: {status}");
+    assert!(
+        !run.join("lease.json").exists(),
+        "the lease was not released"
+    );
+    let job = read_json(&run.join("job.json")).unwrap();
+    let last = losses(&run).last().unwrap().0;
+    assert!(
+        last >= job["last_checkpoint"].as_u64().unwrap(),
+        "records up to step {last}, checkpoint {job}"
+    );
+}
