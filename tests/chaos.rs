@@ -1,9 +1,10 @@
 //! The cluster under a seeded schedule of faults, with real processes on loopback: a
-//! 2-worker job whose workers are killed, paused across the heartbeat timeout and
-//! restarted, and whose coordinator is killed and restarted with `--resume`, must end at
-//! the requested step with the weights of an uninterrupted run, bit for bit, with one
-//! training record per step, and never stall longer than a lost member takes to notice
-//! plus a margin.
+//! 2-worker and a 3-worker job whose workers are killed, paused across the heartbeat
+//! timeout and restarted, whose coordinator is killed and restarted with `--resume`, and
+//! beside whose live coordinator a second one is started on the same run folder (it must
+//! be refused), must end at the requested step with the weights of an uninterrupted run of
+//! as many workers, bit for bit, with one training record per step, and never stall
+//! longer than a lost member takes to notice plus a margin.
 
 mod common;
 
@@ -14,18 +15,18 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-const STEPS: u64 = 800;
+const STEPS: u64 = 1500;
 const SEED: u64 = 24;
 const HEARTBEAT_TIMEOUT_S: f64 = 3.0;
 const JOIN_GRACE_S: f64 = 0.5;
 
-/// The tiny preset as a fixed 2-worker job: a lost member is waited for, never trained
-/// around, so every generation has the same world size and the same data order.
-fn job_file(dir: &Path) -> PathBuf {
+/// The tiny preset as a fixed job of `workers` workers: a lost member is waited for,
+/// never trained around, so every generation has the same world size and data order.
+fn job_file(dir: &Path, workers: usize) -> PathBuf {
     let mut job = osrt_trainer::JobConfig::preset("tiny").unwrap();
     let c = &mut job.cluster;
-    c.min_workers = 2;
-    c.max_workers = 2;
+    c.min_workers = workers;
+    c.max_workers = workers;
     c.max_restarts = 1000;
     c.heartbeat_timeout_s = HEARTBEAT_TIMEOUT_S;
     c.join_grace_s = JOIN_GRACE_S;
@@ -85,6 +86,8 @@ enum Fault {
     PauseWorker(usize),
     /// SIGTERM a worker and start a new one at once.
     RestartWorker(usize),
+    /// Start a second coordinator on the live run folder: it must be refused.
+    SecondCoordinator,
 }
 
 /// Watches `job.json` for progress: the longest time the last checkpoint stood still.
@@ -120,16 +123,26 @@ impl Watch {
 }
 
 #[test]
-fn a_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights() {
+fn a_2_worker_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights() {
+    chaos(2, SEED);
+}
+
+#[test]
+fn a_3_worker_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights() {
+    chaos(3, SEED + 1);
+}
+
+/// The uninterrupted job of `n` workers, then the same job under the faults `seed` draws.
+fn chaos(n: usize, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_dataset(dir.path(), 64);
-    let job = job_file(dir.path());
+    let job = job_file(dir.path(), n);
 
     // The uninterrupted run.
     let reference = dir.path().join("reference");
     let port = free_port();
     let mut coord = start_coordinator(port, &data, &reference, &job, false);
-    let mut ws = [worker(port), worker(port)];
+    let mut ws: Vec<Proc> = (0..n).map(|_| worker(port)).collect();
     assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
     for w in &mut ws {
         assert!(w.wait_for_exit(Duration::from_secs(30)).success());
@@ -140,13 +153,14 @@ fn a_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights()
     let run = dir.path().join("chaos");
     let port = free_port();
     let mut coord = start_coordinator(port, &data, &run, &job, false);
-    let mut workers = [Some(worker(port)), Some(worker(port))];
-    let mut rng = ChaCha8Rng::seed_from_u64(SEED);
+    let mut workers: Vec<Option<Proc>> = (0..n).map(|_| Some(worker(port))).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut kinds = [
         Fault::KillWorker(0),
         Fault::KillCoordinator,
         Fault::PauseWorker(0),
         Fault::RestartWorker(0),
+        Fault::SecondCoordinator,
         Fault::KillWorker(0),
         Fault::KillCoordinator,
         Fault::PauseWorker(0),
@@ -159,7 +173,7 @@ fn a_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights()
     let schedule: Vec<(Fault, u64, Duration)> = kinds
         .iter()
         .map(|k| {
-            let w = rng.random_range(0..2);
+            let w = rng.random_range(0..n);
             let fault = match *k {
                 Fault::KillWorker(_) => Fault::KillWorker(w),
                 Fault::PauseWorker(_) => Fault::PauseWorker(w),
@@ -172,7 +186,7 @@ fn a_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights()
             (fault, steps, delay)
         })
         .collect();
-    eprintln!("seed {SEED}: schedule (fault, after steps, delay): {schedule:?}");
+    eprintln!("{n} workers, seed {seed}: schedule (fault, after steps, delay): {schedule:?}");
 
     let mut watch = Watch {
         value: 0,
@@ -214,6 +228,14 @@ fn a_job_under_a_seeded_schedule_of_faults_ends_with_the_uninterrupted_weights()
                 signal(workers[i].as_ref().unwrap(), "TERM");
                 let _ = workers[i].take().map(|mut p| p.0.wait());
                 workers[i] = Some(worker(port));
+            }
+            Fault::SecondCoordinator => {
+                let mut second = start_coordinator(free_port(), &data, &run, &job, true);
+                let status = second.wait_for_exit(Duration::from_secs(30));
+                assert!(
+                    !status.success(),
+                    "a second coordinator took the live run folder"
+                );
             }
         }
         let recovered = watch.until_past(&run, before, Duration::from_secs(60));
