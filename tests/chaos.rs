@@ -2,7 +2,7 @@
 //! 2-worker and a 3-worker job whose workers are killed, paused across the heartbeat
 //! timeout and restarted, whose coordinator is killed and restarted with `--resume`, and
 //! beside whose live coordinator a second one is started on the same run folder (it must
-//! be refused), must end at the requested step with the weights of an uninterrupted run of
+//! be refused), and whose rank 0 dies in the middle of writing a checkpoint, must end at the requested step with the weights of an uninterrupted run of
 //! as many workers, bit for bit, with one training record per step, and never stall
 //! longer than a lost member takes to notice plus a margin.
 
@@ -108,14 +108,22 @@ impl Watch {
         now
     }
 
-    /// Polls until the last checkpoint passes `beyond`; returns how long that took.
-    fn until_past(&mut self, run: &Path, beyond: u64, limit: Duration) -> Duration {
+    /// Polls until the last checkpoint passes `beyond`, calling `tick` between polls;
+    /// returns how long that took.
+    fn until_past(
+        &mut self,
+        run: &Path,
+        beyond: u64,
+        limit: Duration,
+        tick: &mut dyn FnMut(),
+    ) -> Duration {
         let t = Instant::now();
         while self.poll(run) <= beyond && job_state(run) != "done" {
             assert!(
                 t.elapsed() < limit,
                 "no checkpoint past {beyond} within {limit:?}"
             );
+            tick();
             std::thread::sleep(Duration::from_millis(50));
         }
         t.elapsed()
@@ -149,12 +157,36 @@ fn chaos(n: usize, seed: u64) {
     }
     let want = final_bytes(&reference);
 
-    // The same job under faults.
+    // The same job under faults. Besides the schedule, rank 0 aborts in the middle of
+    // writing one checkpoint (the torn-checkpoint hook, once, whichever worker is rank 0
+    // then); a worker that died that way is replaced like a killed one.
     let run = dir.path().join("chaos");
     let port = free_port();
     let mut coord = start_coordinator(port, &data, &run, &job, false);
-    let mut workers: Vec<Option<Proc>> = (0..n).map(|_| Some(worker(port))).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let torn_at = 10 * rng.random_range(30..60u64);
+    let marker = dir.path().join("torn-checkpoint");
+    let hook = [(
+        "OSRT_FAULT_TORN_CHECKPOINT".to_string(),
+        format!("{torn_at}:{}", marker.display()),
+    )];
+    let addr = format!("http://127.0.0.1:{port}");
+    let start_worker = || worker_env(&addr, &hook);
+    let mut workers: Vec<Option<Proc>> = (0..n).map(|_| Some(start_worker())).collect();
+    let replaced = std::cell::Cell::new(0);
+    // A worker that ended with an error while the job runs (not one that finished it).
+    let replace_dead = |workers: &mut Vec<Option<Proc>>| {
+        if job_state(&run) == "done" {
+            return;
+        }
+        for w in workers.iter_mut() {
+            let failed = |p: &mut Proc| p.0.try_wait().unwrap().is_some_and(|s| !s.success());
+            if w.as_mut().is_some_and(failed) {
+                *w = Some(start_worker());
+                replaced.set(replaced.get() + 1);
+            }
+        }
+    };
     let mut kinds = [
         Fault::KillWorker(0),
         Fault::KillCoordinator,
@@ -196,7 +228,9 @@ fn chaos(n: usize, seed: u64) {
     let mut recoveries = Vec::new();
     let mut at = 0;
     for (fault, steps, delay) in &schedule {
-        watch.until_past(&run, at + steps, Duration::from_secs(60));
+        watch.until_past(&run, at + steps, Duration::from_secs(60), &mut || {
+            replace_dead(&mut workers)
+        });
         std::thread::sleep(*delay);
         let before = watch.poll(&run);
         assert_ne!(
@@ -210,7 +244,7 @@ fn chaos(n: usize, seed: u64) {
                 signal(workers[i].as_ref().unwrap(), "KILL");
                 workers[i] = None;
                 std::thread::sleep(Duration::from_millis(rng.random_range(200..1500)));
-                workers[i] = Some(worker(port));
+                workers[i] = Some(start_worker());
             }
             Fault::KillCoordinator => {
                 signal(&coord, "KILL");
@@ -227,7 +261,7 @@ fn chaos(n: usize, seed: u64) {
             Fault::RestartWorker(i) => {
                 signal(workers[i].as_ref().unwrap(), "TERM");
                 let _ = workers[i].take().map(|mut p| p.0.wait());
-                workers[i] = Some(worker(port));
+                workers[i] = Some(start_worker());
             }
             Fault::SecondCoordinator => {
                 let mut second = start_coordinator(free_port(), &data, &run, &job, true);
@@ -238,7 +272,9 @@ fn chaos(n: usize, seed: u64) {
                 );
             }
         }
-        let recovered = watch.until_past(&run, before, Duration::from_secs(60));
+        let recovered = watch.until_past(&run, before, Duration::from_secs(60), &mut || {
+            replace_dead(&mut workers)
+        });
         let total = injected.elapsed();
         eprintln!(
             "{fault:?} at checkpoint {before}: training past it again {:.1} s after the fault \
@@ -249,9 +285,25 @@ fn chaos(n: usize, seed: u64) {
         recoveries.push(total);
         at = watch.poll(&run);
     }
-    let status = coord.wait_for_exit(Duration::from_secs(120));
+    let t = Instant::now();
+    let status = loop {
+        if let Some(s) = coord.0.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the job did not end"
+        );
+        replace_dead(&mut workers);
+        std::thread::sleep(Duration::from_millis(50));
+    };
     watch.poll(&run);
     assert!(status.success(), "coordinator: {status}");
+    assert!(marker.exists(), "rank 0 never wrote checkpoint {torn_at}");
+    eprintln!(
+        "rank 0 aborted writing checkpoint {torn_at}; {} worker(s) found dead and replaced",
+        replaced.get()
+    );
     for w in workers.iter_mut().flatten() {
         assert!(w.wait_for_exit(Duration::from_secs(30)).success());
     }
@@ -273,8 +325,10 @@ fn chaos(n: usize, seed: u64) {
         .map(|r| r["step"].as_u64().unwrap())
         .collect();
     assert_eq!(steps, (1..=STEPS).collect::<Vec<_>>());
-    // No stall longer than noticing a lost member, re-forming, and a margin.
-    let bound = Duration::from_secs_f64(HEARTBEAT_TIMEOUT_S + JOIN_GRACE_S + 10.0);
+    // No stall longer than noticing a lost member, re-forming, and a margin, twice: the
+    // torn checkpoint's crash comes whenever rank 0 reaches its step, and may fall
+    // within a scheduled fault's recovery.
+    let bound = Duration::from_secs_f64(2.0 * (HEARTBEAT_TIMEOUT_S + JOIN_GRACE_S) + 10.0);
     let mut sorted = recoveries.clone();
     sorted.sort();
     eprintln!(

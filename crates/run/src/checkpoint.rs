@@ -183,6 +183,7 @@ pub async fn commit(
             )
             .await
             .map_err(|e| store_err(run, &path, e))?;
+        torn_checkpoint_fault(step);
     }
     let manifest = Manifest {
         step,
@@ -210,6 +211,39 @@ pub async fn commit(
     tracing::info!(step, dir = %run.describe(&run.path(&dir)), "checkpoint committed");
     Ok(step)
 }
+
+/// With the `fault-injection` feature, `OSRT_FAULT_TORN_CHECKPOINT=STEP:MARKER` makes the
+/// process exit at once (no unwinding, nothing more written: as a crash would) after
+/// writing a file of checkpoint STEP, once: MARKER is created first, and a process that
+/// finds it goes on. Tests leave a torn checkpoint behind a crash
+/// with it (`tests/chaos.rs`).
+#[cfg(feature = "fault-injection")]
+pub const TORN_CHECKPOINT_ENV: &str = "OSRT_FAULT_TORN_CHECKPOINT";
+
+#[cfg(feature = "fault-injection")]
+fn torn_checkpoint_fault(step: u64) {
+    let Ok(v) = std::env::var(TORN_CHECKPOINT_ENV) else {
+        return;
+    };
+    let Some((at, marker)) = v.split_once(':') else {
+        return;
+    };
+    if at.parse() != Ok(step) {
+        return;
+    }
+    let first = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(marker)
+        .is_ok();
+    if first {
+        eprintln!("fault injection: exiting in the middle of writing checkpoint {step}");
+        std::process::exit(70);
+    }
+}
+
+#[cfg(not(feature = "fault-injection"))]
+fn torn_checkpoint_fault(_step: u64) {}
 
 /// Accepts the checkpoint already committed at this step if it verifies and holds
 /// these weights and optimizer state under this config and world size.
