@@ -282,6 +282,27 @@ async fn stale_foreign_and_malformed_chunks_are_rejected() {
     the_round_fails_at_once_on_the_malformed_chunk(waiting, t).await;
 }
 
+/// Two ranks that reduced a gradient of the test's size (so the mailbox's bound on early
+/// chunks follows it), rank 1 then in generation 2.
+async fn two_ranks_past_a_small_all_reduce() -> Vec<Node> {
+    let nodes = start(2, "test-job").await;
+    let rings: Vec<Ring> = (0..2)
+        .map(|r| {
+            let cfg = config(&nodes, r, 1000, 1000, Duration::from_secs(5));
+            Ring::new(cfg, nodes[r].mailbox.clone()).unwrap()
+        })
+        .collect();
+    let tasks: Vec<Waiting> = rings
+        .into_iter()
+        .map(|r| all_reduce_in_background(r, 0))
+        .collect();
+    for t in tasks {
+        t.await.unwrap().0.unwrap();
+    }
+    nodes[1].mailbox.set_generation(2, 1);
+    nodes
+}
+
 /// What a rank keeps for later is bounded: chunks at most one step ahead (checked like
 /// the current step's), early chunks of one `(generation, step)` only, at most one
 /// generation ahead, and no more bytes of them than a gradient.
@@ -321,21 +342,7 @@ async fn chunks_kept_for_later_are_bounded() {
     assert!(e.message().contains("stale early chunk"), "{e}");
     drop(waiting);
     // After a gradient of 8 floats was reduced, early chunks may total 32 bytes + 1 MiB.
-    let nodes = start(2, "test-job").await;
-    let rings: Vec<Ring> = (0..2)
-        .map(|r| {
-            let cfg = config(&nodes, r, 1000, 1000, Duration::from_secs(5));
-            Ring::new(cfg, nodes[r].mailbox.clone()).unwrap()
-        })
-        .collect();
-    let tasks: Vec<Waiting> = rings
-        .into_iter()
-        .map(|r| all_reduce_in_background(r, 0))
-        .collect();
-    for t in tasks {
-        t.await.unwrap().0.unwrap();
-    }
-    nodes[1].mailbox.set_generation(2, 1);
+    let nodes = two_ranks_past_a_small_all_reduce().await;
     let channel = tonic::transport::Endpoint::from_shared(nodes[1].addr.clone())
         .unwrap()
         .connect()
@@ -354,21 +361,7 @@ async fn chunks_kept_for_later_are_bounded() {
 /// distinct keys is refused once their bookkeeping reaches the bound.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn empty_early_chunks_cannot_pile_up() {
-    let nodes = start(2, "test-job").await;
-    let rings: Vec<Ring> = (0..2)
-        .map(|r| {
-            let cfg = config(&nodes, r, 1000, 1000, Duration::from_secs(5));
-            Ring::new(cfg, nodes[r].mailbox.clone()).unwrap()
-        })
-        .collect();
-    let tasks: Vec<Waiting> = rings
-        .into_iter()
-        .map(|r| all_reduce_in_background(r, 0))
-        .collect();
-    for t in tasks {
-        t.await.unwrap().0.unwrap();
-    }
-    nodes[1].mailbox.set_generation(2, 1);
+    let nodes = two_ranks_past_a_small_all_reduce().await;
     let mut client = client_of(&nodes[1]).await;
     // After an 8-float gradient the bound is about 1 MiB: some 8,200 entries.
     for i in 0..20_000 {

@@ -107,6 +107,14 @@ mod pool {
     use candle_core::Device;
     use candle_core::cuda_backend::cudarc::driver::{DriverError, result, sys};
 
+    /// GPU `ordinal`'s total memory in bytes, as the driver reports it.
+    pub fn total_bytes(ordinal: usize) -> Option<usize> {
+        result::init().ok()?;
+        let dev = result::device::get(i32::try_from(ordinal).ok()?).ok()?;
+        // SAFETY: `dev` is a handle the driver just returned; the call writes a size.
+        unsafe { result::device::total_mem(dev) }.ok()
+    }
+
     fn default_pool(device: &Device) -> Option<sys::CUmemoryPool> {
         let Device::Cuda(d) = device else { return None };
         let ctx = d.cuda_stream().context().clone();
@@ -246,14 +254,7 @@ fn open_cuda(ordinal: usize) -> Result<Device> {
 pub fn gpu_memory(ordinal: usize) -> Option<f64> {
     #[cfg(feature = "cuda")]
     {
-        use candle_core::cuda_backend::cudarc::driver::result;
-        result::init().ok()?;
-        let dev = result::device::get(i32::try_from(ordinal).ok()?).ok()?;
-        #[allow(unsafe_code)]
-        // SAFETY: `dev` is a device handle the driver just returned; the call only
-        // writes the size into a local.
-        let bytes = unsafe { result::device::total_mem(dev) }.ok()?;
-        Some(bytes as f64)
+        pool::total_bytes(ordinal).map(|b| b as f64)
     }
     #[cfg(not(feature = "cuda"))]
     {
