@@ -490,10 +490,12 @@ fn local_writes_are_synced() {
 /// Runs `osrt args… out` under strace; returns the paths of the files and folders it
 /// synced (`fsync`/`fdatasync` that returned 0).
 fn synced_paths(dir: &Path, args: &[&str], out: &Path) -> Vec<String> {
-    let log = dir.join("strace.log");
+    // One log per thread (`-ff`): a call another thread interrupts is not split into
+    // "unfinished" and "resumed" lines.
+    let logs = tempfile::tempdir_in(dir).unwrap();
     let status = Command::new("strace")
-        .args(["-f", "-y", "-e", "trace=fsync,fdatasync", "-o"])
-        .arg(&log)
+        .args(["-f", "-ff", "-y", "-e", "trace=fsync,fdatasync", "-o"])
+        .arg(logs.path().join("trace"))
         .arg(bin())
         .args(args)
         .arg(out)
@@ -503,12 +505,18 @@ fn synced_paths(dir: &Path, args: &[&str], out: &Path) -> Vec<String> {
         .unwrap();
     assert!(status.success(), "osrt {args:?} under strace");
     // `fsync(7</tmp/…/manifest.json#12>) = 0`: with -y, the path behind each descriptor.
-    std::fs::read_to_string(&log)
-        .unwrap()
-        .lines()
-        .filter(|l| (l.contains("fsync(") || l.contains("fdatasync(")) && l.ends_with("= 0"))
-        .filter_map(|l| Some(l.split_once('<')?.1.rsplit_once(">)")?.0.to_string()))
-        .collect()
+    let mut synced = Vec::new();
+    for log in std::fs::read_dir(logs.path()).unwrap() {
+        let text = std::fs::read_to_string(log.unwrap().path()).unwrap();
+        synced.extend(
+            text.lines()
+                .filter(|l| {
+                    (l.contains("fsync(") || l.contains("fdatasync(")) && l.ends_with("= 0")
+                })
+                .filter_map(|l| Some(l.split_once('<')?.1.rsplit_once(">)")?.0.to_string())),
+        );
+    }
+    synced
 }
 
 /// Every path of `wanted` was synced: itself, or the temporary file it was renamed from
