@@ -137,17 +137,18 @@ pub async fn memory_check(
     if here == 0 {
         return Ok(());
     }
-    let Some((available, what)) = osrt_trainer::footprint::machine_memory(job.train.device) else {
-        return Ok(());
-    };
-    let Some(why) = osrt_trainer::footprint::refusal(&m, here, (available, &what)) else {
-        return Ok(());
-    };
-    if skip || !m.checked {
-        eprintln!("warning: {why}");
-        return Ok(());
+    match osrt_trainer::footprint::fit_here(&m, here) {
+        Ok(None) => Ok(()),
+        Ok(Some(why)) => {
+            eprintln!("warning: {why}");
+            Ok(())
+        }
+        Err(why) if skip => {
+            eprintln!("warning (--skip-memory-check): {why}");
+            Ok(())
+        }
+        Err(why) => bail!("{why}"),
     }
-    bail!("{why}")
 }
 
 /// The job as the coordinator receives it, the command line's overrides applied; a

@@ -185,6 +185,12 @@ impl Ledger {
 /// A linear layer `[rows, i] → [rows, o]` (fused: one node; composed: the product, and
 /// the bias add as a second node).
 fn linear(l: &mut Ledger, rows: usize, i: usize, o: usize, bias: bool) {
+    linear_then(l, rows, (i, o), bias, bias && !l.fused());
+}
+
+/// [`linear`], with the bias add as a node of its own or not (`bias_node`: on a GPU an
+/// MLP's bias add is one node with the activation).
+fn linear_then(l: &mut Ledger, rows: usize, (i, o): (usize, usize), bias: bool, bias_node: bool) {
     l.cast(rows * i);
     l.op(Op {
         held: f32s(rows * o),
@@ -192,7 +198,7 @@ fn linear(l: &mut Ledger, rows: usize, i: usize, o: usize, bias: bool) {
         params: i * o + if bias { o } else { 0 },
         ..Op::default()
     });
-    if bias && !l.fused() {
+    if bias_node {
         l.node(rows * o);
     }
 }
@@ -234,7 +240,8 @@ fn mlp(l: &mut Ledger, rows: usize, dims: &[usize]) {
     }
     for w in dims.windows(2) {
         // On a GPU the bias add and the activation are one node.
-        linear(l, rows, w[0], w[1], !l.gpu());
+        let bias_node = !l.gpu();
+        linear_then(l, rows, (w[0], w[1]), true, bias_node);
     }
     l.node(rows * hidden);
 }

@@ -31,6 +31,8 @@ pub struct StepMemory {
     /// Whether this op path's estimate is checked against measured peaks (the fused
     /// CPU step's is, in `tests/memory_estimate.rs`); the others are counts from the code.
     pub checked: bool,
+    /// Where the step runs (whose memory it is held against).
+    pub device: DeviceSpec,
 }
 
 impl StepMemory {
@@ -118,6 +120,7 @@ pub fn estimate(
         activations: f.activations,
         shape,
         checked: path == OpPath::Fused,
+        device: t.device,
     })
 }
 
@@ -166,6 +169,21 @@ pub fn with_headroom(step: f64) -> f64 {
     1.35 * step + 0.5 * GIB
 }
 
+/// Whether `workers` workers of `m` fit this machine ([`machine_memory`]): `Ok(None)`
+/// where they do or its memory cannot be read; `Ok(Some(why))` where they may not but
+/// this op path's estimate is not checked against measured peaks (a warning);
+/// `Err(why)` where they do not.
+pub fn fit_here(m: &StepMemory, workers: usize) -> Result<Option<String>, String> {
+    let Some((available, what)) = machine_memory(m.device) else {
+        return Ok(None);
+    };
+    match refusal(m, workers, (available, &what)) {
+        None => Ok(None),
+        Some(why) if !m.checked => Ok(Some(why)),
+        Some(why) => Err(why),
+    }
+}
+
 /// Why `workers` workers of `m` each cannot run in `available` bytes of `what`, and what
 /// to change; `None` where they fit with [`with_headroom`].
 pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -> Option<String> {
@@ -197,7 +215,7 @@ mod tests {
     use super::*;
 
     /// The ledger reaches every parameter once: its count is the model's, for every
-    /// preset and every counted decoder.
+    /// preset, every counted decoder and every op path (fused, composed, GPU).
     #[test]
     fn the_ledger_counts_every_parameter_once() {
         for preset in ["tiny", "clevr-lite-cpu", "paper", "msn-hard"] {
@@ -208,8 +226,18 @@ mod tests {
                 osrt_model::Osrt::new(&job.model, p.var_builder(&candle_core::Device::Cpu))
                     .unwrap();
                 let params = p.num_elements();
-                let m = estimate(&job, [64, 64], 1, 2).unwrap();
-                assert_eq!(m.weights, 4.0 * params as f64, "{preset} with {decoder}");
+                let mut composed = job.clone();
+                composed.train.kernels = Kernels::Composed;
+                let mut gpu = job.clone();
+                gpu.train.device = DeviceSpec::Cuda(0);
+                for (path, j) in [("fused", &job), ("composed", &composed), ("gpu", &gpu)] {
+                    let m = estimate(j, [64, 64], 1, 2).unwrap();
+                    assert_eq!(
+                        m.weights,
+                        4.0 * params as f64,
+                        "{preset}, {decoder}, {path}"
+                    );
+                }
             }
         }
     }

@@ -558,23 +558,22 @@ async fn check_memory(job: &JobConfig, plan: &WorkerPlan, threads: usize) -> Res
     let Ok(manifest) = osrt_dataset::Manifest::read(&data).await else {
         return Ok(());
     };
-    let footprint =
-        osrt_trainer::footprint::estimate(job, manifest.image_size, plan.world(), threads);
-    let memory = osrt_trainer::footprint::machine_memory(job.train.device);
-    let (Some(m), Some((available, what))) = (footprint, memory) else {
+    let Some(m) =
+        osrt_trainer::footprint::estimate(job, manifest.image_size, plan.world(), threads)
+    else {
         return Ok(());
     };
-    let Some(why) = osrt_trainer::footprint::refusal(&m, 1, (available, &what)) else {
-        return Ok(());
-    };
-    if !m.checked {
-        tracing::warn!("{why}");
-        return Ok(());
+    match osrt_trainer::footprint::fit_here(&m, 1) {
+        Ok(None) => Ok(()),
+        Ok(Some(why)) => {
+            tracing::warn!("{why}");
+            Ok(())
+        }
+        Err(why) => Err(TrainError::Device(format!(
+            "this worker's machine cannot hold the job's step: {why}"
+        ))
+        .into()),
     }
-    Err(TrainError::Device(format!(
-        "this worker's machine cannot hold the job's step: {why}"
-    ))
-    .into())
 }
 
 /// The plan's job config (with this worker's `--device`), checked (its memory too, unless
