@@ -90,6 +90,8 @@ pub enum CollectiveError {
 pub struct RingConfig {
     pub job: String,
     pub generation: u64,
+    /// The number of the generation's first all-reduce ([`Mailbox::set_generation`]).
+    pub first_step: u64,
     pub rank: usize,
     /// `http://host:port` of every rank's collective server, in ring order.
     pub peers: Vec<String>,
@@ -265,7 +267,7 @@ impl Ring {
             .keep_alive_timeout(KEEP_ALIVE_TIMEOUT)
             .keep_alive_while_idle(true)
             .tcp_nodelay(true);
-        mailbox.set_generation(cfg.generation, cfg.rank);
+        mailbox.set_generation(cfg.generation, cfg.rank, cfg.first_step);
         Ok(Self {
             auth: cfg.token.header(),
             cfg,

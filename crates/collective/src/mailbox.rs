@@ -72,10 +72,8 @@ struct MailboxState {
     /// Set by the worker when the coordinator moved on: every wait of this generation
     /// fails at once instead of running into its deadline.
     aborted: Option<String>,
-    /// Chunks kept before they could be checked (a peer already in the next generation,
-    /// or in this one before this rank's first step): their `(generation, step)` — one
-    /// pair only, for a peer cannot get past a step without this rank — and their bytes.
-    early: Option<(u64, u64)>,
+    /// Bytes of the chunks kept before they could be checked (a peer already in the next
+    /// generation, or in this one before this rank's first step, or one step ahead).
     early_bytes: usize,
     /// Bytes of the last gradient this mailbox saw reduced, and the most chunks of it
     /// this rank receives in one all-reduce (together they bound `early_bytes`).
@@ -117,7 +115,6 @@ impl MailboxState {
             .filter(|(k, _)| self.is_early(k))
             .collect();
         self.early_bytes = early.iter().map(|(_, b)| b.len() + EARLY_ENTRY_COST).sum();
-        self.early = early.iter().map(|(k, _)| (k.0, k.1)).max();
     }
 }
 
@@ -141,17 +138,24 @@ impl Mailbox {
     }
 
     /// Starts a new generation (membership changed): older traffic becomes stale.
-    pub fn set_generation(&self, generation: u64, rank: usize) {
+    ///
+    /// `first_step` is the number of the generation's first all-reduce (0 for the
+    /// weights' broadcast of a fresh job, `s + 1` for the gradient of a job resumed at
+    /// step `s`): before this rank reaches it, a peer can only have sent chunks of it or
+    /// of the one after, so anything else kept for this generation is dropped.
+    pub fn set_generation(&self, generation: u64, rank: usize, first_step: u64) {
         let mut s = self.state.lock().expect("mailbox");
         s.generation = generation;
         s.rank = rank;
         // Keep chunks a faster peer already sent for this generation.
-        s.chunks.retain(|k, _| k.0 >= generation);
+        let first = first_step..=first_step.saturating_add(1);
+        s.chunks
+            .retain(|k, _| k.0 > generation || (k.0 == generation && first.contains(&k.1)));
         s.failure = None;
         s.aborted = None;
         // A new generation restarts from a checkpoint: its steps may be lower than the
-        // last generation's, so nothing about them is stale yet.
-        s.min_step = 0;
+        // last generation's.
+        s.min_step = first_step;
         s.layout = None;
         s.recount_early();
     }
@@ -181,24 +185,11 @@ impl Mailbox {
     }
 
     /// Keeps a chunk that cannot be checked yet, within the bounds of what a live peer
-    /// sends ahead of this rank.
+    /// sends ahead of this rank. Chunks of several steps may wait at once: a live peer
+    /// sends those of one only, but which one is not known before this rank gets there
+    /// (a chunk of the next generation names a step nobody can check yet), and refusing
+    /// the others would let one bogus chunk shut the real ones out.
     fn keep_early(s: &mut MailboxState, key: Key, data: Bytes) -> Result<(), Status> {
-        let pair = (key.0, key.1);
-        if let Some((g, st)) = s.early
-            && (g, st) != pair
-        {
-            if pair < (g, st) {
-                return Err(Status::failed_precondition(format!(
-                    "stale early chunk of generation {}, step {}: chunks of generation {g}, \
-                     step {st} are waiting",
-                    pair.0, pair.1
-                )));
-            }
-            // The peer moved on: what it sent ahead for an older step or generation will
-            // never be used (a live peer cannot pass a step without this rank's chunks).
-            s.chunks.retain(|k, _| (k.0, k.1) != (g, st));
-            s.recount_early();
-        }
         let limit = s.early_limit();
         let cost = data.len() + EARLY_ENTRY_COST;
         if s.early_bytes + cost > limit {
@@ -207,7 +198,6 @@ impl Mailbox {
                 s.early_bytes + cost
             )));
         }
-        s.early = Some(pair);
         s.early_bytes += cost;
         if let Some(old) = s.chunks.insert(key, data) {
             s.early_bytes -= old.len() + EARLY_ENTRY_COST;
@@ -264,6 +254,14 @@ impl Mailbox {
         if phase == Phase::Unspecified {
             return Err(Status::invalid_argument("chunk phase unspecified"));
         }
+        if tag.step > s.min_step.saturating_add(1) {
+            // Refused, without failing the round that waits: one chunk from too far
+            // ahead must not shut the real ones out.
+            return Err(Status::failed_precondition(format!(
+                "chunk of step {}, this rank is at step {}: a peer is at most one step ahead",
+                tag.step, s.min_step
+            )));
+        }
         let Some(layout) = s.layout.clone() else {
             // The local worker has not reached its first step of the generation: keep
             // it, bounded; validate on use.
@@ -272,15 +270,7 @@ impl Mailbox {
             return Ok(());
         };
         let (rank, min_step) = (s.rank, s.min_step);
-        let problem = if tag.step > min_step + 1 {
-            Some(format!(
-                "chunk of step {}, this rank is at step {min_step}: a peer is at most one step ahead",
-                tag.step
-            ))
-        } else {
-            validate(&layout, rank, min_step, &tag, phase, chunk.data.len())
-        };
-        if let Some(msg) = problem {
+        if let Some(msg) = validate(&layout, rank, min_step, &tag, phase, chunk.data.len()) {
             s.failure = Some(msg.clone());
             self.notify.notify_waiters();
             return Err(Status::invalid_argument(msg));

@@ -58,6 +58,7 @@ fn config(
     RingConfig {
         job: "test-job".into(),
         generation: 1,
+        first_step: 0,
         rank,
         peers: nodes.iter().map(|n| n.addr.clone()).collect(),
         bucket_floats: bucket,
@@ -203,7 +204,7 @@ fn all_reduce_in_background(mut ring: Ring, step: u64) -> Waiting {
 /// `chunk_floats`); rank 0 is in generation 1 but never joins: the test speaks for it.
 async fn rank_1_waiting(chunk_floats: usize) -> (Vec<Node>, Waiting) {
     let nodes = start(2, "test-job").await;
-    nodes[0].mailbox.set_generation(1, 0);
+    nodes[0].mailbox.set_generation(1, 0, 3);
     let cfg = config(&nodes, 1, 1000, chunk_floats, Duration::from_secs(5));
     let ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
     let waiting = all_reduce_in_background(ring, 3);
@@ -299,13 +300,13 @@ async fn two_ranks_past_a_small_all_reduce() -> Vec<Node> {
     for t in tasks {
         t.await.unwrap().0.unwrap();
     }
-    nodes[1].mailbox.set_generation(2, 1);
+    nodes[1].mailbox.set_generation(2, 1, 0);
     nodes
 }
 
 /// What a rank keeps for later is bounded: chunks at most one step ahead (checked like
-/// the current step's), early chunks of one `(generation, step)` only, at most one
-/// generation ahead, and no more bytes of them than a gradient.
+/// the current step's), at most one generation ahead, and no more bytes of them than a
+/// gradient.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn chunks_kept_for_later_are_bounded() {
     let (nodes, waiting) = rank_1_waiting(1000).await;
@@ -331,15 +332,13 @@ async fn chunks_kept_for_later_are_bounded() {
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition);
     assert!(e.message().contains("at most one ahead"), "{e}");
-    // Generation 2, step 1 is kept early; step 0 of it is then stale (one step of a
-    // generation waits at a time: a newer one replaces it).
-    push_one(&mut client, chunk("test-job", 2, 1, 0, vec![0.0; 4]))
-        .await
-        .unwrap();
-    let e = push_one(&mut client, chunk("test-job", 2, 0, 0, vec![0.0; 4]))
-        .await
-        .unwrap_err();
-    assert!(e.message().contains("stale early chunk"), "{e}");
+    // Generation 2's steps cannot be checked before rank 1 gets there: steps 1 and 0 of
+    // it are both kept (within the bytes bound below).
+    for step in [1, 0] {
+        push_one(&mut client, chunk("test-job", 2, step, 0, vec![0.0; 4]))
+            .await
+            .unwrap();
+    }
     drop(waiting);
     // After a gradient of 8 floats was reduced, early chunks may total 32 bytes + 1 MiB.
     let nodes = two_ranks_past_a_small_all_reduce().await;
@@ -355,6 +354,54 @@ async fn chunks_kept_for_later_are_bounded() {
     big.tag.as_mut().unwrap().chunk = 1;
     let e = push_one(&mut client, big).await.unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e}");
+}
+
+/// Sends one chunk of all-reduce `step` from "rank 0" of `generation` to `node`, as a
+/// peer holding the job's token but sending nonsense would.
+async fn push_bogus(node: &Node, generation: u64, step: u64) -> Result<(), tonic::Status> {
+    let mut client = client_of(node).await;
+    push_one(
+        &mut client,
+        chunk("test-job", generation, step, 0, vec![0.0; 4]),
+    )
+    .await
+    .map(|_| ())
+}
+
+/// The two ranks of `nodes` run all-reduce `step` of 8 ones in `generation`; both must
+/// end with eights.
+async fn both_ranks_reduce(nodes: &[Node], generation: u64, step: u64) {
+    let tasks: Vec<Waiting> = (0..2)
+        .map(|r| {
+            let mut cfg = config(nodes, r, 1000, 1000, Duration::from_secs(5));
+            cfg.generation = generation;
+            cfg.first_step = step;
+            all_reduce_in_background(Ring::new(cfg, nodes[r].mailbox.clone()).unwrap(), step)
+        })
+        .collect();
+    for t in tasks {
+        let (r, buf, _) = t.await.unwrap();
+        r.unwrap();
+        assert_eq!(buf, vec![2.0; 8]);
+    }
+}
+
+/// A chunk from far ahead (step `u64::MAX`) that reaches a rank before its first
+/// all-reduce of a generation, or while it is still in the previous generation, does not
+/// shut out the real chunks: the generation's all-reduce goes through.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chunk_from_far_ahead_does_not_fail_the_generation() {
+    let nodes = start(2, "test-job").await;
+    // Rank 1 is in generation 1, whose first all-reduce is number 5; it has not got there.
+    nodes[1].mailbox.set_generation(1, 1, 5);
+    let e = push_bogus(&nodes[1], 1, u64::MAX).await.unwrap_err();
+    assert!(e.message().contains("at most one step ahead"), "{e}");
+    both_ranks_reduce(&nodes, 1, 5).await;
+    // Rank 1 is at all-reduce 5 of generation 1; a chunk of generation 2 names a step
+    // nobody can check yet, so it is kept; entering generation 2 (first all-reduce 9)
+    // drops it.
+    push_bogus(&nodes[1], 2, u64::MAX).await.unwrap();
+    both_ranks_reduce(&nodes, 2, 9).await;
 }
 
 /// Early chunks are bounded in number as well as bytes: a stream of empty chunks under
@@ -394,7 +441,7 @@ async fn a_dead_peer_fails_the_round_within_the_deadline() {
     assert!(matches!(err, CollectiveError::Send { to: 1, .. }), "{err}");
     // A live peer that never sends: the wait times out.
     let nodes2 = start(2, "test-job").await;
-    nodes2[1].mailbox.set_generation(1, 1);
+    nodes2[1].mailbox.set_generation(1, 1, 0);
     let mut ring = Ring::new(
         config(&nodes2, 0, 1000, 1000, Duration::from_secs(1)),
         nodes2[0].mailbox.clone(),

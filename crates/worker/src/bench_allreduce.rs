@@ -197,6 +197,7 @@ async fn loopback_rings(chunk_floats: usize) -> Vec<Option<Ring>> {
             let cfg = RingConfig {
                 job: "bench".into(),
                 generation: 1,
+                first_step: 0,
                 rank,
                 peers: addrs.clone(),
                 bucket_floats: 25 << 20,

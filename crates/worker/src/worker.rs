@@ -406,7 +406,7 @@ async fn run_generation(
         step: AtomicU64::new(0),
         abort: Mutex::new(None),
     });
-    mailbox.set_generation(plan.generation, rank);
+    mailbox.set_generation(plan.generation, rank, first_all_reduce(plan));
     // Five heartbeats per timeout: one lost beat never looks like a lost member.
     let every = Duration::from_secs_f64((c.heartbeat_timeout_s / 5.0).clamp(0.05, 1.0));
     let beats = (client.clone(), worker_id, every, opts.coordinator_timeout);
@@ -623,6 +623,13 @@ fn aborted(live: &Liveness, e: WorkerError) -> Result<Ended> {
     }
 }
 
+/// The number of the generation's first all-reduce: the weights' broadcast (0) of a fresh
+/// job, else the gradient of the step after the checkpoint (`reduce` numbers step `s`'s
+/// all-reduce `s + 1`).
+fn first_all_reduce(plan: &WorkerPlan) -> u64 {
+    plan.resume_step.map_or(0, |s| s + 1)
+}
+
 /// The generation's ring (none for a world of one).
 fn open_ring(
     opts: &WorkerOptions,
@@ -636,6 +643,7 @@ fn open_ring(
     let cfg = RingConfig {
         job: plan.job.clone(),
         generation: plan.generation,
+        first_step: first_all_reduce(plan),
         rank: plan.rank,
         peers: plan.peers.clone(),
         bucket_floats: c.bucket_floats,

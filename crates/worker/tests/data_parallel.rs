@@ -51,6 +51,7 @@ async fn two_half_batches_step_like_one_full_batch() {
                 RingConfig {
                     job: "eq".into(),
                     generation: 1,
+                    first_step: 0,
                     rank,
                     peers: addrs.clone(),
                     bucket_floats: 5000,
