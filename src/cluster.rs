@@ -44,6 +44,10 @@ pub struct CoordinatorArgs {
     /// Address the Coordinator service listens on.
     #[arg(long, env = "OSRT_LISTEN", default_value = "0.0.0.0:7070")]
     pub listen: SocketAddr,
+    /// Also answer the gRPC health service in plaintext here (for probes that cannot
+    /// speak TLS, such as the kubelet's).
+    #[arg(long, env = "OSRT_HEALTH_LISTEN")]
+    pub health_listen: Option<SocketAddr>,
     #[arg(long, env = "OSRT_MAX_STEPS")]
     pub max_steps: Option<u64>,
     #[arg(long, env = "OSRT_MAX_MINUTES")]
@@ -76,6 +80,10 @@ pub struct WorkerArgs {
     /// Address of this worker's Collective service.
     #[arg(long, default_value = "0.0.0.0:7071", env = "OSRT_WORKER_LISTEN")]
     pub listen: SocketAddr,
+    /// Also answer the gRPC health service in plaintext here (for probes that cannot
+    /// speak TLS, such as the kubelet's).
+    #[arg(long, env = "OSRT_HEALTH_LISTEN")]
+    pub health_listen: Option<SocketAddr>,
     /// Host name the other workers reach this one at (a pod's stable DNS name).
     #[arg(long, env = "OSRT_ADVERTISE")]
     pub advertise: Option<String>,
@@ -213,6 +221,7 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
         coord.job_id(),
         listener.local_addr()?
     );
+    health_listener(a.health_listen).await?;
     let status = coord
         .serve(
             listener,
@@ -223,6 +232,17 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
         )
         .await?;
     report_end(&status)
+}
+
+/// Starts the plaintext health listener where `--health-listen` asks for one.
+async fn health_listener(addr: Option<SocketAddr>) -> Result<()> {
+    if let Some(addr) = addr {
+        let local = osrt_proto::health::spawn_plaintext(addr)
+            .await
+            .with_context(|| format!("health listener on {addr}"))?;
+        eprintln!("plaintext health service on {local}");
+    }
+    Ok(())
 }
 
 /// SIGINT (Ctrl-C) or SIGTERM (what Kubernetes sends a pod it stops).
@@ -332,6 +352,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
                 .unwrap_or(1)
         });
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "localhost".into());
+    health_listener(a.health_listen).await?;
     run_worker_until(
         WorkerOptions {
             coordinator: a.coordinator,

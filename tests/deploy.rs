@@ -322,6 +322,132 @@ fn start_pod(rendered: &serde_json::Value, env: Vec<(String, String)>) -> Proc {
     )
 }
 
+/// deploy/make-certs.sh (the README's recipe) into `out`, for `workers` workers.
+fn make_certs(out: &Path, workers: u64, extra: &[&str]) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/make-certs.sh");
+    let made = Command::new(script)
+        .arg(out)
+        .arg(workers.to_string())
+        .args(extra)
+        .output()
+        .expect("bash");
+    assert!(
+        made.status.success(),
+        "make-certs.sh: {}",
+        output_text(&made)
+    );
+}
+
+/// Checks that a rendered pod runs TLS from the Secret osrt-tls and probes a plaintext
+/// health port, and sets `overrides` so that it runs here: the TLS files of `certs`, a
+/// free health port on loopback (returned).
+fn tls_and_health(
+    rendered: &serde_json::Value,
+    certs: &Path,
+    overrides: &mut BTreeMap<&str, String>,
+) -> u16 {
+    let env = &rendered["env"];
+    for (var, file) in [
+        ("OSRT_TLS_CERT", "tls.crt"),
+        ("OSRT_TLS_KEY", "tls.key"),
+        ("OSRT_TLS_CA", "ca.crt"),
+    ] {
+        let path = env[var]["value"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no {var}"));
+        assert_eq!(
+            rendered["secret_files"][path],
+            format!("osrt-tls/{file}"),
+            "{var} = {path} is not mounted from the Secret"
+        );
+        overrides.insert(var, certs.join(file).to_str().unwrap().to_string());
+    }
+    let health = env["OSRT_HEALTH_LISTEN"]["value"].as_str().unwrap();
+    let health_port: u64 = health.rsplit(':').next().unwrap().parse().unwrap();
+    let probes = rendered["probes"].as_object().unwrap();
+    assert!(!probes.is_empty(), "no gRPC probes");
+    for (kind, port) in probes {
+        assert_eq!(port.as_u64(), Some(health_port), "{kind} asks another port");
+    }
+    let port = free_port();
+    overrides.insert("OSRT_HEALTH_LISTEN", format!("127.0.0.1:{port}"));
+    port
+}
+
+/// grpcio's plaintext health check of `services` at `addr` answers SERVING.
+fn health_answers(addr: &str, services: &[&str]) {
+    let out = Command::new("python3")
+        .arg(python_helper("check_health.py"))
+        .arg(addr)
+        .args(services)
+        .output()
+        .expect("python3");
+    assert!(
+        out.status.success(),
+        "health at {addr}: {}",
+        output_text(&out)
+    );
+}
+
+/// The README's certificate names every address the manifests dial: the coordinator's
+/// Service and each worker's stable DNS name, as server and client certificate.
+#[test]
+fn the_certificate_recipe_names_what_the_pods_dial() {
+    let pods = render_pods(&k8s_dir());
+    let worker = &pods["worker"];
+    let n = worker["parallelism"].as_u64().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    make_certs(dir.path(), n, &[]);
+    let show = Command::new("openssl")
+        .args([
+            "x509",
+            "-noout",
+            "-ext",
+            "subjectAltName,extendedKeyUsage",
+            "-in",
+        ])
+        .arg(dir.path().join("tls.crt"))
+        .output()
+        .expect("openssl (scripts/test installs it)");
+    let text = output_text(&show);
+    assert!(show.status.success(), "{text}");
+    assert!(text.contains("TLS Web Server Authentication"), "{text}");
+    assert!(text.contains("TLS Web Client Authentication"), "{text}");
+    let coordinator = worker["env"]["OSRT_COORDINATOR"]["value"].as_str().unwrap();
+    let host = coordinator
+        .trim_start_matches("https://")
+        .split(':')
+        .next()
+        .unwrap();
+    let mut names = vec![host.to_string()];
+    for index in 0..n {
+        let fields = BTreeMap::from([(
+            "metadata.annotations['batch.kubernetes.io/job-completion-index']",
+            index.to_string(),
+        )]);
+        let env = pod_env(worker, &BTreeMap::new(), &fields);
+        names.push(
+            env.into_iter()
+                .find(|(k, _)| k == "OSRT_ADVERTISE")
+                .unwrap()
+                .1,
+        );
+    }
+    for name in names {
+        assert!(
+            text.contains(&format!("DNS:{name}")),
+            "{name} not in {text}"
+        );
+    }
+    let verify = Command::new("openssl")
+        .args(["verify", "-CAfile"])
+        .arg(dir.path().join("ca.crt"))
+        .arg(dir.path().join("tls.crt"))
+        .output()
+        .unwrap();
+    assert!(verify.status.success(), "{}", output_text(&verify));
+}
+
 #[test]
 fn the_pods_command_lines_run_the_job_against_s3() {
     let s3 = S3Server::start(&["osrt"]);
@@ -345,7 +471,6 @@ fn the_pods_command_lines_run_the_job_against_s3() {
         })
         .collect();
     // The dataset goes where the job config says it is (16×16: the preset samples 512
-    // target rays from 3 views).(16×16: the preset samples 512
     // target rays from 3 views).
     let data_url = coord["env"]["OSRT_DATA"]["value"]
         .as_str()
@@ -384,6 +509,11 @@ fn the_pods_command_lines_run_the_job_against_s3() {
     let local_config = dir.path().join("job.toml");
     std::fs::write(&local_config, job_toml).unwrap();
 
+    // The README's certificates, with loopback's address added: the pods' TLS files.
+    let certs = dir.path().join("tls");
+    let n = worker["parallelism"].as_u64().unwrap();
+    make_certs(&certs, n, &["IP:127.0.0.1"]);
+
     let port = free_port();
     let mut o = s3_env.clone();
     o.insert("OSRT_TOKEN", TOKEN.to_string());
@@ -391,14 +521,19 @@ fn the_pods_command_lines_run_the_job_against_s3() {
     o.insert("OSRT_LISTEN", format!("127.0.0.1:{port}"));
     o.insert("OSRT_MAX_STEPS", "4".into());
     o.insert("OSRT_LINGER_S", "2".into());
+    let coord_health = tls_and_health(coord, &certs, &mut o);
     let env = pod_env(coord, &o, &BTreeMap::new());
     let mut coordinator = start_pod(coord, env);
-    let n = worker["parallelism"].as_u64().unwrap();
     let mut workers = Vec::new();
+    let mut worker_health = Vec::new();
     for index in 0..n {
         let mut o = s3_env.clone();
         o.insert("OSRT_TOKEN", TOKEN.to_string());
-        o.insert("OSRT_COORDINATOR", format!("http://127.0.0.1:{port}"));
+        worker_health.push(tls_and_health(worker, &certs, &mut o));
+        // The manifest dials the coordinator over TLS.
+        let dialled = worker["env"]["OSRT_COORDINATOR"]["value"].as_str().unwrap();
+        assert!(dialled.starts_with("https://"), "{dialled}");
+        o.insert("OSRT_COORDINATOR", format!("https://127.0.0.1:{port}"));
         // All pods share one host here: any free port, and loopback instead of the
         // headless Service's DNS name.
         o.insert("OSRT_WORKER_LISTEN", "127.0.0.1:0".into());
@@ -412,6 +547,9 @@ fn the_pods_command_lines_run_the_job_against_s3() {
         assert_eq!(threads.1, "2", "threads follow limits.cpu");
         workers.push(start_pod(worker, env));
     }
+    // What the kubelet's probes ask: the plaintext health ports, answered by grpcio.
+    health_answers(&format!("127.0.0.1:{coord_health}"), &[""]);
+    health_answers(&format!("127.0.0.1:{}", worker_health[0]), &[""]);
     let status = coordinator.wait_for_exit(Duration::from_secs(180));
     assert!(status.success(), "coordinator pod: {status}");
     for w in &mut workers {

@@ -1,5 +1,6 @@
-"""Asks a server's standard gRPC health service (grpc.health.v1) for its overall status
-with Python's grpcio, an implementation independent of ours. Exit 77: grpcio missing."""
+"""Asks a server's standard gRPC health service (grpc.health.v1), in plaintext, for its
+overall status and the coordinator's (or the services named after the address) with
+Python's grpcio, an implementation independent of ours. Exit 77: grpcio missing."""
 import sys
 
 try:
@@ -10,10 +11,12 @@ except ImportError as e:  # pragma: no cover
     sys.exit(77)
 
 addr = sys.argv[1]
+# The services to ask for ("" is the server as a whole); default: the coordinator's.
+services = sys.argv[2:] or ["", "osrt.v1.Coordinator"]
 with grpc.insecure_channel(addr) as channel:
     grpc.channel_ready_future(channel).result(timeout=20)
     stub = health_pb2_grpc.HealthStub(channel)
-    for service in ["", "osrt.v1.Coordinator"]:
+    for service in services:
         reply = stub.Check(health_pb2.HealthCheckRequest(service=service), timeout=10)
         status = health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)
         print(f"{service or '(server)'}: {status}")

@@ -46,6 +46,7 @@ def render(pod_spec):
             limits = c["resources"]["limits"]
             env[e["name"]] = {"resourceFieldRef": r["resource"], "value": str(limits[r["resource"].split(".")[1]])}
     files = {}
+    secret_files = {}
     volumes = {v["name"]: v for v in pod_spec.get("volumes", [])}
     for m in c.get("volumeMounts", []):
         v = volumes[m["name"]]
@@ -53,7 +54,15 @@ def render(pod_spec):
             data = config_maps[v["configMap"]["name"]]
             for item in v["configMap"].get("items", [{"key": k, "path": k} for k in data]):
                 files[os.path.join(m["mountPath"], item["path"])] = data[item["key"]]
+        elif "secret" in v:
+            # Secrets made by hand (no example values to show): "secret/key" per path.
+            name = v["secret"]["secretName"]
+            for item in v["secret"]["items"]:
+                secret_files[os.path.join(m["mountPath"], item["path"])] = f"{name}/{item['key']}"
+    probes = {kind: c[kind]["grpc"]["port"] for kind in ["readinessProbe", "livenessProbe"]
+              if kind in c}
     return {"image": c["image"], "args": c.get("args", []), "env": env, "files": files,
+            "secret_files": secret_files, "probes": probes,
             "ports": [p["containerPort"] for p in c.get("ports", [])],
             "resources": c.get("resources", {}),
             "tolerations": pod_spec.get("tolerations", [])}
