@@ -163,8 +163,7 @@ impl KubricSource {
         let p = format!("cameras/camera_{k}/");
         let png = |key: &str| {
             let b = bytes(key)?;
-            image::load_from_memory_with_format(&b, image::ImageFormat::Png)
-                .map_err(|e| bad(&r.file, format!("{}: {e}", at(key))))
+            super::decode_png(&b).map_err(|e| bad(&r.file, format!("{}: {e}", at(key))))
         };
         let color = png(&format!("{p}color_image"))?.into_rgb8();
         let (width, height) = color.dimensions();
@@ -245,6 +244,15 @@ impl Source for KubricSource {
 
     fn has_masks(&self) -> bool {
         true
+    }
+
+    fn view_origin(&self, index: u64, view: usize) -> String {
+        let r = &self.records[index as usize];
+        format!(
+            "{}: record {index} at byte {}, camera {view}",
+            r.file.display(),
+            r.offset
+        )
     }
 }
 

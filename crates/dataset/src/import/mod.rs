@@ -183,6 +183,51 @@ pub trait Source: Send + Sync {
     fn image_size(&self) -> Result<[u32; 2]>;
     /// Whether views carry instance masks.
     fn has_masks(&self) -> bool;
+    /// Where view `view` of scene `index` comes from (a file, or a record of one), for
+    /// errors.
+    fn view_origin(&self, index: u64, view: usize) -> String;
+}
+
+/// The most memory one image of a release may decode to (its pixels, and each
+/// conversion's): 64 MiB holds a 4K RGBA frame, some 200 times the releases' images. A
+/// header announcing more, a decompression bomb among them, is an error before anything
+/// is allocated.
+const MAX_IMAGE_BYTES: u64 = 64 << 20;
+
+fn image_limits() -> image::Limits {
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_IMAGE_BYTES);
+    limits
+}
+
+/// What went wrong decoding an image, the limit named where it was the limit.
+fn image_error(e: image::ImageError) -> String {
+    match e {
+        image::ImageError::Limits(_) => format!(
+            "{e}: it would decode to more than the {} MiB one image may take",
+            MAX_IMAGE_BYTES >> 20
+        ),
+        e => e.to_string(),
+    }
+}
+
+/// Decodes the image file at `path` within [`MAX_IMAGE_BYTES`], streaming it from disk.
+pub(crate) fn open_image(
+    path: &std::path::Path,
+) -> std::result::Result<image::DynamicImage, String> {
+    let mut reader = image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .map_err(|e| e.to_string())?;
+    reader.limits(image_limits());
+    reader.decode().map_err(image_error)
+}
+
+/// Decodes a PNG held in memory within [`MAX_IMAGE_BYTES`].
+pub(crate) fn decode_png(bytes: &[u8]) -> std::result::Result<image::DynamicImage, String> {
+    let mut reader =
+        image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Png);
+    reader.limits(image_limits());
+    reader.decode().map_err(image_error)
 }
 
 /// The scene indices of a split: its range within the source, filtered by object count,
@@ -289,7 +334,7 @@ pub async fn import(
             let scenes: Vec<Scene> = tokio::task::spawn_blocking(move || {
                 part.par_iter()
                     .map(|&i| {
-                        let scene = same_size(src.scene(i)?, i, size)?;
+                        let scene = same_size(src.scene(i)?, src.as_ref(), i, size)?;
                         Ok(match resize {
                             Some(to) => crate::resize::resize_scene(scene, to),
                             None => scene,
@@ -340,13 +385,13 @@ pub async fn import(
 
 /// `scene` (source index `i`) if every view has the dataset's `[width, height]`: a view
 /// of another size is refused at import, not hours into training.
-fn same_size(scene: Scene, i: u64, size: [u32; 2]) -> Result<Scene> {
+fn same_size(scene: Scene, src: &dyn Source, i: u64, size: [u32; 2]) -> Result<Scene> {
     for (v, view) in scene.views.iter().enumerate() {
         if [view.width, view.height] != size {
             return Err(DatasetError::Import {
-                path: format!("source scene {i}"),
+                path: src.view_origin(i, v),
                 reason: format!(
-                    "view {v} is {}×{} pixels, the dataset's views are {}×{}",
+                    "scene {i}, view {v} is {}×{} pixels, the dataset's views are {}×{}",
                     view.width, view.height, size[0], size[1]
                 ),
             });

@@ -6,7 +6,7 @@
 
 use crate::error::{DatasetError, Result};
 use std::collections::BTreeMap;
-use std::io::Read;
+use std::io::{Read, Seek};
 
 /// One array: its shape and values, numbers as f64 (integers and booleans exactly, up to
 /// 2^53) or text.
@@ -88,6 +88,18 @@ impl Header<'_> {
     fn file_len(&self) -> Option<usize> {
         let (_, width) = dtype(self.descr).ok()?;
         self.n.checked_mul(width)?.checked_add(self.data_start)
+    }
+
+    /// Bytes the decoded values take: an f64 per number, a `String` and its characters
+    /// per text (`None` past `usize`).
+    fn decoded_len(&self) -> Option<usize> {
+        let (kind, width) = dtype(self.descr).ok()?;
+        let each = if kind == 'U' {
+            std::mem::size_of::<String>() + width
+        } else {
+            8
+        };
+        self.n.checked_mul(each)
     }
 }
 
@@ -239,25 +251,36 @@ fn decode(descr: &str, data: &[u8], n: usize) -> std::result::Result<Values, Str
     Ok(Values::Numbers(data.chunks(width).map(num).collect()))
 }
 
-/// The most bytes an `.npz` archive may decompress to, all entries together: far above
-/// any metadata file of the releases (tens of MB), far below what would exhaust memory.
-pub const MAX_NPZ_BYTES: u64 = 4 << 30;
+/// The most memory the wanted arrays of an `.npz` archive may take, all together: what
+/// their entries decompress to plus what they decode to (8 bytes a number, a `String` a
+/// text). Far above any metadata file of the releases (tens of MB), and well below what
+/// would exhaust a small machine.
+pub const MAX_NPZ_BYTES: u64 = 768 << 20;
 
 /// Bytes of an entry read before its header is known (`.npy` headers are padded to a
 /// multiple of 64 bytes and are short; 64 KiB covers any real one).
 const HEADER_PREFIX: u64 = 64 << 10;
 
-/// Every array of an `.npz` archive, by name (without `.npy`). Each entry is
-/// decompressed only as far as its own header announces (more is an error), and all
-/// together to at most [`MAX_NPZ_BYTES`]: a zip bomb ends in an error, not in memory
-/// exhaustion.
-pub fn read_npz(bytes: &[u8], path: &str) -> Result<BTreeMap<String, Array>> {
-    read_npz_within(bytes, path, MAX_NPZ_BYTES)
+/// The arrays named in `wanted` (without `.npy`) of an `.npz` archive; the other entries
+/// are never decompressed. Each wanted entry is decompressed only as far as its own
+/// header announces (more is an error), and all of them together may take at most
+/// [`MAX_NPZ_BYTES`] of memory: a zip bomb ends in an error, not in memory exhaustion.
+pub fn read_npz<R: Read + Seek>(
+    archive: R,
+    path: &str,
+    wanted: &[&str],
+) -> Result<BTreeMap<String, Array>> {
+    read_npz_within(archive, path, wanted, MAX_NPZ_BYTES)
 }
 
-fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<String, Array>> {
+fn read_npz_within<R: Read + Seek>(
+    archive: R,
+    path: &str,
+    wanted: &[&str],
+    budget: u64,
+) -> Result<BTreeMap<String, Array>> {
     let mut left = budget;
-    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes))
+    let mut zip = zip::ZipArchive::new(archive)
         .map_err(|e| bad(path, format!("not a readable .npz (zip) archive: {e}")))?;
     let mut out = BTreeMap::new();
     for i in 0..zip.len() {
@@ -268,14 +291,14 @@ fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<Str
             .name()
             .map_err(|e| bad(path, format!("archive entry {i}: {e}")))?
             .to_string();
-        let Some(key) = name.strip_suffix(".npy") else {
+        let Some(key) = name.strip_suffix(".npy").filter(|k| wanted.contains(k)) else {
             continue;
         };
         let entry = format!("{path}:{name}");
         let too_big = || {
             bad(
                 &entry,
-                format!("decompresses to more than {budget} bytes (all entries together)"),
+                format!("takes more than {budget} bytes of memory (the wanted entries together)"),
             )
         };
         // The header first, then exactly the bytes it announces and one more, to tell a
@@ -285,11 +308,13 @@ fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<Str
             .take(HEADER_PREFIX.min(left))
             .read_to_end(&mut data)
             .map_err(|e| bad(&entry, e.to_string()))?;
-        let want = parse_header(&data, &entry)?
-            .file_len()
-            .map(|n| n as u64)
-            .unwrap_or(u64::MAX);
-        if want > left {
+        let header = parse_header(&data, &entry)?;
+        dtype(header.descr).map_err(|e| bad(&entry, e))?;
+        let (want, cost) = match (header.file_len(), header.decoded_len()) {
+            (Some(w), Some(d)) => (w as u64, (w as u64).saturating_add(d as u64)),
+            _ => return Err(too_big()),
+        };
+        if cost > left {
             return Err(too_big());
         }
         if (data.len() as u64) < want {
@@ -306,7 +331,8 @@ fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<Str
                 format!("holds more than the {want} bytes its header announces"),
             ));
         }
-        left -= want;
+        // The entry's bytes are dropped once decoded, but they were held beside it.
+        left -= cost;
         out.insert(key.to_string(), parse_npy(&data, &entry)?);
     }
     Ok(out)
@@ -315,6 +341,7 @@ fn read_npz_within(bytes: &[u8], path: &str, budget: u64) -> Result<BTreeMap<Str
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::io::Cursor;
 
     fn npy(descr: &str, shape: &str, data: &[u8], version: u8) -> Vec<u8> {
         let header =
@@ -373,7 +400,7 @@ mod tests {
             assert!(e.contains("m.npy") && e.contains(want), "{want}: {e}");
         }
         assert!(
-            read_npz(b"not a zip", "meta.npz")
+            read_npz(Cursor::new(b"not a zip"), "meta.npz", &["a"])
                 .unwrap_err()
                 .to_string()
                 .contains("meta.npz")
@@ -417,24 +444,35 @@ mod tests {
         zip.finish().unwrap().into_inner()
     }
 
-    /// A zip bomb (an entry that inflates past the budget, used by the importer or not)
-    /// and an entry longer than its header are refused without inflating them whole.
+    /// A zip bomb (an entry that inflates past the budget) and an entry longer than its
+    /// header are refused without inflating them whole; entries nobody asked for are not
+    /// read at all.
     #[test]
     fn archives_decompress_only_what_their_headers_announce() {
         let zeros = vec![0u8; 8 << 20];
         let small = npy("<f8", "(2,)", &[0; 16], 1);
         let big = npy("<f8", "(1048576,)", &zeros, 1);
-        let ok = npz(&[("a.npy", small.clone()), ("b.npy", big.clone())]);
-        assert_eq!(read_npz(&ok, "m.npz").unwrap().len(), 2);
-        // 8 MiB of zeros compress to a few KiB: over a 1 MiB budget it is refused.
-        let e = read_npz_within(&ok, "m.npz", 1 << 20)
+        let ok = npz(&[("a.npy", small), ("b.npy", big)]);
+        let both = read_npz(Cursor::new(&ok), "m.npz", &["a", "b"]).unwrap();
+        assert_eq!(both.len(), 2);
+        // 8 MiB of zeros compress to a few KiB: over a 1 MiB budget it is refused...
+        let e = read_npz_within(Cursor::new(&ok), "m.npz", &["a", "b"], 1 << 20)
             .unwrap_err()
             .to_string();
         assert!(e.contains("m.npz:b.npy") && e.contains("more than"), "{e}");
+        // ...unless nobody asks for it.
+        let a = read_npz_within(Cursor::new(&ok), "m.npz", &["a"], 1 << 20).unwrap();
+        assert_eq!(a.keys().collect::<Vec<_>>(), ["a"]);
+        // Decoding counts: 1 Mi one-byte values take 8 MiB as numbers.
+        let bytes = npz(&[("u.npy", npy("|u1", "(1048576,)", &zeros[..1 << 20], 1))]);
+        let e = read_npz_within(Cursor::new(&bytes), "m.npz", &["u"], 4 << 20)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("more than"), "{e}");
         // A header announcing two values before 8 MiB of data.
         let mut long = npy("<f8", "(2,)", &[0; 16], 1);
         long.extend(&zeros);
-        let e = read_npz(&npz(&[("c.npy", long)]), "m.npz")
+        let e = read_npz(Cursor::new(npz(&[("c.npy", long)])), "m.npz", &["c"])
             .unwrap_err()
             .to_string();
         assert!(e.contains("m.npz:c.npy") && e.contains("announces"), "{e}");

@@ -27,6 +27,18 @@ use crate::scene::{ObjectMeta, Scene, View};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// The arrays of `metadata.npz` the import reads; the release's others are not even
+/// decompressed.
+const METADATA_ARRAYS: [&str; 7] = [
+    "camera_pos",
+    "shape",
+    "3d_coords",
+    "color",
+    "size",
+    "material",
+    "rotation",
+];
+
 /// Focal length and sensor width of the release's cameras (Blender units).
 const FOCAL: f64 = 0.035;
 const SENSOR_WIDTH: f64 = 0.032;
@@ -51,8 +63,12 @@ impl ObsurfSource {
     /// Opens a release folder: reads and checks `metadata.npz`.
     pub fn open(root: &Path) -> Result<Self> {
         let meta_path = root.join("metadata.npz");
-        let bytes = std::fs::read(&meta_path).map_err(|e| bad(&meta_path, e.to_string()))?;
-        let mut metadata = read_npz(&bytes, &meta_path.display().to_string())?;
+        let file = std::fs::File::open(&meta_path).map_err(|e| bad(&meta_path, e.to_string()))?;
+        let mut metadata = read_npz(
+            std::io::BufReader::new(file),
+            &meta_path.display().to_string(),
+            &METADATA_ARRAYS,
+        )?;
         let mut take = |key: &str| {
             metadata
                 .remove(key)
@@ -106,13 +122,13 @@ impl ObsurfSource {
 
     fn view(&self, s: u64, v: usize) -> Result<View> {
         let img_path = self.root.join(format!("images/img_{s}_{v}.png"));
-        let img = image::open(&img_path)
+        let img = super::open_image(&img_path)
             .map_err(|e| bad(&img_path, format!("scene {s}, view {v}: {e}")))?
             .into_rgb8();
         let (width, height) = img.dimensions();
         let mask = if self.has_masks {
             let mask_path = self.mask_path(s, v);
-            let m = image::open(&mask_path)
+            let m = super::open_image(&mask_path)
                 .map_err(|e| bad(&mask_path, format!("scene {s}, view {v}: {e}")))?;
             let image::DynamicImage::ImageLuma8(m) = m else {
                 return Err(bad(
@@ -218,5 +234,12 @@ impl Source for ObsurfSource {
 
     fn has_masks(&self) -> bool {
         self.has_masks
+    }
+
+    fn view_origin(&self, index: u64, view: usize) -> String {
+        self.root
+            .join(format!("images/img_{index}_{view}.png"))
+            .display()
+            .to_string()
     }
 }

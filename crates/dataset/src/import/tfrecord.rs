@@ -47,6 +47,10 @@ fn read_exact(f: &mut impl Read, buf: &mut [u8], file: &Path, what: &str) -> Res
         .map_err(|e| bad(file, format!("{what}: {e} (a truncated TFRecord file?)")))
 }
 
+/// The largest record read (it is held in memory whole): an MSN-Hard example, ten
+/// cameras' PNGs, is a few MB.
+pub const MAX_RECORD_BYTES: u64 = 256 << 20;
+
 /// Every record of a file (headers checked, payloads skipped), in order.
 pub fn index_file(file: &Path) -> Result<Vec<RecordRef>> {
     let mut f =
@@ -75,6 +79,12 @@ pub fn index_file(file: &Path) -> Result<Vec<RecordRef>> {
             return Err(bad(
                 file,
                 format!("{what}: {len} bytes announced past the end"),
+            ));
+        }
+        if len > MAX_RECORD_BYTES {
+            return Err(bad(
+                file,
+                format!("{what}: {len} bytes, more than the {MAX_RECORD_BYTES} a record may hold"),
             ));
         }
         f.seek(SeekFrom::Current(len as i64 + 4))
@@ -187,5 +197,19 @@ mod tests {
                 "{len}: {e}"
             );
         }
+        // A record larger than any real one, with the bytes present (a sparse file), is
+        // refused before it is read into memory.
+        let len = MAX_RECORD_BYTES + 1;
+        let mut bytes = len.to_le_bytes().to_vec();
+        bytes.extend(masked_crc(&len.to_le_bytes()).to_le_bytes());
+        std::fs::write(&file, &bytes).unwrap();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&file)
+            .unwrap()
+            .set_len(len + 16)
+            .unwrap();
+        let e = index_file(&file).unwrap_err().to_string();
+        assert!(e.contains("record 0") && e.contains("may hold"), "{e}");
     }
 }
