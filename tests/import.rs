@@ -87,14 +87,20 @@ fn an_obsurf_release_imports_with_its_pixels_cameras_and_objects() {
         String::from_utf8_lossy(&out.stderr)
     );
     let meta = read_npz(
-        &std::fs::read(src.join("metadata.npz")).unwrap(),
+        std::fs::File::open(src.join("metadata.npz")).unwrap(),
         "metadata",
+        &["camera_pos", "3d_coords", "shape"],
     )
     .unwrap();
     let camera_pos = numbers(&meta["camera_pos"].values);
     let coords = numbers(&meta["3d_coords"].values);
     let shape = numbers(&meta["shape"].values);
-    let rays = read_npz(&zip_of(&src.join("expected_rays.npy")), "rays").unwrap();
+    let rays = read_npz(
+        zip_of(&src.join("expected_rays.npy")),
+        "rays",
+        &["expected_rays"],
+    )
+    .unwrap();
     let rays = numbers(&rays["expected_rays"].values);
     let (w, h) = (32usize, 24usize);
     for (split, ids) in [
@@ -177,7 +183,7 @@ fn an_obsurf_release_imports_with_its_pixels_cameras_and_objects() {
 }
 
 /// `expected_rays.npy` wrapped as a one-entry .npz (stored), for `read_npz`.
-fn zip_of(npy: &Path) -> Vec<u8> {
+fn zip_of(npy: &Path) -> std::io::Cursor<Vec<u8>> {
     use std::io::Write;
     let mut buf = std::io::Cursor::new(Vec::new());
     let mut z = zip::ZipWriter::new(&mut buf);
@@ -186,7 +192,8 @@ fn zip_of(npy: &Path) -> Vec<u8> {
     z.start_file("expected_rays.npy", opts).unwrap();
     z.write_all(&std::fs::read(npy).unwrap()).unwrap();
     z.finish().unwrap();
-    buf.into_inner()
+    buf.set_position(0);
+    buf
 }
 
 /// An interrupted import re-run with the same options writes only the missing parts
@@ -469,7 +476,8 @@ fn check_resized(src: &Path, data: &Path) {
         serde_json::from_str(&std::fs::read_to_string(data.join("manifest.json")).unwrap())
             .unwrap();
     assert_eq!(m["image_size"], serde_json::json!([32, 24]), "{m}");
-    let rays = read_npz(&zip_of(&src.join("expected_small/rays.npy")), "rays").unwrap();
+    let small = zip_of(&src.join("expected_small/rays.npy"));
+    let rays = read_npz(small, "rays", &["expected_rays"]).unwrap();
     let rays = numbers(&rays["expected_rays"].values);
     for s in read(data, "train") {
         let id = s.id as usize;
