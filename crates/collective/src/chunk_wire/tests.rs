@@ -217,3 +217,131 @@ fn malformed_bodies_are_invalid_argument() {
     let e = decode_request(vec![Bytes::from(compressed)]).unwrap_err();
     assert_eq!(e.code(), tonic::Code::Unimplemented);
 }
+
+/// `bytes` cut into frames at `cuts` (positions taken modulo the length).
+fn framed(bytes: &[u8], cuts: &[usize]) -> Frames {
+    let mut at: Vec<usize> = cuts.iter().map(|c| c % (bytes.len() + 1)).collect();
+    at.extend([0, bytes.len()]);
+    at.sort_unstable();
+    at.dedup();
+    let mut f = Frames::default();
+    for w in at.windows(2) {
+        f.push(Bytes::copy_from_slice(&bytes[w[0]..w[1]]));
+    }
+    f
+}
+
+fn any_tag() -> impl proptest::strategy::Strategy<Value = ChunkTag> {
+    use proptest::prelude::*;
+    (
+        ".{0,12}",
+        any::<u64>(),
+        any::<u64>(),
+        any::<u32>(),
+        any::<i32>(),
+        (any::<u32>(), any::<u32>(), any::<u32>()),
+    )
+        .prop_map(
+            |(job, generation, step, bucket, phase, (round, chunk, from_rank))| ChunkTag {
+                job,
+                generation,
+                step,
+                bucket,
+                phase,
+                round,
+                chunk,
+                from_rank,
+            },
+        )
+}
+
+/// A protobuf body: a chunk's encoding with bytes flipped or cut, or any bytes.
+fn message_body() -> impl proptest::strategy::Strategy<Value = Vec<u8>> {
+    use proptest::prelude::*;
+    let flipped = (
+        any_tag(),
+        proptest::collection::vec(any::<u8>(), 0..40),
+        proptest::collection::vec((any::<proptest::sample::Index>(), 1u8..=255), 0..4),
+        proptest::option::of(any::<proptest::sample::Index>()),
+    )
+        .prop_map(|(tag, data, flips, cut)| {
+            let mut body = Chunk {
+                tag: Some(tag),
+                data: data.into(),
+            }
+            .encode_to_vec();
+            for (at, x) in flips {
+                let i = at.index(body.len());
+                body[i] ^= x;
+            }
+            if let Some(c) = cut {
+                body.truncate(c.index(body.len() + 1));
+            }
+            body
+        });
+    prop_oneof![3 => flipped, 1 => proptest::collection::vec(any::<u8>(), 0..200)]
+}
+
+/// The properties' settings: `PROPTEST_CASES` cases (256 by default), nothing written to
+/// disk on failure (the failing case is printed).
+fn fuzz_config() -> proptest::test_runner::Config {
+    proptest::test_runner::Config {
+        failure_persistence: None,
+        ..Default::default()
+    }
+}
+
+proptest::proptest! {
+    #![proptest_config(fuzz_config())]
+
+    /// Any bytes arriving in any frames: every whole message decodes or is refused with
+    /// a status, never a panic, and whatever decodes is what prost decodes from the same
+    /// message (a differential check against protobuf's reference implementation here).
+    #[test]
+    fn any_bytes_in_any_frames_decode_as_prost_does(
+        bodies in proptest::collection::vec(message_body(), 1..4),
+        raw in proptest::prelude::any::<bool>(),
+        cuts in proptest::collection::vec(proptest::prelude::any::<usize>(), 0..8),
+        limit in 0usize..700,
+    ) {
+        // Mostly well-prefixed gRPC messages (so the bodies reach the protobuf decoder),
+        // sometimes the bytes alone.
+        let bytes: Vec<u8> = if raw {
+            bodies.concat()
+        } else {
+            bodies
+                .iter()
+                .flat_map(|b| [&[0u8][..], &(b.len() as u32).to_be_bytes(), b].concat())
+                .collect()
+        };
+        let mut f = framed(&bytes, &cuts);
+        let mut at = 0usize;
+        while let Ok(Some(message)) = f.next_message(limit) {
+            let len = message.remaining;
+            let body = &bytes[at + 5..at + 5 + len];
+            at += 5 + len;
+            if let Ok(ours) = decode_chunk(message) {
+                let reference = Chunk::decode(body);
+                proptest::prop_assert!(reference.is_ok(), "prost refuses what we decode: {body:?}");
+                proptest::prop_assert_eq!(ours, reference.unwrap());
+            }
+        }
+    }
+
+    /// Any chunk, encoded and cut into any frames, decodes to itself.
+    #[test]
+    fn encoded_chunks_decode_across_any_frames(
+        tag in any_tag(),
+        data in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..300),
+        cuts in proptest::collection::vec(proptest::prelude::any::<usize>(), 0..8),
+    ) {
+        let [head, payload] = encode_request(&tag, Bytes::from(data.clone()));
+        let bytes = [head.as_ref(), payload.as_ref()].concat();
+        let mut f = framed(&bytes, &cuts);
+        let message = f.next_message(usize::MAX).unwrap().expect("one whole message");
+        proptest::prop_assert_eq!(f.remaining, 0);
+        let chunk = decode_chunk(message).unwrap();
+        proptest::prop_assert_eq!(chunk.tag, Some(tag));
+        proptest::prop_assert_eq!(chunk.data.as_ref(), &data[..]);
+    }
+}
