@@ -181,6 +181,11 @@ fn decode_chunk(mut f: Frames) -> Result<Chunk, Status> {
     while f.remaining > 0 {
         let key = f.varint().ok_or_else(|| malformed("truncated field key"))?;
         let (field, wire) = (key >> 3, key & 7);
+        // Protobuf's keys are 32-bit and its field numbers start at 1: anything else is
+        // malformed, not an unknown field to skip (prost refuses it too).
+        if key > u64::from(u32::MAX) || field == 0 {
+            return Err(malformed(format!("invalid field key {key}")));
+        }
         let truncated = || malformed(format!("field {field} truncated"));
         match (field, wire) {
             (1 | 2, 2) => {
