@@ -384,7 +384,10 @@ impl Trainer {
         }
         let grad_norm = summary.norm();
         let scale = clip_scale(grad_norm, self.cfg.train.clip_norm);
-        if scale != 1.0 {
+        // The host optimiser clips a host gradient element by element as it updates
+        // (the same f32 products): no pass over the gradient, no second summary.
+        let fold = matches!((&self.opt, &grads), (Optimizer::Host(_), Gradient::Host(_)));
+        if scale != 1.0 && !fold {
             grads = match grads {
                 Gradient::Host(mut g) => {
                     g.iter_mut().for_each(|x| *x *= scale);
@@ -399,6 +402,11 @@ impl Trainer {
         let version = self.params.version();
         let n = self.num_parameters;
         let applied = match (&mut self.opt, grads) {
+            (Optimizer::Host(opt), g) if fold => {
+                // Rounding is monotonic: the largest |g·s| is the largest |g| times s.
+                let g_max = summary.max_abs * scale;
+                opt.step_scaled(&vars, version, &g.into_host()?, scale, g_max, lr)?
+            }
             (Optimizer::Host(opt), g) => {
                 opt.step(&vars, version, &g.into_host()?, summary.max_abs, lr)?
             }

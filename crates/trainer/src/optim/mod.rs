@@ -97,7 +97,8 @@ pub fn adamw_element(p: f32, g: f32, m0: f32, v0: f32, k: &StepConsts) -> (f32, 
 }
 
 /// Largest `|p|`, `|m|` and `v` of a state, where a NaN (or a negative `v`, which no
-/// update produces) counts as `+∞`, so that [`StepConsts::provably_finite`] refuses it.
+/// update produces, and −0.0 with them) counts as `+∞`, so that
+/// [`StepConsts::provably_finite`] refuses it.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Maxima {
     pub p: f32,
@@ -108,11 +109,7 @@ pub struct Maxima {
 impl Maxima {
     #[inline(always)]
     pub fn of(p: f32, m: f32, v: f32) -> Self {
-        Self {
-            p: magnitude(p),
-            m: magnitude(m),
-            v: if v >= 0.0 { v } else { f32::INFINITY },
-        }
+        MaximaBits::of(p, m, v).decode()
     }
 
     #[inline(always)]
@@ -125,10 +122,52 @@ impl Maxima {
     }
 }
 
-/// `|x|`, or `+∞` for a NaN.
-#[inline(always)]
-pub fn magnitude(x: f32) -> f32 {
-    if x.is_nan() { f32::INFINITY } else { x.abs() }
+/// [`Maxima`] as the largest bit patterns: `|p|` and `|m|` with the sign bit cleared,
+/// `v` as it is, so that a NaN (whose pattern is above +∞'s) or a negative `v` (sign bit
+/// set) is above every finite value and decodes to +∞. Integer maxima need no branch:
+/// the update loop that takes them vectorises.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MaximaBits {
+    p: u32,
+    m: u32,
+    v: u32,
+}
+
+impl MaximaBits {
+    const ABS: u32 = 0x7fff_ffff;
+
+    #[inline(always)]
+    pub fn of(p: f32, m: f32, v: f32) -> Self {
+        Self {
+            p: p.to_bits() & Self::ABS,
+            m: m.to_bits() & Self::ABS,
+            v: v.to_bits(),
+        }
+    }
+
+    #[inline(always)]
+    pub fn max(self, o: Self) -> Self {
+        Self {
+            p: self.p.max(o.p),
+            m: self.m.max(o.m),
+            v: self.v.max(o.v),
+        }
+    }
+
+    pub fn decode(self) -> Maxima {
+        let value = |b: u32| {
+            if b > f32::INFINITY.to_bits() {
+                f32::INFINITY
+            } else {
+                f32::from_bits(b)
+            }
+        };
+        Maxima {
+            p: value(self.p),
+            m: value(self.m),
+            v: value(self.v),
+        }
+    }
 }
 
 /// A gradient's sum of squares (f64) and largest magnitude, in one pass. The sum is

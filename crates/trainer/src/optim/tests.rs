@@ -121,7 +121,54 @@ fn the_device_update_gives_the_host_update_bits() {
         assert!(device.m.to_vec1::<f32>().unwrap() == host.m, "step {step}");
         assert!(device.v.to_vec1::<f32>().unwrap() == host.v, "step {step}");
     }
+    // Clipping: the host scales each element as it updates, the device gets the scaled
+    // gradient; the same bits.
+    let g = values(n, 300);
+    let scale = 0.37f32;
+    let s = GradSummary::of(&g);
+    let lr = 2e-3;
+    assert!(
+        host.step_scaled(&host_vars, 1, &g, scale, s.max_abs * scale, lr)
+            .unwrap()
+    );
+    let scaled: Vec<f32> = g.iter().map(|x| x * scale).collect();
+    assert_eq!(GradSummary::of(&scaled).max_abs, s.max_abs * scale);
+    let gt = (Tensor::from_slice(&g, n, &dev).unwrap() * scale as f64).unwrap();
+    assert!(
+        device
+            .step(&dev_vars, 1, &gt, s.max_abs * scale, lr)
+            .unwrap()
+    );
+    assert!(flat(&dev_vars) == flat(&host_vars), "clipped step");
+    assert!(device.m.to_vec1::<f32>().unwrap() == host.m, "clipped step");
     assert_eq!(device.t, host.t);
+}
+
+/// The maxima as bit patterns: magnitudes of finite values, +∞ for any NaN or negative
+/// second moment, whatever the sign or payload.
+#[test]
+fn maxima_from_bits() {
+    let m = MaximaBits::of(-3.0, 2.0, 5.0)
+        .max(MaximaBits::of(1.0, -2.5, 0.0))
+        .decode();
+    assert_eq!(
+        m,
+        Maxima {
+            p: 3.0,
+            m: 2.5,
+            v: 5.0
+        }
+    );
+    let nan = -f32::NAN;
+    for (p, mm, v) in [(nan, 0.0, 0.0), (0.0, f32::NAN, 0.0), (0.0, 0.0, -1e-30)] {
+        let d = Maxima::of(p, mm, v);
+        assert!(
+            [d.p, d.m, d.v].contains(&f32::INFINITY),
+            "{p} {mm} {v}: {d:?}"
+        );
+    }
+    assert_eq!(Maxima::of(0.0, 0.0, f32::NAN).v, f32::INFINITY);
+    assert_eq!(Maxima::of(f32::INFINITY, 0.0, 0.0).p, f32::INFINITY);
 }
 
 /// An update whose second moment overflows f32 (a huge finite gradient), or whose
@@ -290,4 +337,34 @@ fn two_stage_reductions_equal_whole_tensor_reductions() {
         let want: f64 = v.iter().map(|&x| x as f64).sum();
         assert!((sum - want).abs() < 1e-9, "{sum} vs {want}");
     }
+}
+
+/// Times the host optimiser's phases at the `paper` preset's size (83 M parameters in
+/// parameters of a few sizes); a measurement, not a check: run by hand with
+/// `cargo test --release -p osrt-trainer optimiser_timing -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn optimiser_timing() {
+    let dev = Device::Cpu;
+    let sizes: Vec<usize> = (0..80)
+        .map(|i| [768 * 768, 768 * 3072, 768, 1536 * 768][i % 4])
+        .collect();
+    let vars = vars(&sizes, &dev);
+    let n: usize = sizes.iter().sum();
+    let g = values(n, 99);
+    let mut opt = AdamW::new(n, HYPER);
+    let mut times = Vec::new();
+    for _ in 0..6 {
+        let t = std::time::Instant::now();
+        let s = GradSummary::of(&g);
+        let t_sum = t.elapsed().as_secs_f64();
+        assert!(opt.step(&vars, 0, &g, s.max_abs, 1e-4).unwrap());
+        times.push((t_sum, t.elapsed().as_secs_f64() - t_sum));
+    }
+    times.sort_by(|a, b| (a.0 + a.1).total_cmp(&(b.0 + b.1)));
+    eprintln!(
+        "{n} parameters: summary {:.1} ms, update {:.1} ms (median of 6)",
+        times[3].0 * 1e3,
+        times[3].1 * 1e3
+    );
 }
