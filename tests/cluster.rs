@@ -619,6 +619,54 @@ fn a_worker_without_the_memory_for_the_step_leaves_the_job() {
     );
 }
 
+/// A step the device cannot hold (a device out-of-memory error, injected through
+/// `OSRT_FAULT_DEVICE_OOM` so that it happens on a CPU too) ends the job at once with a
+/// message naming the step, its estimate and what to change, instead of restarting into
+/// the same error until the restart budget is spent.
+#[test]
+fn a_step_out_of_device_memory_ends_the_job_with_the_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 16);
+    let run = dir.path().join("run");
+    let t = std::time::Instant::now();
+    let out = std::process::Command::new(bin())
+        .args([
+            "train",
+            "--preset",
+            "tiny",
+            "--data",
+            data.to_str().unwrap(),
+        ])
+        .args([
+            "--run",
+            run.to_str().unwrap(),
+            "--max-steps",
+            "50",
+            "--workers",
+            "1",
+        ])
+        .env("OSRT_FAULT_DEVICE_OOM", "1")
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{said}");
+    assert!(t.elapsed() < Duration::from_secs(60), "{:?}", t.elapsed());
+    for part in [
+        "out of memory on Cpu",
+        "CUDA_ERROR_OUT_OF_MEMORY",
+        "4 scene(s), 1 input view(s) at 8×8 px",
+        "estimated peak host RAM",
+        "Lower train.batch_size",
+    ] {
+        assert!(said.contains(part), "{part}: {said}");
+    }
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "failed", "{job}");
+    assert_eq!(job["restarts"], 0, "restarted into the same error: {job}");
+    let m = job["message"].as_str().unwrap();
+    assert!(m.contains("out of memory on Cpu"), "{m}");
+}
+
 /// A resumed job that no worker joins fails after `cluster.wait_timeout_s` with a
 /// message that says so, instead of waiting forever.
 #[test]

@@ -33,6 +33,12 @@ pub enum TrainError {
         source: std::io::Error,
     },
 
+    /// The step does not fit in the device's memory: final, for a restart would run
+    /// into the same wall. The message names the step's shape, its estimate and the
+    /// device's memory, and what to change.
+    #[error("{0}")]
+    OutOfMemory(String),
+
     #[error(
         "training stopped: {skipped} steps in a row had a non-finite loss or gradient \
          (limit {limit}); lower the learning rate or enable gradient clipping"

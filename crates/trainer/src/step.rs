@@ -238,14 +238,12 @@ impl Trainer {
                 })
             })
         };
-        if crate::device::is_cpu(&self.device) {
-            return run(rng);
-        }
         // The device's pool keeps freed memory for reuse; where a step's allocation fails,
         // the free blocks go back to the driver and the step runs once more from the same
-        // RNG state (so the retried step draws what the first try drew).
+        // RNG state (so the retried step draws what the first try drew). Failing again,
+        // it is final.
         let mut again = rng.clone();
-        match run(rng) {
+        let out = match run(rng) {
             Err(TrainError::Model(e))
                 if crate::device::is_out_of_memory(&e)
                     && crate::device::release_cached(&self.device) =>
@@ -258,7 +256,45 @@ impl Trainer {
                 out
             }
             other => other,
+        };
+        match out {
+            Err(TrainError::Model(e)) if crate::device::is_out_of_memory(&e) => {
+                Err(self.out_of_memory(batch, &e))
+            }
+            other => other,
         }
+    }
+
+    /// The final error of a step the device cannot hold: what the step is, its estimated
+    /// peak against the device's memory, and what to change.
+    fn out_of_memory(&self, batch: &Batch, e: &candle_core::Error) -> TrainError {
+        let t = &self.cfg.train;
+        let world = t.batch_size.div_ceil(batch.batch_size.max(1));
+        let estimate = crate::footprint::estimate(
+            &self.cfg,
+            [batch.width as u32, batch.height as u32],
+            world,
+            1,
+        )
+        .map_or("no estimate for this decoder".to_string(), |m| m.describe());
+        let card = match self.device.location() {
+            candle_core::DeviceLocation::Cuda { gpu_id } => crate::device::gpu_memory(gpu_id)
+                .map_or("the device's total memory is unknown".into(), |b| {
+                    format!("the device has {:.1} GiB", b / (1u64 << 30) as f64)
+                }),
+            _ => "the device's total memory is unknown".into(),
+        };
+        TrainError::OutOfMemory(format!(
+            "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
+            self.device.location(),
+            batch.batch_size,
+            batch.input_views,
+            batch.width,
+            batch.height,
+            batch.rays_per_scene,
+            t.precision,
+            t.kernels,
+        ))
     }
 
     fn gradients_here(
@@ -267,6 +303,13 @@ impl Trainer {
         rng: &mut impl Rng,
         keep: bool,
     ) -> Result<StepGradients<Gradient>> {
+        #[cfg(feature = "fault-injection")]
+        if std::env::var_os("OSRT_FAULT_DEVICE_OOM").is_some() {
+            // The device's own error text, so the real classification runs.
+            return Err(TrainError::Model(candle_core::Error::Msg(
+                "CUDA_ERROR_OUT_OF_MEMORY (injected by OSRT_FAULT_DEVICE_OOM)".into(),
+            )));
+        }
         // With debug logging, the phases' times (synchronised on a GPU).
         let timing = tracing::enabled!(tracing::Level::DEBUG);
         let lap = |t: &mut std::time::Instant| -> Result<f64> {

@@ -287,7 +287,10 @@ fn is_fatal(e: &WorkerError) -> bool {
     matches!(
         e,
         WorkerError::Train(
-            TrainError::Config { .. } | TrainError::Dataset(_) | TrainError::TooManySkips { .. }
+            TrainError::Config { .. }
+                | TrainError::Dataset(_)
+                | TrainError::TooManySkips { .. }
+                | TrainError::OutOfMemory(_)
         )
     )
 }

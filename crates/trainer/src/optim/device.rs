@@ -153,10 +153,10 @@ impl DeviceAdamW {
         let m = ((m0 * k.b1)? + (&g * (1.0 - k.b1))?)?;
         // Multiplied in the host's order, `(1 − β₂)·g·g`, for the same roundings.
         let v = ((v0 * k.b2)? + ((&g * (1.0 - k.b2))? * &g)?)?;
-        // Divisions as divisions (candle's `tensor / f64` multiplies by the reciprocal).
+        // Products as products (candle's `tensor * f64` is an affine map, `x·a + 0`).
         let scalar = |x: f64| Tensor::new(x, p.device());
-        let denom = (v.broadcast_div(&scalar(k.c2)?)?.sqrt()? + k.eps)?;
-        let update = ((m.broadcast_div(&scalar(k.c1)?)? / denom)? + (&p * k.weight_decay)?)?;
+        let denom = (v.sqrt()?.broadcast_mul(&scalar(k.inv_sqrt_c2)?)? + k.eps)?;
+        let update = ((m.broadcast_mul(&scalar(k.inv_c1)?)? / denom)? + (&p * k.weight_decay)?)?;
         let new = (p - (update * k.lr)?)?;
         Ok((
             new.to_dtype(DType::F32)?,

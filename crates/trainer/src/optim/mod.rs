@@ -37,6 +37,10 @@ pub struct StepConsts {
     pub b2: f64,
     pub c1: f64,
     pub c2: f64,
+    /// `1 / c₁` and `1 / √c₂`: the bias corrections as products, so that an element's
+    /// update costs one division and one square root.
+    pub inv_c1: f64,
+    pub inv_sqrt_c2: f64,
     pub eps: f64,
     pub weight_decay: f64,
     pub lr: f64,
@@ -46,11 +50,14 @@ impl StepConsts {
     /// The constants of update number `t` (1 for the first).
     pub fn new(h: &Hyperparams, t: u64, lr: f64) -> Self {
         let t = t.min(i32::MAX as u64) as i32;
+        let (c1, c2) = (1.0 - h.beta1.powi(t), 1.0 - h.beta2.powi(t));
         Self {
             b1: h.beta1,
             b2: h.beta2,
-            c1: 1.0 - h.beta1.powi(t),
-            c2: 1.0 - h.beta2.powi(t),
+            c1,
+            c2,
+            inv_c1: 1.0 / c1,
+            inv_sqrt_c2: 1.0 / c2.sqrt(),
             eps: h.eps,
             weight_decay: h.weight_decay,
             lr,
@@ -65,7 +72,12 @@ impl StepConsts {
     /// `false` only means "not shown": the caller then checks element by element.
     pub fn provably_finite(&self, before: Maxima, g_max: f32) -> bool {
         const SLACK: f64 = 1.0 + 1e-9;
-        if !(self.eps > 0.0 && self.c1 > 0.0 && self.c2 > 0.0 && self.lr >= 0.0) {
+        if !(self.eps > 0.0
+            && self.c1 > 0.0
+            && self.c2 > 0.0
+            && self.inv_c1.is_finite()
+            && self.lr >= 0.0)
+        {
             return false;
         }
         let (p, m, v, g) = (
@@ -76,7 +88,7 @@ impl StepConsts {
         );
         let m_new = (self.b1.abs() * m.max(0.0) + (1.0 - self.b1).abs() * g) * SLACK;
         let v_new = (self.b2.abs() * v + (1.0 - self.b2).abs() * g * g) * SLACK;
-        let step = m_new / self.c1 / self.eps + self.weight_decay.abs() * p;
+        let step = m_new * self.inv_c1 / self.eps + self.weight_decay.abs() * p;
         let p_new = (p + self.lr * step) * SLACK;
         // Written so that a NaN anywhere fails the test.
         [m_new, v_new, p_new].iter().all(|&x| x <= f32::MAX as f64)
@@ -92,7 +104,10 @@ pub fn adamw_element(p: f32, g: f32, m0: f32, v0: f32, k: &StepConsts) -> (f32, 
     let g = g as f64;
     let m = k.b1 * m0 as f64 + (1.0 - k.b1) * g;
     let v = k.b2 * v0 as f64 + (1.0 - k.b2) * g * g;
-    let update = (m / k.c1) / ((v / k.c2).sqrt() + k.eps) + k.weight_decay * p as f64;
+    // √v̂ = √v / √c₂ and m̂ = m / c₁, each as a product (PyTorch's AdamW divides √v by
+    // √c₂ the same way): the element's one division is m̂ by the denominator.
+    let denom = v.sqrt() * k.inv_sqrt_c2 + k.eps;
+    let update = (m * k.inv_c1) / denom + k.weight_decay * p as f64;
     ((p as f64 - k.lr * update) as f32, m as f32, v as f32)
 }
 
