@@ -338,9 +338,13 @@ impl Trainer {
         )?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
         let forward_s = lap(&mut clock)?;
-        let grads = loss.backward()?;
+        let mut grads = loss.backward()?;
         let backward_s = lap(&mut clock)?;
-        let mut grads = grads;
+        let loss_value = loss.to_scalar::<f32>()? as f64;
+        // The outputs hold the whole forward graph (every activation): it goes before the
+        // flat gradient is built beside the parameters' gradients, or that buffer would
+        // raise the step's peak above the backward pass's.
+        drop((loss, out, slots, t));
         let flat = if crate::device::is_cpu(&self.device) {
             // Room for the all-reduce's control values, so that appending them does not
             // move the buffer.
@@ -374,12 +378,10 @@ impl Trainer {
                 Gradient::Host(flat.to_vec1::<f32>()?)
             }
         };
-        let loss = loss.to_scalar::<f32>()? as f64;
-        drop((out, slots, t));
         let flatten_s = lap(&mut clock)?;
         tracing::debug!(forward_s, backward_s, flatten_s, "train step gradients");
         Ok(StepGradients {
-            loss,
+            loss: loss_value,
             grads: flat,
             samples: batch.batch_size,
         })
