@@ -338,33 +338,3 @@ fn two_stage_reductions_equal_whole_tensor_reductions() {
         assert!((sum - want).abs() < 1e-9, "{sum} vs {want}");
     }
 }
-
-/// Times the host optimiser's phases at the `paper` preset's size (83 M parameters in
-/// parameters of a few sizes); a measurement, not a check: run by hand with
-/// `cargo test --release -p osrt-trainer optimiser_timing -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn optimiser_timing() {
-    let dev = Device::Cpu;
-    let sizes: Vec<usize> = (0..80)
-        .map(|i| [768 * 768, 768 * 3072, 768, 1536 * 768][i % 4])
-        .collect();
-    let vars = vars(&sizes, &dev);
-    let n: usize = sizes.iter().sum();
-    let g = values(n, 99);
-    let mut opt = AdamW::new(n, HYPER);
-    let mut times = Vec::new();
-    for _ in 0..6 {
-        let t = std::time::Instant::now();
-        let s = GradSummary::of(&g);
-        let t_sum = t.elapsed().as_secs_f64();
-        assert!(opt.step(&vars, 0, &g, s.max_abs, 1e-4).unwrap());
-        times.push((t_sum, t.elapsed().as_secs_f64() - t_sum));
-    }
-    times.sort_by(|a, b| (a.0 + a.1).total_cmp(&(b.0 + b.1)));
-    eprintln!(
-        "{n} parameters: summary {:.1} ms, update {:.1} ms (median of 6)",
-        times[3].0 * 1e3,
-        times[3].1 * 1e3
-    );
-}
