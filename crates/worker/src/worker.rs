@@ -453,12 +453,22 @@ async fn run_generation(
             break;
         }
         live.step.store(step, Ordering::Relaxed);
+        let t = std::time::Instant::now();
         let g = learner.gradients().await?;
+        let gradients_s = t.elapsed().as_secs_f64();
         let signals = learner.signals(plan.deadline_unix_s);
         let reduced = match reduce(ring.as_mut(), step + 1, rank, g, signals).await {
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
+        // The all-reduce's share of the step, for `RUST_LOG=osrt_worker=debug`.
+        let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
+        tracing::debug!(
+            step,
+            gradients_s,
+            reduce_s,
+            "step's gradients and all-reduce"
+        );
         let end = learner.finish_step(reduced, plan.max_steps)?;
         // Before the record that names them reaches the coordinator.
         put_pictures(&run, learner.take_pictures()).await;
