@@ -316,3 +316,108 @@ impl Mailbox {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// What can happen to a mailbox: the worker's own moves and chunks from anyone.
+    #[derive(Debug, Clone)]
+    enum Event {
+        Generation {
+            generation: u64,
+            rank: usize,
+            first: u64,
+        },
+        Step {
+            step: u64,
+            len: usize,
+        },
+        Chunk {
+            tag: ChunkTag,
+            bytes: usize,
+        },
+    }
+
+    fn event() -> impl Strategy<Value = Event> {
+        let small = || prop_oneof![0u64..4, Just(u64::MAX), any::<u64>()];
+        prop_oneof![
+            (0u64..4, 0usize..3, small()).prop_map(|(generation, rank, first)| {
+                Event::Generation {
+                    generation,
+                    rank,
+                    first,
+                }
+            }),
+            (small(), 1usize..5000).prop_map(|(step, len)| Event::Step { step, len }),
+            (
+                (0u64..5, small(), 0u32..3, -1i32..4),
+                (
+                    0u32..3,
+                    0u32..6,
+                    0u32..4,
+                    prop_oneof![Just("job"), Just("other")]
+                ),
+                prop_oneof![0usize..64, Just(4000), Just(300_000)],
+            )
+                .prop_map(
+                    |((generation, step, bucket, phase), (round, chunk, from_rank, job), bytes)| {
+                        Event::Chunk {
+                            tag: ChunkTag {
+                                job: job.into(),
+                                generation,
+                                step,
+                                bucket,
+                                phase,
+                                round,
+                                chunk,
+                                from_rank,
+                            },
+                            bytes,
+                        }
+                    }
+                ),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { failure_persistence: None, ..ProptestConfig::default() })]
+
+        /// Any sequence of generations, steps and chunks (of any tag, from anyone): no
+        /// panic, the bytes counted as early are exactly the early chunks', and no
+        /// accepted chunk takes them past the bound.
+        #[test]
+        fn any_traffic_keeps_the_early_bound(events in prop::collection::vec(event(), 1..40)) {
+            let mailbox = Mailbox::new("job");
+            for e in events {
+                match e {
+                    Event::Generation { generation, rank, first } => {
+                        mailbox.set_generation(generation, rank, first);
+                    }
+                    Event::Step { step, len } => mailbox.begin_step(step, Layout::new(len, 3, 1000, 256)),
+                    Event::Chunk { tag, bytes } => {
+                        let before = mailbox.state.lock().unwrap().early_bytes;
+                        let data = Bytes::from(vec![0u8; bytes]);
+                        let kept = mailbox.accept(Chunk { tag: Some(tag), data }).is_ok();
+                        let s = mailbox.state.lock().unwrap();
+                        // What an accepted chunk adds stays within the bound (a later,
+                        // smaller gradient may lower the bound below what is held).
+                        if kept && s.early_bytes > before {
+                            prop_assert!(
+                                s.early_bytes <= s.early_limit(),
+                                "{} > {}",
+                                s.early_bytes,
+                                s.early_limit()
+                            );
+                        }
+                    }
+                }
+                let mut s = mailbox.state.lock().unwrap();
+                let counted = s.early_bytes;
+                s.recount_early();
+                prop_assert_eq!(counted, s.early_bytes);
+            }
+        }
+    }
+}

@@ -453,22 +453,11 @@ async fn run_generation(
             break;
         }
         live.step.store(step, Ordering::Relaxed);
-        let t = std::time::Instant::now();
-        let g = learner.gradients().await?;
-        let gradients_s = t.elapsed().as_secs_f64();
-        let signals = learner.signals(plan.deadline_unix_s);
-        let reduced = match reduce(ring.as_mut(), step + 1, rank, g, signals).await {
+        let deadline = plan.deadline_unix_s;
+        let reduced = match reduced_step(&mut learner, ring.as_mut(), step, rank, deadline).await? {
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
-        // The all-reduce's share of the step, for `RUST_LOG=osrt_worker=debug`.
-        let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
-        tracing::debug!(
-            step,
-            gradients_s,
-            reduce_s,
-            "step's gradients and all-reduce"
-        );
         let end = learner.finish_step(reduced, plan.max_steps)?;
         // Before the record that names them reaches the coordinator.
         put_pictures(&run, learner.take_pictures()).await;
@@ -502,6 +491,32 @@ async fn run_generation(
         prev.join().await?;
     }
     Ok(Ended::Finished)
+}
+
+/// Step `step`'s gradients (an error here ends the generation as the trainer's errors
+/// do) reduced over the ring as all-reduce `step + 1` (an error there is the ring's:
+/// the inner result). Logs both phases' seconds at debug level: the all-reduce's share
+/// of the step.
+async fn reduced_step(
+    learner: &mut Learner,
+    ring: Option<&mut Ring>,
+    step: u64,
+    rank: usize,
+    deadline_unix_s: Option<f64>,
+) -> Result<Result<osrt_trainer::distributed::Reduced>> {
+    let t = Instant::now();
+    let g = learner.gradients().await?;
+    let gradients_s = t.elapsed().as_secs_f64();
+    let signals = learner.signals(deadline_unix_s);
+    let reduced = reduce(ring, step + 1, rank, g, signals).await;
+    let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
+    tracing::debug!(
+        step,
+        gradients_s,
+        reduce_s,
+        "step's gradients and all-reduce"
+    );
+    Ok(reduced)
 }
 
 /// Where the plan's generation starts, and this rank in it.
