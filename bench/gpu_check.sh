@@ -8,6 +8,8 @@
 #   bench/gpu_check.sh bench   # train-step time against PyTorch eager, same cases, f32 and bf16
 #   bench/gpu_check.sh memory  # check-device (ops and steps), then the paper preset's peak
 #                              # device memory and step time beside PyTorch, and the small model
+#   bench/gpu_check.sh profile # the time of each op kind, forward and backward, beside the
+#                              # PyTorch profiler's table: paper preset and clevr-lite-cpu b256
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -127,8 +129,27 @@ PY
     timeout 120 python3 bench/torch_step.py --device cuda --presets clevr-lite-cpu --batch-size 16,256 \
         --dtypes f32,bf16 --no-render --out "$OUT/torch-lite.json" 2>&1 | tail -n 8
     ;;
+profile)
+    # Where each side's step goes, op by op (the tables that choose the next kernel):
+    # osrt's op calls timed alone (`--profile`), PyTorch's ops under its profiler.
+    for prec in f32 bf16; do
+        echo "== osrt profile paper 1x8192 b32 $prec"
+        timeout 150 "$BIN" bench model --device cuda --profile --steps 3 --presets paper \
+            --image-size 128 --batch-size 32 --input-views 1 --rays-per-scene 8192 \
+            --precision "$prec" --out "$OUT/profile-paper1-$prec.json" 2>&1 | tail -n 24
+        echo "== osrt profile clevr-lite-cpu b256 $prec"
+        timeout 60 "$BIN" bench model --device cuda --profile --steps 5 --presets clevr-lite-cpu \
+            --batch-size 256 --precision "$prec" --out "$OUT/profile-lite256-$prec.json" 2>&1 | tail -n 24
+    done
+    timeout 150 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size 32 \
+        --image-size 128 --cases 1x8192 --dtypes f32,bf16 --steps 3 --no-render \
+        --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 72
+    timeout 90 python3 bench/torch_step.py --device cuda --profile --presets clevr-lite-cpu \
+        --batch-size 256 --dtypes f32,bf16 --steps 5 --no-render \
+        --out "$OUT/torch-profile-lite.json" 2>&1 | tail -n 72
+    ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench|memory"
+    echo "usage: bench/gpu_check.sh train|bench|memory|profile"
     exit 2
     ;;
 esac

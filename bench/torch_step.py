@@ -406,6 +406,11 @@ def run_case(torch, case):
     )
     if cuda:
         out["tf32"] = bool(torch.backends.cuda.matmul.allow_tf32)
+    if case.get("profile"):
+        out["profile"] = profile_step(torch, lambda: model.decode(
+            model.encode(images, origins, directions), t_orig, t_dir)[0], target, autocast,
+            sync, cuda)
+        opt.zero_grad(set_to_none=True)
     del opt, images, origins, directions, t_orig, t_dir, target, rgb, loss
     if case["render"]:
         # Render: one whole input view (s·s rays) from the model's slots, no gradients;
@@ -429,6 +434,44 @@ def run_case(torch, case):
                          "image_size": s, "median_frame_s": frame, "fps": 1.0 / frame}
         out["render_fps"] = 1.0 / frame
     return out
+
+
+def profile_step(torch, forward, target, autocast, sync, cuda, rows=30):
+    """One more forward and backward pass under the PyTorch profiler: its table of ops by
+    self time (device time on CUDA, CPU time on the CPU), the `rows` largest, and the
+    profiled pass's own forward and backward seconds."""
+    from torch.profiler import ProfilerActivity, profile
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=acts) as prof:
+        sync()
+        t0 = time.perf_counter()
+        with autocast():
+            loss = ((forward().float() - target) ** 2).mean()
+        sync()
+        t1 = time.perf_counter()
+        loss.backward()
+        sync()
+        t2 = time.perf_counter()
+    dev = "device" if cuda else "cpu"
+    self_key, total_key = f"self_{dev}_time_total", f"{dev}_time_total"
+    avgs = sorted(prof.key_averages(), key=lambda e: getattr(e, self_key), reverse=True)
+    total_self = sum(getattr(e, self_key) for e in avgs)
+    return dict(
+        time=f"{dev} time", forward_s=t1 - t0, backward_s=t2 - t1,
+        self_total_s=total_self / 1e6,
+        ops=[dict(name=e.key, calls=e.count, self_s=getattr(e, self_key) / 1e6,
+                  total_s=getattr(e, total_key) / 1e6)
+             for e in avgs[:rows] if getattr(e, self_key) > 0])
+
+
+def print_profile(r):
+    p = r["profile"]
+    print(f"profile of {label(r, False)} ({p['time']}, one step under the PyTorch profiler: "
+          f"forward {p['forward_s'] * 1e3:.1f} ms, backward {p['backward_s'] * 1e3:.1f} ms; "
+          f"self times add up to {p['self_total_s'] * 1e3:.1f} ms)")
+    print(f"  {'self ms':>9} {'total ms':>9} {'calls':>6}  op")
+    for o in p["ops"]:
+        print(f"  {o['self_s'] * 1e3:>9.2f} {o['total_s'] * 1e3:>9.2f} {o['calls']:>6}  {o['name']}")
 
 
 def reset_peak_rss():
@@ -499,7 +542,7 @@ def plan(a, ap):
                         preset=p, batch_size=bs, input_views=v, rays_per_scene=r,
                         image_size=a.image_size or c["image_size"], dtype=d,
                         device=a.device, steps=a.steps, warmup=a.warmup,
-                        render=not a.no_render))
+                        render=not a.no_render, profile=a.profile))
     return cases
 
 
@@ -542,6 +585,10 @@ def main():
                     help="cuda: allow TF32 in f32 matmuls and cuDNN convolutions (default: "
                          "off in both, so f32 is f32)")
     ap.add_argument("--no-render", action="store_true", help="skip the render timing")
+    ap.add_argument("--profile", action="store_true",
+                    help="after the timed steps, one forward and backward pass under the "
+                    "PyTorch profiler: its ops by self time (the counterpart of "
+                    "`osrt bench model --profile`)")
     ap.add_argument("--list", action="store_true", help="print the cases and exit")
     ap.add_argument("--out", default="target/bench/torch.json")
     ap.add_argument("--worker-allocator", action="store_true",
@@ -640,6 +687,9 @@ def main():
                f"{r['render']['median_frame_s'] * 1e3:.2f}" if "render" in r else "-",
                f"{r['render']['fps']:.1f}" if "render" in r else "-")
         print("  ".join(f"{x!s:>{w}}" for x, w in zip(row, widths)))
+    for r in results:
+        if "profile" in r:
+            print_profile(r)
     by_threads = a.device == "cpu" and len(cases) == 1
     saved = {label(r, by_threads): r for r in results}
     os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)

@@ -6,7 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_model::{Kernels, Precision};
 use osrt_run::MetricsRecord;
-use osrt_trainer::bench::{bench_render, bench_step};
+use osrt_trainer::bench::{bench_render, bench_step, profile_step};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
 
@@ -34,6 +34,11 @@ pub struct BenchModelArgs {
     /// Time only the renders (no train steps): the loop for render A/B comparisons.
     #[arg(long, conflicts_with = "step_only")]
     pub render_only: bool,
+    /// Print the time of each op kind of the train step, forward and backward: one step's
+    /// op calls recorded, then each distinct call timed alone (synchronised), beside the
+    /// step's own passes (no renders, no composed-vs-fused comparison).
+    #[arg(long, conflicts_with = "render_only")]
+    pub profile: bool,
     /// Run in this process only (used by the parent, which sets the thread environment).
     #[arg(long, hide = true)]
     pub child: bool,
@@ -80,6 +85,15 @@ fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
 
 fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let device = a.device.open()?;
+    if a.profile {
+        let mut profiles = Vec::new();
+        for p in &a.presets {
+            let mut job = bench_job(a, p)?;
+            job.train.kernels = a.kernels.unwrap_or_default();
+            profiles.push(profile_step(p, &job, a.image_size, a.steps, 3, &device)?);
+        }
+        return Ok(json!({ "steps": [], "renders": [], "profiles": profiles }));
+    }
     let mut steps = Vec::new();
     let presets: &[String] = if a.render_only { &[] } else { &a.presets };
     for p in presets {
@@ -151,6 +165,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         ])
         .args(a.step_only.then_some("--step-only"))
         .args(a.render_only.then_some("--render-only"))
+        .args(a.profile.then_some("--profile"))
         .args(["--device", &a.device.to_string()])
         .args(["--precision", &a.precision.to_string()])
         .args(
@@ -205,10 +220,81 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
     Ok(())
 }
 
+/// One step's profile (`--profile`): op kinds, then the costliest distinct calls.
+fn print_profile(p: &serde_json::Value) {
+    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(0.0);
+    let (fwd, bwd) = (f(p, "forward_s"), f(p, "backward_s"));
+    println!(
+        "  profile of {} (batch {}, {} view(s), {} rays, {} px) on {}, {}, {} kernels: \
+         forward {:.1} ms, backward {:.1} ms (medians of the whole step's passes)",
+        p["preset"].as_str().unwrap_or(""),
+        p["batch_size"],
+        p["input_views"],
+        p["rays_per_scene"],
+        p["image_size"],
+        p["device"].as_str().unwrap_or(""),
+        p["precision"].as_str().unwrap_or(""),
+        p["kernels"].as_str().unwrap_or(""),
+        fwd * 1e3,
+        bwd * 1e3,
+    );
+    let ops: Vec<_> = p["ops"].as_array().into_iter().flatten().collect();
+    let mut kinds: Vec<(String, u64, f64, f64)> = Vec::new();
+    for o in &ops {
+        let kind = o["kind"].as_str().unwrap_or("").to_string();
+        let n = o["calls"].as_u64().unwrap_or(0);
+        let (of, ob) = (n as f64 * f(o, "forward_s"), n as f64 * f(o, "backward_s"));
+        match kinds.iter_mut().find(|k| k.0 == kind) {
+            Some(k) => (k.1, k.2, k.3) = (k.1 + n, k.2 + of, k.3 + ob),
+            None => kinds.push((kind, n, of, ob)),
+        }
+    }
+    kinds.sort_by(|a, b| (b.2 + b.3).total_cmp(&(a.2 + a.3)));
+    println!(
+        "    {:<12} {:>6} {:>11} {:>11} {:>11} {:>9}",
+        "op", "calls", "forward ms", "backward ms", "total ms", "% of step"
+    );
+    let step = fwd + bwd;
+    let (mut sf, mut sb) = (0.0, 0.0);
+    for (kind, n, of, ob) in &kinds {
+        (sf, sb) = (sf + of, sb + ob);
+        println!(
+            "    {kind:<12} {n:>6} {:>11.2} {:>11.2} {:>11.2} {:>8.1}%",
+            of * 1e3,
+            ob * 1e3,
+            (of + ob) * 1e3,
+            100.0 * (of + ob) / step
+        );
+    }
+    println!(
+        "    {:<12} {:>6} {:>11.2} {:>11.2} {:>11.2} {:>8.1}%   (the rest: ops between \
+         these, gradient accumulation)",
+        "ops alone",
+        "",
+        sf * 1e3,
+        sb * 1e3,
+        (sf + sb) * 1e3,
+        100.0 * (sf + sb) / step
+    );
+    println!("    costliest calls (calls × (forward + backward)):");
+    for o in ops.iter().take(8) {
+        let n = o["calls"].as_u64().unwrap_or(0) as f64;
+        println!(
+            "      {:>9.2} ms  {} × {}",
+            n * (f(o, "forward_s") + f(o, "backward_s")) * 1e3,
+            n,
+            o["signature"].as_str().unwrap_or("")
+        );
+    }
+}
+
 /// The figures of `osrt bench model`, for people.
 fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
     for (threads, v) in report.as_object().expect("object") {
         println!("{threads} thread(s):");
+        for p in v["profiles"].as_array().into_iter().flatten() {
+            print_profile(p);
+        }
         for s in v["steps"].as_array().expect("array") {
             let ms = |k: &str| s[k].as_f64().unwrap_or(0.0) * 1e3;
             println!(

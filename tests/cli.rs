@@ -414,6 +414,60 @@ fn bench_model_render_only_times_renders_alone() {
     assert!(err.contains("cannot be used with"), "{err}");
 }
 
+/// `--profile` times the step's op kinds, forward and backward, with either kernels: the
+/// tiny preset's step has its transformer blocks (fused: one op each; composed: their
+/// LayerNorms, attention and MLPs) and its convolutions, every call counted and timed,
+/// and the ops alone take no more than a few times the whole passes (each is timed apart).
+#[test]
+fn bench_model_profile_times_each_op_kind() {
+    let dir = tempfile::tempdir().unwrap();
+    for (kernels, must) in [
+        ("fused", &["block", "conv2d"][..]),
+        (
+            "composed",
+            &["attention", "conv2d", "layer_norm", "mlp"][..],
+        ),
+    ] {
+        let out_json = dir.path().join(format!("{kernels}.json"));
+        let out = osrt(&[
+            "bench",
+            "model",
+            "--profile",
+            "--presets",
+            "tiny",
+            "--kernels",
+            kernels,
+            "--steps",
+            "2",
+            "--threads",
+            "1",
+            "--out",
+            out_json.to_str().unwrap(),
+        ]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains("ops alone"), "{text}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+        let p = &v["1"]["profiles"][0];
+        assert_eq!(p["kernels"], kernels, "{p}");
+        let ops = p["ops"].as_array().unwrap();
+        let kinds: Vec<&str> = ops.iter().map(|o| o["kind"].as_str().unwrap()).collect();
+        for k in must {
+            assert!(kinds.contains(k), "{kernels}: no {k} in {kinds:?}");
+        }
+        let f = |o: &serde_json::Value, k: &str| o[k].as_f64().unwrap();
+        assert!(ops.iter().all(|o| f(o, "forward_s") > 0.0
+            && f(o, "backward_s") >= 0.0
+            && o["calls"].as_u64().unwrap() >= 1));
+        let ops_s: f64 = ops
+            .iter()
+            .map(|o| o["calls"].as_f64().unwrap() * (f(o, "forward_s") + f(o, "backward_s")))
+            .sum();
+        let step_s = f(p, "forward_s") + f(p, "backward_s");
+        assert!(step_s > 0.0 && ops_s > 0.0 && ops_s < 5.0 * step_s, "{p}");
+    }
+}
+
 /// Writes to a local folder are synced before they count: `strace` sees an fsync of
 /// every file `osrt data generate` writes (the three splits' parts and the manifest) and
 /// of every file a training job's run folder depends on (each checkpoint object with its

@@ -100,6 +100,10 @@ impl CustomOp2 for GeluBwd {
 
 /// erf-based GELU, elementwise.
 pub fn gelu(x: &Tensor) -> Result<Tensor> {
+    crate::profile::op("gelu", &[x], |t| gelu_here(&t[0]))
+}
+
+fn gelu_here(x: &Tensor) -> Result<Tensor> {
     if usable(&[x]) {
         return x.contiguous()?.apply_op1(GeluOp);
     }
@@ -178,6 +182,10 @@ impl CustomOp2 for LeakyReluBwd {
 
 /// `max(x, 0)`, elementwise (gradient 1 at 0, as candle's `relu`).
 pub fn relu(x: &Tensor) -> Result<Tensor> {
+    crate::profile::op("relu", &[x], |t| relu_here(&t[0]))
+}
+
+fn relu_here(x: &Tensor) -> Result<Tensor> {
     if usable(&[x]) {
         return x.contiguous()?.apply_op1(LeakyReluOp { slope: 0.0 });
     }
@@ -187,6 +195,10 @@ pub fn relu(x: &Tensor) -> Result<Tensor> {
 /// `x` where `x ≥ 0`, `slope · x` below (gradient 1 at 0); composed:
 /// `maximum(x, slope · x)` for slopes in (0, 1).
 pub fn leaky_relu(x: &Tensor, slope: f32) -> Result<Tensor> {
+    crate::profile::op("leaky_relu", &[x], move |t| leaky_relu_here(&t[0], slope))
+}
+
+fn leaky_relu_here(x: &Tensor, slope: f32) -> Result<Tensor> {
     if usable(&[x]) {
         return x.contiguous()?.apply_op1(LeakyReluOp { slope });
     }

@@ -371,6 +371,12 @@ impl AttentionBwd {
 /// # Shapes
 /// `q: [b, n, heads·dh]`, `k, v: [b, m, heads·dh]` → `[b, n, heads·dh]`
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
+    crate::profile::op("attention", &[q, k, v], move |t| {
+        attention_here(&t[0], &t[1], &t[2], heads, scale)
+    })
+}
+
+fn attention_here(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
     let (b, n, inner) = q.dims3()?;
     let (bk, m, ik) = k.dims3()?;
     if bk != b || ik != inner || k.dims() != v.dims() || heads == 0 || inner % heads != 0 {
@@ -403,6 +409,18 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) -
 /// The same attention from candle ops: split heads, `Q Kᵀ · scale`, softmax, `· V`,
 /// merge heads.
 pub fn attention_composed(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    heads: usize,
+    scale: f64,
+) -> Result<Tensor> {
+    crate::profile::op("attention", &[q, k, v], move |t| {
+        attention_composed_here(&t[0], &t[1], &t[2], heads, scale)
+    })
+}
+
+fn attention_composed_here(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,

@@ -130,6 +130,12 @@ impl CustomOp3 for BiasActBwd {
 /// One node where the one-node ops apply (f32 on the CPU or a CUDA device); the composed
 /// ops otherwise.
 pub fn bias_act(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> {
+    crate::profile::op("bias_act", &[x, b], move |t| {
+        bias_act_here(&t[0], &t[1], act)
+    })
+}
+
+fn bias_act_here(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> {
     if usable_with_cuda(&[x, b])
         && b.rank() == 1
         && x.dim(candle_core::D::Minus1)? == b.elem_count()

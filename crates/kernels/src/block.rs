@@ -516,6 +516,51 @@ impl CustomOp3 for BlockOp {
 /// # Shapes
 /// `x: [b, n, d]`, `ctx: [b, m, d_ctx]` → `[b, n, d]`
 pub fn block(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Option<Tensor>> {
+    let Some(rec) = crate::profile::current() else {
+        return block_here(x, ctx, p);
+    };
+    let y = crate::profile::nested(|| block_here(x, ctx, p))?;
+    if y.is_some() {
+        // The operands in one list: x, the eight attention-half tensors, the context if
+        // any, then the MLP's layers.
+        let mut lead = vec![
+            x,
+            p.norm_attn.0,
+            p.norm_attn.1,
+            p.q,
+            p.k,
+            p.v,
+            p.out.0,
+            p.out.1,
+        ];
+        lead.extend([p.norm_mlp.0, p.norm_mlp.1]);
+        lead.extend(ctx);
+        let (all, biased) = crate::mlp::operands(&lead, &p.mlp);
+        let (act, heads, eps, n) = (p.act, p.heads, p.eps, lead.len());
+        let rerun = move |t: &[Tensor]| -> Result<Vec<Tensor>> {
+            let params = BlockParams {
+                norm_attn: (&t[1], &t[2]),
+                q: &t[3],
+                k: &t[4],
+                v: &t[5],
+                out: (&t[6], &t[7]),
+                norm_mlp: (&t[8], &t[9]),
+                mlp: crate::mlp::layers_of(&t[n..], &biased),
+                act,
+                heads,
+                eps,
+            };
+            match block_here(&t[0], t[10..n].first(), &params)? {
+                Some(y) => Ok(vec![y]),
+                None => candle_core::bail!("profile: the recorded block no longer fits"),
+            }
+        };
+        crate::profile::record(&rec, "block", &all, std::sync::Arc::new(rerun));
+    }
+    Ok(y)
+}
+
+fn block_here(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Option<Tensor>> {
     let mut all = vec![
         x,
         p.norm_attn.0,

@@ -118,6 +118,12 @@ const MAX_UNFOLDED: usize = 1 << 28;
 /// # Shapes
 /// `x: [n, h, w, c_in]`, `kernel: [c_out, c_in, k, k]` → `[n, h_out, w_out, c_out]`
 pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+    crate::profile::op("conv2d", &[x, kernel], move |t| {
+        conv2d_nhwc_here(&t[0], &t[1], stride, padding)
+    })
+}
+
+fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
     let (n, h, w, c) = x.dims4()?;
     let (co, ci, k, k2) = kernel.dims4()?;
     if ci != c || k != k2 {

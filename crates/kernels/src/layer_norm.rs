@@ -157,6 +157,12 @@ impl CustomOp3 for LayerNormBwd {
 
 /// LayerNorm over the last dimension: `x: [.., d]`, `weight`, `bias: [d]` → `[.., d]`.
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    crate::profile::op("layer_norm", &[x, weight, bias], move |t| {
+        layer_norm_here(&t[0], &t[1], &t[2], eps)
+    })
+}
+
+fn layer_norm_here(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
     if usable_with_cuda(&[x, weight, bias]) {
         return x.contiguous()?.apply_op3(
             &weight.contiguous()?,

@@ -34,6 +34,7 @@ mod layer_norm;
 mod linear;
 mod mix;
 mod mlp;
+pub mod profile;
 mod softmax;
 #[cfg(test)]
 mod testing;
@@ -115,7 +116,9 @@ pub fn with_precision<T>(p: Precision, f: impl FnOnce() -> T) -> T {
 
 /// `a · b` (candle's batched matmul) in this thread's [`precision`].
 pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
-    in_precision(&[a, b], |t| t[0].matmul(&t[1]))
+    profile::op("matmul", &[a, b], |t| {
+        in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
+    })
 }
 
 /// Runs a product-like op on its f32 operands rounded to bf16 when the thread's precision
@@ -205,8 +208,8 @@ pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
 /// across threads and waited for (the step took 1.04–1.12× as long at 1 thread in
 /// interleaved runs: docs/performance.md).
 pub fn on_device_pool<T: Send>(device: &candle_core::Device, f: impl FnOnce() -> T + Send) -> T {
-    let (k, p) = (kernels(), precision());
-    device.with_context(|| with_kernels(k, || with_precision(p, f)))
+    let (k, p, r) = (kernels(), precision(), profile::current());
+    device.with_context(|| with_kernels(k, || with_precision(p, || profile::recording(r, f))))
 }
 
 /// What a one-node op's forward pass keeps for its backward pass: put there only when a

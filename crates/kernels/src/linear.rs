@@ -91,6 +91,10 @@ impl CustomOp1 for ColumnSum {
 
 /// `x: [.., d] + bias: [d]`.
 pub fn bias_add(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
+    crate::profile::op("bias_add", &[x, bias], |t| bias_add_here(&t[0], &t[1]))
+}
+
+fn bias_add_here(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
     if usable(&[x, bias]) && x.dim(D::Minus1)? == bias.elem_count() && bias.rank() == 1 {
         return x.contiguous()?.apply_op2(&bias.contiguous()?, BiasAddOp);
     }
@@ -324,6 +328,12 @@ impl CustomOp2 for LinearNoBiasOp {
 /// `x: [.., in]`, `weight: [out, in]`, `bias: [out]` → `x·weightᵀ + bias: [.., out]`, one
 /// 2-D product over all leading dims (candle's broadcast matmul is slower).
 pub fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    let mut all = vec![x, weight];
+    all.extend(bias);
+    crate::profile::op("linear", &all, |t| linear_here(&t[0], &t[1], t.get(2)))
+}
+
+fn linear_here(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
     let fits = weight.rank() == 2 && bias.is_none_or(|b| b.rank() == 1);
     let mut all = vec![x, weight];
     all.extend(bias);

@@ -190,6 +190,29 @@ pub fn slot_mix(
     w_k: &Tensor,
     scale: f64,
 ) -> Result<Option<(Tensor, Tensor)>> {
+    let Some(rec) = crate::profile::current() else {
+        return slot_mix_here(x, slots, w_q, w_k, scale);
+    };
+    let y = crate::profile::nested(|| slot_mix_here(x, slots, w_q, w_k, scale))?;
+    if y.is_some() {
+        let rerun = move |t: &[Tensor]| -> Result<Vec<Tensor>> {
+            match slot_mix_here(&t[0], &t[1], &t[2], &t[3], scale)? {
+                Some((mixed, weights)) => Ok(vec![mixed, weights]),
+                None => candle_core::bail!("profile: the recorded slot mix no longer fits"),
+            }
+        };
+        crate::profile::record(&rec, "slot_mix", &[x, slots, w_q, w_k], Arc::new(rerun));
+    }
+    Ok(y)
+}
+
+fn slot_mix_here(
+    x: &Tensor,
+    slots: &Tensor,
+    w_q: &Tensor,
+    w_k: &Tensor,
+    scale: f64,
+) -> Result<Option<(Tensor, Tensor)>> {
     let (Ok((b, r, dx)), Ok((bs, k, ds))) = (x.dims3(), slots.dims3()) else {
         return Ok(None);
     };

@@ -399,6 +399,40 @@ fn pack(input: usize, layers: &[MlpLayer]) -> Result<(Vec<usize>, Tensor)> {
 /// between them → `[.., out]`, as one graph node where the fused ops apply (see the
 /// module docs), else layer by layer.
 pub fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let (all, biased) = operands(&[x], layers);
+    crate::profile::op("mlp", &all, move |t| {
+        mlp_here(&t[0], &layers_of(&t[1..], &biased), act)
+    })
+}
+
+/// An MLP's operands as one list (`lead` first, then each layer's weight and bias) for
+/// the profile's record, and which layers have a bias.
+pub(crate) fn operands<'a>(
+    lead: &[&'a Tensor],
+    layers: &[MlpLayer<'a>],
+) -> (Vec<&'a Tensor>, Vec<bool>) {
+    let mut all = lead.to_vec();
+    for (w, b) in layers {
+        all.push(w);
+        all.extend(*b);
+    }
+    (all, layers.iter().map(|(_, b)| b.is_some()).collect())
+}
+
+/// The layers back from [`operands`]' list (without its lead operands).
+pub(crate) fn layers_of<'a>(t: &'a [Tensor], biased: &[bool]) -> Vec<MlpLayer<'a>> {
+    let mut i = 0;
+    biased
+        .iter()
+        .map(|&b| {
+            let w = &t[i];
+            i += 1 + b as usize;
+            (w, b.then(|| &t[i - 1]))
+        })
+        .collect()
+}
+
+fn mlp_here(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     let bias = layers.first().is_some_and(|(_, b)| b.is_some());
     let mut all = vec![x];
     for (w, b) in layers {
@@ -503,6 +537,13 @@ impl CustomOp3 for MlpCatOp {
 /// gradient accumulation. The first layer's sums are split in two, so the bits differ
 /// from the MLP of the concatenation by rounding (tested to float tolerance).
 pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let (all, biased) = operands(&[a, b], layers);
+    crate::profile::op("mlp", &all, move |t| {
+        mlp_cat_here(&t[0], &t[1], &layers_of(&t[2..], &biased), act)
+    })
+}
+
+fn mlp_cat_here(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     let cat = || mlp(&Tensor::cat(&[a, b], D::Minus1)?, layers, act);
     let bias = layers.first().is_some_and(|(_, b)| b.is_some());
     let mut all = vec![a, b];
@@ -531,6 +572,13 @@ pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
 /// The same MLP as separate nodes: `fused::linear` and the activation op per layer (on
 /// a GPU: candle's product, then the bias and the activation as one node).
 pub fn mlp_layer_by_layer(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+    let (all, biased) = operands(&[x], layers);
+    crate::profile::op("mlp", &all, move |t| {
+        mlp_layer_by_layer_here(&t[0], &layers_of(&t[1..], &biased), act)
+    })
+}
+
+fn mlp_layer_by_layer_here(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
     let mut h = x.clone();
     for (i, (w, b)) in layers.iter().enumerate() {
         let hidden = i + 1 < layers.len();

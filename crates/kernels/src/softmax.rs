@@ -128,6 +128,10 @@ pub(crate) fn softmax_grad(y: &Tensor, dy: &Tensor) -> Result<Tensor> {
 /// Softmax over dimension `dim` (any; other than the last it goes through a transpose).
 pub fn softmax<Dim: candle_core::shape::Dim>(x: &Tensor, dim: Dim) -> Result<Tensor> {
     let dim = dim.to_index(x.shape(), "softmax")?;
+    crate::profile::op("softmax", &[x], move |t| softmax_here(&t[0], dim))
+}
+
+fn softmax_here(x: &Tensor, dim: usize) -> Result<Tensor> {
     if !usable_with_cuda(&[x]) {
         return candle_nn::ops::softmax(x, dim);
     }

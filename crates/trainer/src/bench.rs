@@ -209,6 +209,82 @@ pub fn bench_step(
     })
 }
 
+/// The time of each op kind in one preset's train step (`osrt bench model --profile`).
+#[derive(Debug, Clone, Serialize)]
+pub struct ProfileFigures {
+    pub preset: String,
+    pub batch_size: usize,
+    pub input_views: usize,
+    pub rays_per_scene: usize,
+    pub image_size: u32,
+    pub device: String,
+    pub precision: String,
+    pub kernels: String,
+    /// Medians of the step's own forward and backward passes (synchronised), over the
+    /// timed steps.
+    pub forward_s: f64,
+    pub backward_s: f64,
+    /// Each distinct op call of one step, timed alone (`osrt_kernels::profile`).
+    pub ops: Vec<osrt_kernels::profile::CallTime>,
+}
+
+/// Profiles `job`'s train step on `device`: `steps` whole steps (after the warm-up) for
+/// the forward and backward passes' medians, then one step's op calls recorded and each
+/// distinct call timed alone (median of `repeats` runs), with the job's kernels and
+/// precision.
+pub fn profile_step(
+    preset: &str,
+    job: &JobConfig,
+    image_size: u32,
+    steps: usize,
+    repeats: usize,
+    device: &Device,
+) -> Result<ProfileFigures> {
+    use osrt_kernels::profile;
+    let (scenes, cfg) = bench_data(job, image_size)?;
+    let refs: Vec<&Scene> = scenes.iter().cycle().take(job.train.batch_size).collect();
+    let mut trainer = Trainer::new(job.clone(), device.clone())?;
+    trainer.time_phases = true;
+    let warmup = if device.is_cpu() { 1 } else { 2 };
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let keep = !device.is_cpu();
+    let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
+    for i in 0..steps.max(1) + warmup {
+        let batch = build_batch(&refs, &cfg, &mut rng)?;
+        let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
+        if let (true, Some(p)) = (i >= warmup, g.phases) {
+            fwd.push(p.forward_s);
+            bwd.push(p.backward_s);
+        }
+        trainer.apply(g.loss, g.grads)?;
+    }
+    let rec = profile::Recorder::default();
+    let batch = build_batch(&refs, &cfg, &mut rng)?;
+    profile::recording(Some(rec.clone()), || {
+        trainer.gradients_kept(&batch, &mut rng, keep).map(drop)
+    })?;
+    let calls = rec.take();
+    let (kernels, precision) = (job.train.kernels, job.train.precision);
+    let ops = osrt_kernels::with_kernels(kernels, || {
+        osrt_kernels::with_precision(precision, || {
+            osrt_kernels::on_device_pool(device, || profile::time_calls(&calls, device, repeats))
+        })
+    })?;
+    Ok(ProfileFigures {
+        preset: preset.to_string(),
+        batch_size: job.train.batch_size,
+        input_views: job.train.input_views,
+        rays_per_scene: job.train.rays_per_scene,
+        image_size,
+        device: crate::DeviceSpec::from_device(device).to_string(),
+        precision: precision.to_string(),
+        kernels: kernels.to_string(),
+        forward_s: median(fwd),
+        backward_s: median(bwd),
+        ops,
+    })
+}
+
 fn gib(bytes: usize) -> f64 {
     bytes as f64 / (1u64 << 30) as f64
 }

@@ -49,6 +49,16 @@ pub struct StepGradients<G = Vec<f32>> {
     pub grads: G,
     /// Scenes this gradient averages over (for weighting across workers).
     pub samples: usize,
+    /// The forward and backward passes' seconds, synchronised, where the trainer times
+    /// its phases ([`Trainer::time_phases`] or debug logging).
+    pub phases: Option<Phases>,
+}
+
+/// Seconds of a step's passes, each ending synchronised with the device.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct Phases {
+    pub forward_s: f64,
+    pub backward_s: f64,
 }
 
 /// A flat f32 gradient in [`Params::vars`] order: in host memory (what the all-reduce
@@ -158,6 +168,9 @@ pub struct Trainer {
     pub step: u64,
     pub skipped_total: u64,
     pub skipped_in_a_row: u64,
+    /// Synchronise the device after the forward and the backward pass and report their
+    /// times in [`StepGradients::phases`] (benchmarks; costs a synchronisation on a GPU).
+    pub time_phases: bool,
     device: Device,
 }
 
@@ -189,6 +202,7 @@ impl Trainer {
             step: 0,
             skipped_total: 0,
             skipped_in_a_row: 0,
+            time_phases: false,
             device,
         })
     }
@@ -217,6 +231,7 @@ impl Trainer {
             loss: g.loss,
             grads: g.grads.into_host()?,
             samples: g.samples,
+            phases: g.phases,
         })
     }
 
@@ -311,7 +326,7 @@ impl Trainer {
             )));
         }
         // With debug logging, the phases' times (synchronised on a GPU).
-        let timing = tracing::enabled!(tracing::Level::DEBUG);
+        let timing = self.time_phases || tracing::enabled!(tracing::Level::DEBUG);
         let lap = |t: &mut std::time::Instant| -> Result<f64> {
             if timing {
                 self.device.synchronize()?;
@@ -384,6 +399,10 @@ impl Trainer {
             loss: loss_value,
             grads: flat,
             samples: batch.batch_size,
+            phases: timing.then_some(Phases {
+                forward_s,
+                backward_s,
+            }),
         })
     }
 
