@@ -438,11 +438,12 @@ def run_case(torch, case):
 
 def profile_step(torch, forward, target, autocast, sync, cuda, rows=30):
     """One more forward and backward pass under the PyTorch profiler: its table of ops by
-    self time (device time on CUDA, CPU time on the CPU), the `rows` largest, and the
-    profiled pass's own forward and backward seconds."""
+    self time (device time on CUDA, CPU time on the CPU), the `rows` largest, with the
+    bytes each op allocated and did not free itself (outputs, saved tensors; negative
+    where it freed more), and the profiled pass's own forward and backward seconds."""
     from torch.profiler import ProfilerActivity, profile
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
-    with profile(activities=acts) as prof:
+    with profile(activities=acts, profile_memory=True) as prof:
         sync()
         t0 = time.perf_counter()
         with autocast():
@@ -454,13 +455,15 @@ def profile_step(torch, forward, target, autocast, sync, cuda, rows=30):
         t2 = time.perf_counter()
     dev = "device" if cuda else "cpu"
     self_key, total_key = f"self_{dev}_time_total", f"{dev}_time_total"
+    mem_key = f"self_{dev}_memory_usage"
     avgs = sorted(prof.key_averages(), key=lambda e: getattr(e, self_key), reverse=True)
     total_self = sum(getattr(e, self_key) for e in avgs)
     return dict(
         time=f"{dev} time", forward_s=t1 - t0, backward_s=t2 - t1,
         self_total_s=total_self / 1e6,
         ops=[dict(name=e.key, calls=e.count, self_s=getattr(e, self_key) / 1e6,
-                  total_s=getattr(e, total_key) / 1e6)
+                  total_s=getattr(e, total_key) / 1e6,
+                  self_memory_bytes=getattr(e, mem_key, 0))
              for e in avgs[:rows] if getattr(e, self_key) > 0])
 
 
@@ -469,9 +472,10 @@ def print_profile(r):
     print(f"profile of {label(r, False)} ({p['time']}, one step under the PyTorch profiler: "
           f"forward {p['forward_s'] * 1e3:.1f} ms, backward {p['backward_s'] * 1e3:.1f} ms; "
           f"self times add up to {p['self_total_s'] * 1e3:.1f} ms)")
-    print(f"  {'self ms':>9} {'total ms':>9} {'calls':>6}  op")
+    print(f"  {'self ms':>9} {'total ms':>9} {'self MiB':>9} {'calls':>6}  op")
     for o in p["ops"]:
-        print(f"  {o['self_s'] * 1e3:>9.2f} {o['total_s'] * 1e3:>9.2f} {o['calls']:>6}  {o['name']}")
+        print(f"  {o['self_s'] * 1e3:>9.2f} {o['total_s'] * 1e3:>9.2f} "
+              f"{o.get('self_memory_bytes', 0) / 2**20:>9.1f} {o['calls']:>6}  {o['name']}")
 
 
 def reset_peak_rss():

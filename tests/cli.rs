@@ -459,6 +459,13 @@ fn bench_model_profile_times_each_op_kind() {
         assert!(ops.iter().all(|o| f(o, "forward_s") > 0.0
             && f(o, "backward_s") >= 0.0
             && o["calls"].as_u64().unwrap() >= 1));
+        // The binary counts its heap: every call keeps at least its output, and holds
+        // at least that at its peak.
+        assert!(
+            ops.iter()
+                .all(|o| f(o, "kept_bytes") > 0.0 && f(o, "peak_bytes") >= f(o, "kept_bytes")),
+            "{p}"
+        );
         let ops_s: f64 = ops
             .iter()
             .map(|o| o["calls"].as_f64().unwrap() * (f(o, "forward_s") + f(o, "backward_s")))

@@ -32,6 +32,7 @@ pub mod fastmath;
 mod gemm;
 mod layer_norm;
 mod linear;
+mod low_precision;
 mod mix;
 mod mlp;
 pub mod profile;
@@ -114,9 +115,14 @@ pub fn with_precision<T>(p: Precision, f: impl FnOnce() -> T) -> T {
     out
 }
 
-/// `a · b` (candle's batched matmul) in this thread's [`precision`].
+/// `a · b` (candle's batched matmul) in this thread's [`precision`]; in bf16 with the
+/// fused ops on, as one node that keeps no bf16 copies (`low_precision.rs`).
 pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
     profile::op("matmul", &[a, b], |t| {
+        let f32s = t.iter().all(|t| t.dtype() == candle_core::DType::F32);
+        if precision() == Precision::Bf16 && enabled() && f32s {
+            return low_precision::matmul_bf16(&t[0], &t[1]);
+        }
         in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
     })
 }

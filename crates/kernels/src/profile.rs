@@ -124,19 +124,55 @@ pub struct CallTime {
     pub forward_s: f64,
     /// Median seconds of one backward pass (0 where no operand carried a gradient).
     pub backward_s: f64,
+    /// Bytes one call holds from its forward pass until its backward pass: its outputs
+    /// and what its graph keeps for the backward pass (the step holds this for every
+    /// call at once, so the sum over calls is the activations' share of its peak).
+    pub kept_bytes: Option<u64>,
+    /// The most bytes one call's forward and backward passes held at once above what
+    /// was held before it (kept bytes, the gradients and the passes' temporaries).
+    pub peak_bytes: Option<u64>,
+}
+
+/// What the device's tensors hold: the heap on the CPU, the memory pool on a GPU.
+pub trait MemoryMeter {
+    /// Bytes held now (after the device's queued work).
+    fn live(&self) -> Option<u64>;
+    /// Starts a new peak from what is held now.
+    fn reset_peak(&self);
+    /// The most bytes held at once since [`MemoryMeter::reset_peak`].
+    fn peak(&self) -> Option<u64>;
+}
+
+/// No memory figures.
+pub struct NoMeter;
+
+impl MemoryMeter for NoMeter {
+    fn live(&self) -> Option<u64> {
+        None
+    }
+    fn reset_peak(&self) {}
+    fn peak(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// Times each distinct call of `calls` alone on `device`: medians of `repeats` runs after
 /// one warm-up, forward and backward. Runs in the caller's kernel and precision settings
 /// (call it inside the same `with_kernels` / `with_precision` / `on_device_pool` as the
 /// step). Sorted by total time (calls × (forward + backward)), largest first.
-pub fn time_calls(calls: &[Call], device: &Device, repeats: usize) -> Result<Vec<CallTime>> {
+pub fn time_calls(
+    calls: &[Call],
+    device: &Device,
+    repeats: usize,
+    meter: &dyn MemoryMeter,
+) -> Result<Vec<CallTime>> {
     let mut groups: BTreeMap<String, (usize, &Call)> = BTreeMap::new();
     for c in calls {
         groups.entry(c.signature()).or_insert((0, c)).0 += 1;
     }
     let mut out = Vec::with_capacity(groups.len());
     for (signature, (count, c)) in groups {
+        let (kept_bytes, peak_bytes) = measure_memory(c, meter)?;
         let (forward_s, backward_s) = time_call(c, device, repeats.max(1))?;
         out.push(CallTime {
             kind: c.kind,
@@ -144,6 +180,8 @@ pub fn time_calls(calls: &[Call], device: &Device, repeats: usize) -> Result<Vec
             calls: count,
             forward_s,
             backward_s,
+            kept_bytes,
+            peak_bytes,
         });
     }
     let total = |t: &CallTime| t.calls as f64 * (t.forward_s + t.backward_s);
@@ -151,12 +189,10 @@ pub fn time_calls(calls: &[Call], device: &Device, repeats: usize) -> Result<Vec
     Ok(out)
 }
 
-/// Forward and backward medians of one call.
-fn time_call(c: &Call, device: &Device, repeats: usize) -> Result<(f64, f64)> {
-    // Fresh leaves for the operands that carried a gradient, so that the backward pass
-    // computes what the step's did for this op (and no more).
-    let inputs: Vec<Tensor> = c
-        .inputs
+/// The call's operands: fresh leaves for those that carried a gradient, so that the
+/// backward pass computes what the step's did for this op (and no more).
+fn operands(c: &Call) -> Result<Vec<Tensor>> {
+    c.inputs
         .iter()
         .zip(&c.tracked)
         .map(|(t, &g)| {
@@ -166,7 +202,32 @@ fn time_call(c: &Call, device: &Device, repeats: usize) -> Result<(f64, f64)> {
                 Ok(t.clone())
             }
         })
-        .collect::<Result<_>>()?;
+        .collect()
+}
+
+/// The bytes one call keeps from its forward pass to its backward pass, and the most it
+/// holds at once through both (see [`CallTime`]), once the kernels are loaded.
+fn measure_memory(c: &Call, meter: &dyn MemoryMeter) -> Result<(Option<u64>, Option<u64>)> {
+    let inputs = operands(c)?;
+    drop((c.rerun)(&inputs)?);
+    let Some(before) = meter.live() else {
+        return Ok((None, None));
+    };
+    meter.reset_peak();
+    let outs = (c.rerun)(&inputs)?;
+    let kept = meter.live().map(|b| b.saturating_sub(before));
+    if c.tracked.iter().any(|&g| g) {
+        let loss = sum_of(&outs)?;
+        drop(outs);
+        drop(loss.backward()?);
+    }
+    let peak = meter.peak().map(|b| b.saturating_sub(before));
+    Ok((kept, peak))
+}
+
+/// Forward and backward medians of one call.
+fn time_call(c: &Call, device: &Device, repeats: usize) -> Result<(f64, f64)> {
+    let inputs = operands(c)?;
     let timed = |f: &mut dyn FnMut() -> Result<()>| -> Result<f64> {
         device.synchronize()?;
         let t0 = Instant::now();
@@ -332,13 +393,14 @@ mod tests {
             }
             crate::softmax(&x, 1).unwrap();
         });
-        let times = time_calls(&rec.take(), &Device::Cpu, 2).unwrap();
+        let times = time_calls(&rec.take(), &Device::Cpu, 2, &NoMeter).unwrap();
         assert_eq!(times.len(), 2);
         let ln = times.iter().find(|t| t.kind == "layer_norm").unwrap();
         let sm = times.iter().find(|t| t.kind == "softmax").unwrap();
         assert_eq!((ln.calls, sm.calls), (3, 1));
         assert!(ln.forward_s > 0.0 && ln.backward_s >= 0.0 && sm.forward_s > 0.0);
         assert_eq!(sm.backward_s, 0.0, "x carried no gradient");
+        assert_eq!((ln.kept_bytes, ln.peak_bytes), (None, None), "no meter");
         let total = |t: &CallTime| t.calls as f64 * (t.forward_s + t.backward_s);
         assert!(total(&times[0]) >= total(&times[1]));
         let kinds = by_kind(&times);

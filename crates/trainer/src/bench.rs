@@ -267,7 +267,10 @@ pub fn profile_step(
     let (kernels, precision) = (job.train.kernels, job.train.precision);
     let ops = osrt_kernels::with_kernels(kernels, || {
         osrt_kernels::with_precision(precision, || {
-            osrt_kernels::on_device_pool(device, || profile::time_calls(&calls, device, repeats))
+            osrt_kernels::on_device_pool(device, || {
+                let meter = crate::device::Meter(device.clone());
+                profile::time_calls(&calls, device, repeats, &meter)
+            })
         })
     })?;
     Ok(ProfileFigures {

@@ -160,17 +160,28 @@ mod pool {
     /// The most bytes the pool had handed out at once since the last [`reset_peak`]
     /// (`USED_MEM_HIGH`: the counterpart of `torch.cuda.max_memory_allocated`).
     pub fn peak_bytes(device: &Device) -> Option<u64> {
+        read(
+            device,
+            sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH,
+        )
+    }
+
+    /// The bytes the pool has handed out now (`USED_MEM_CURRENT`: the counterpart of
+    /// `torch.cuda.memory_allocated`).
+    pub fn used_bytes(device: &Device) -> Option<u64> {
+        read(
+            device,
+            sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_CURRENT,
+        )
+    }
+
+    fn read(device: &Device, attribute: sys::CUmemPool_attribute) -> Option<u64> {
         let pool = default_pool(device)?;
         let mut v = 0u64;
-        // SAFETY: USED_MEM_HIGH is a u64 (cuuint64_t).
-        unsafe {
-            result::mem_pool::get_attribute(
-                pool,
-                sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH,
-                (&mut v as *mut u64).cast(),
-            )
-        }
-        .ok()?;
+        // SAFETY: both attributes read here (USED_MEM_HIGH, USED_MEM_CURRENT) are u64s
+        // (cuuint64_t).
+        unsafe { result::mem_pool::get_attribute(pool, attribute, (&mut v as *mut u64).cast()) }
+            .ok()?;
         Some(v)
     }
 
@@ -205,6 +216,42 @@ pub fn device_peak_bytes(device: &Device) -> Option<u64> {
     {
         let _ = device;
         None
+    }
+}
+
+/// The memory a device's tensors hold, for the per-op profile: the counted heap on the
+/// CPU (where the binary installs [`crate::memory::CountingAlloc`]), the memory pool on
+/// a GPU.
+pub struct Meter(pub Device);
+
+impl osrt_kernels::profile::MemoryMeter for Meter {
+    fn live(&self) -> Option<u64> {
+        if self.0.is_cpu() {
+            return crate::memory::live_heap_bytes().map(|b| b as u64);
+        }
+        #[cfg(feature = "cuda")]
+        {
+            self.0.synchronize().ok()?;
+            pool::used_bytes(&self.0)
+        }
+        #[cfg(not(feature = "cuda"))]
+        None
+    }
+
+    fn reset_peak(&self) {
+        if self.0.is_cpu() {
+            crate::memory::reset_peak_heap();
+        } else {
+            reset_device_peak(&self.0);
+        }
+    }
+
+    fn peak(&self) -> Option<u64> {
+        if self.0.is_cpu() {
+            crate::memory::peak_heap_bytes().map(|b| b as u64)
+        } else {
+            device_peak_bytes(&self.0)
+        }
     }
 }
 

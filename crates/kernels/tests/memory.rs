@@ -1,0 +1,80 @@
+//! What a bf16 matrix product keeps for the backward pass, counted by this test binary's
+//! allocator (one test in the binary, so no other test allocates meanwhile).
+
+use candle_core::{DType, Device, Tensor, Var};
+use osrt_kernels::{Kernels, Precision, matmul, with_kernels, with_precision};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+
+struct Counting;
+
+#[allow(unsafe_code)]
+// SAFETY: every call is forwarded to `System` unchanged; the counter is a side effect.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        // SAFETY: forwarded unchanged.
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            LIVE.fetch_add(layout.size(), Ordering::Relaxed);
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: forwarded unchanged.
+        unsafe { System.dealloc(ptr, layout) };
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+    }
+}
+
+#[global_allocator]
+static ALLOC: Counting = Counting;
+
+fn var(dims: &[usize], seed: u64) -> Var {
+    let n: usize = dims.iter().product();
+    let v: Vec<f32> = (0..n)
+        .map(|i| ((i as u64 * 2654435761 + seed) % 1000) as f32 / 500.0 - 1.0)
+        .collect();
+    Var::from_tensor(&Tensor::from_vec(v, dims, &Device::Cpu).unwrap()).unwrap()
+}
+
+/// Bytes held after `x · w` while its graph is alive, less the operands (which the step
+/// holds anyway), and the gradient of `w` for comparison.
+fn kept(kernels: Kernels, x: &Var, w: &Var) -> (usize, Tensor) {
+    with_kernels(kernels, || {
+        with_precision(Precision::Bf16, || {
+            let before = LIVE.load(Ordering::Relaxed);
+            let y = matmul(x.as_tensor(), w.as_tensor()).unwrap();
+            let kept = LIVE.load(Ordering::Relaxed) - before;
+            let g = y.sum_all().unwrap().backward().unwrap();
+            (kept, g.get(w.as_tensor()).unwrap().clone())
+        })
+    })
+}
+
+/// The one-node bf16 product keeps its f32 output and nothing else; candle's composed
+/// version also keeps the bf16 copies of both operands and of the product. The two
+/// compute the same gradient.
+#[test]
+fn a_bf16_product_keeps_no_bf16_copies() {
+    let (m, k, n) = (512, 256, 128);
+    let (x, w) = (var(&[m, k], 1), var(&[k, n], 2));
+    let out = m * n * 4;
+    // Once each first: thread pools and the products' packing buffers are allocated at
+    // first use and stay.
+    kept(Kernels::Fused, &x, &w);
+    kept(Kernels::Composed, &x, &w);
+    let (node, g_node) = kept(Kernels::Fused, &x, &w);
+    let (composed, g_composed) = kept(Kernels::Composed, &x, &w);
+    // A few hundred bytes of graph bookkeeping besides the tensors.
+    assert!(node >= out && node < out + 4096, "node kept {node}, output {out}");
+    let copies = (m * k + k * n + m * n) * 2;
+    assert!(
+        composed >= out + copies,
+        "composed kept {composed}, output {out} + bf16 copies {copies}"
+    );
+    assert_eq!(g_node.dtype(), DType::F32);
+    let d = (g_node - g_composed).unwrap().abs().unwrap().max_all().unwrap();
+    assert_eq!(d.to_scalar::<f32>().unwrap(), 0.0);
+}
