@@ -41,7 +41,10 @@ fn forward<S: BackendStorage>(a: &S, la: &Layout, b: &S, lb: &Layout) -> Result<
     let a16 = a.to_dtype(la, DType::BF16)?;
     let b16 = b.to_dtype(lb, DType::BF16)?;
     // The casts wrote contiguous copies.
-    let (ca, cb) = (Layout::contiguous(la.shape()), Layout::contiguous(lb.shape()));
+    let (ca, cb) = (
+        Layout::contiguous(la.shape()),
+        Layout::contiguous(lb.shape()),
+    );
     let y16 = a16.matmul(&b16, bmnk, &ca, &cb)?;
     let y = y16.to_dtype(&Layout::contiguous(&shape), DType::F32)?;
     Ok((y, shape))

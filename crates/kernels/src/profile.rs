@@ -159,21 +159,28 @@ impl MemoryMeter for NoMeter {
 /// Times each distinct call of `calls` alone on `device`: medians of `repeats` runs after
 /// one warm-up, forward and backward. Runs in the caller's kernel and precision settings
 /// (call it inside the same `with_kernels` / `with_precision` / `on_device_pool` as the
-/// step). Sorted by total time (calls × (forward + backward)), largest first.
+/// step). Sorted by total time (calls × (forward + backward)), largest first. The calls'
+/// operands are let go as soon as they are no longer needed (the repeated calls' before
+/// any timing, each timed call's after it), so the replay holds less than the step did.
 pub fn time_calls(
-    calls: &[Call],
+    calls: Vec<Call>,
     device: &Device,
     repeats: usize,
     meter: &dyn MemoryMeter,
 ) -> Result<Vec<CallTime>> {
-    let mut groups: BTreeMap<String, (usize, &Call)> = BTreeMap::new();
+    let mut groups: BTreeMap<String, (usize, Call)> = BTreeMap::new();
     for c in calls {
-        groups.entry(c.signature()).or_insert((0, c)).0 += 1;
+        match groups.get_mut(&c.signature()) {
+            Some(g) => g.0 += 1,
+            None => {
+                groups.insert(c.signature(), (1, c));
+            }
+        }
     }
     let mut out = Vec::with_capacity(groups.len());
-    for (signature, (count, c)) in groups {
-        let (kept_bytes, peak_bytes) = measure_memory(c, meter)?;
-        let (forward_s, backward_s) = time_call(c, device, repeats.max(1))?;
+    while let Some((signature, (count, c))) = groups.pop_first() {
+        let (kept_bytes, peak_bytes) = measure_memory(&c, meter)?;
+        let (forward_s, backward_s) = time_call(&c, device, repeats.max(1))?;
         out.push(CallTime {
             kind: c.kind,
             signature,
@@ -393,7 +400,7 @@ mod tests {
             }
             crate::softmax(&x, 1).unwrap();
         });
-        let times = time_calls(&rec.take(), &Device::Cpu, 2, &NoMeter).unwrap();
+        let times = time_calls(rec.take(), &Device::Cpu, 2, &NoMeter).unwrap();
         assert_eq!(times.len(), 2);
         let ln = times.iter().find(|t| t.kind == "layer_norm").unwrap();
         let sm = times.iter().find(|t| t.kind == "softmax").unwrap();

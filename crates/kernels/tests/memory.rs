@@ -68,13 +68,21 @@ fn a_bf16_product_keeps_no_bf16_copies() {
     let (node, g_node) = kept(Kernels::Fused, &x, &w);
     let (composed, g_composed) = kept(Kernels::Composed, &x, &w);
     // A few hundred bytes of graph bookkeeping besides the tensors.
-    assert!(node >= out && node < out + 4096, "node kept {node}, output {out}");
+    assert!(
+        node >= out && node < out + 4096,
+        "node kept {node}, output {out}"
+    );
     let copies = (m * k + k * n + m * n) * 2;
     assert!(
         composed >= out + copies,
         "composed kept {composed}, output {out} + bf16 copies {copies}"
     );
     assert_eq!(g_node.dtype(), DType::F32);
-    let d = (g_node - g_composed).unwrap().abs().unwrap().max_all().unwrap();
+    let d = (g_node - g_composed)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap();
     assert_eq!(d.to_scalar::<f32>().unwrap(), 0.0);
 }

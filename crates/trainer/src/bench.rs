@@ -269,7 +269,7 @@ pub fn profile_step(
         osrt_kernels::with_precision(precision, || {
             osrt_kernels::on_device_pool(device, || {
                 let meter = crate::device::Meter(device.clone());
-                profile::time_calls(&calls, device, repeats, &meter)
+                profile::time_calls(calls, device, repeats, &meter)
             })
         })
     })?;
