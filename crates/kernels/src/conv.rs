@@ -157,6 +157,12 @@ fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) 
         if x.device().is_cpu() {
             return conv(x);
         }
+        if enabled() {
+            // One node over all groups, keeping no per-group copies (`conv_node.rs`).
+            let f32s = x.dtype() == candle_core::DType::F32 && kernel.dtype() == x.dtype();
+            let bf16 = precision() == Precision::Bf16 && f32s;
+            return crate::conv_node::conv2d_node(x, kernel, stride, padding, group, bf16);
+        }
         return in_groups(x, group, conv);
     }
     let geom = ConvGeom {
@@ -180,7 +186,11 @@ fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) 
 }
 
 /// `f` over groups of at most `group` leading entries of `x`, concatenated.
-fn in_groups(x: &Tensor, group: usize, f: impl Fn(&Tensor) -> Result<Tensor>) -> Result<Tensor> {
+pub(crate) fn in_groups(
+    x: &Tensor,
+    group: usize,
+    f: impl Fn(&Tensor) -> Result<Tensor>,
+) -> Result<Tensor> {
     let n = x.dim(0)?;
     if n <= group {
         return f(x);

@@ -1,5 +1,5 @@
 //! Whether a device's one-node ops compute what the CPU's do: each op with a CUDA kernel
-//! (`cuda.rs`), on the same seeded inputs (ordinary and extreme) on the CPU and on the
+//! (`cuda.rs`) or a node of its own there (attention, convolution), on the same seeded inputs (ordinary and extreme) on the CPU and on the
 //! device, values and input gradients of `Σ op(args) ⊙ w` compared. `osrt check-device`
 //! reports it beside the whole train step; on the CPU it compares the CPU with itself.
 
@@ -147,6 +147,27 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
                 let scale = 1.0 / ((inner / heads) as f64).sqrt();
                 crate::attention(&t[0], &t[1], &t[2], heads, scale)
             }),
+        ));
+    }
+    // On a GPU the convolution is `conv_node.rs` (candle's products in one node), on the
+    // CPU the fused im2col kernel.
+    for (name, x, stride) in [
+        (
+            "conv2d [4, 12, 12, 8] 3×3",
+            normal(&[4, 12, 12, 8], 1.0, 12)?,
+            1,
+        ),
+        (
+            "conv2d [3, 16, 16, 6] 3×3 stride 2",
+            normal(&[3, 16, 16, 6], 1.0, 13)?,
+            2,
+        ),
+    ] {
+        let c = x.dim(3)?;
+        out.push((
+            name.into(),
+            vec![x, normal(&[10, c, 3, 3], 0.3, 14)?],
+            Box::new(move |t| crate::conv2d_nhwc(&t[0], &t[1], stride, 1)),
         ));
     }
     for (name, act) in [

@@ -25,6 +25,7 @@ mod bias_act;
 mod block;
 mod buffer;
 mod conv;
+mod conv_node;
 #[cfg(feature = "cuda")]
 pub mod cuda;
 pub mod device_check;
@@ -129,7 +130,10 @@ pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
 
 /// Runs a product-like op on its f32 operands rounded to bf16 when the thread's precision
 /// asks for it (the result back in f32; the casts carry the gradient back to f32).
-fn in_precision(ts: &[&Tensor], op: impl FnOnce(&[Tensor]) -> Result<Tensor>) -> Result<Tensor> {
+pub(crate) fn in_precision(
+    ts: &[&Tensor],
+    op: impl FnOnce(&[Tensor]) -> Result<Tensor>,
+) -> Result<Tensor> {
     use candle_core::DType;
     let cast = precision() == Precision::Bf16 && ts.iter().all(|t| t.dtype() == DType::F32);
     if !cast {
