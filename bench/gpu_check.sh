@@ -10,6 +10,10 @@
 #                              # device memory and step time beside PyTorch, and the small model
 #   bench/gpu_check.sh profile # the time of each op kind, forward and backward, beside the
 #                              # PyTorch profiler's table: paper preset and clevr-lite-cpu b256
+#   bench/gpu_check.sh visit   # one call of a short visit, most important first: the ops
+#                              # and steps against the CPU, the paper preset's 1-view step
+#                              # (time, peak memory) in f32 and bf16 beside PyTorch, then
+#                              # both sides' profiles of it (at most 590 s of timeouts)
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -148,8 +152,41 @@ profile)
         --batch-size 256 --dtypes f32,bf16 --steps 5 --no-render \
         --out "$OUT/torch-profile-lite.json" 2>&1 | tail -n 72
     ;;
+visit)
+    timeout 120 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
+    echo "check-device rc $?"
+    python3 - "$OUT/check.json" <<'PY'
+import json, sys
+try:
+    c = json.load(open(sys.argv[1]))
+except Exception as e:
+    sys.exit(f"no check-device result: {e}")
+for o in c["ops"]:
+    print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} pass {o["pass"]}')
+for s in c["steps"]:
+    print(f'step {s["preset"]:<15} {s["kernels"]:<8} {s["precision"]:<5} grad rel {s["gradient_rel_l2"]:.2e} step {s["step_rel_max"]:.1e} pass {s["pass"]}')
+PY
+    paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size 32
+        --input-views 1 --rays-per-scene 8192)
+    for prec in f32 bf16; do
+        echo "== osrt paper 1x8192 $prec"
+        timeout 80 "$BIN" bench model "${paper[@]}" --steps 5 --precision "$prec" \
+            --out "$OUT/osrt-paper1-$prec.json" 2>&1 | tail -n 6
+    done
+    timeout 90 python3 bench/torch_step.py --device cuda --presets paper --batch-size 32 \
+        --image-size 128 --cases 1x8192 --dtypes f32,bf16 --steps 5 --no-render \
+        --out "$OUT/torch-paper.json" 2>&1 | tail -n 6
+    for prec in bf16 f32; do
+        echo "== osrt profile paper 1x8192 $prec"
+        timeout 80 "$BIN" bench model "${paper[@]}" --profile --steps 2 --precision "$prec" \
+            --out "$OUT/profile-paper1-$prec.json" 2>&1 | tail -n 24
+    done
+    timeout 60 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size 32 \
+        --image-size 128 --cases 1x8192 --dtypes bf16 --steps 2 --no-render \
+        --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 36
+    ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench|memory|profile"
+    echo "usage: bench/gpu_check.sh train|bench|memory|profile|visit"
     exit 2
     ;;
 esac
