@@ -125,6 +125,27 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     Ok(json!({ "steps": steps, "renders": renders }))
 }
 
+/// How a benchmark child ended, for people: a SIGKILL, which leaves no message of its
+/// own, is most likely the kernel's out-of-memory killer.
+fn child_exit(status: std::process::ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match status.signal() {
+        Some(9) => {
+            let machine = osrt_trainer::footprint::machine_memory(DeviceSpec::Cpu)
+                .map_or(String::new(), |(b, what)| {
+                    format!(" ({what}: {:.2} GiB)", b / (1u64 << 30) as f64)
+                });
+            format!(
+                "killed by SIGKILL: most likely the kernel's out-of-memory killer{machine}; \
+                 a smaller case (--batch-size, --rays-per-scene, --image-size, --step-only to \
+                 skip the whole-view renders) fits in less"
+            )
+        }
+        Some(s) => format!("killed by signal {s}"),
+        None => status.to_string(),
+    }
+}
+
 /// Saves benchmark figures (creating the folder) and returns the text.
 pub fn save_json(path: &std::path::Path, value: &serde_json::Value) -> Result<String> {
     let text = serde_json::to_string_pretty(value)?;
@@ -202,7 +223,8 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         let out = cmd.output().context("running the benchmark child")?;
         if !out.status.success() {
             bail!(
-                "benchmark child ({n} threads) failed:\n{}",
+                "benchmark child ({n} threads) failed ({}):\n{}",
+                child_exit(out.status),
                 String::from_utf8_lossy(&out.stderr)
             );
         }
@@ -278,6 +300,15 @@ fn print_profile(p: &serde_json::Value) {
             100.0 * (of + ob) / step,
             mib(*kept),
             mib(*peak),
+        );
+    }
+    if let (Some(kept), Some(peak)) = (p["step_kept_bytes"].as_f64(), p["step_peak_bytes"].as_f64())
+    {
+        println!(
+            "    the step's forward pass left {:.1} MiB held (the batch and the graph), its \
+             passes peaked {:.1} MiB above their start",
+            mib(kept),
+            mib(peak)
         );
     }
     println!(
@@ -578,4 +609,25 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
     }
     println!("saved to {}", a.out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::child_exit;
+    use std::os::unix::process::ExitStatusExt;
+
+    /// A child killed without a word is named: SIGKILL as the likely out-of-memory kill,
+    /// other signals by number, exit codes as such.
+    #[test]
+    fn a_child_that_dies_silently_is_named() {
+        let killed = child_exit(std::process::ExitStatus::from_raw(9));
+        assert!(
+            killed.contains("SIGKILL") && killed.contains("out-of-memory"),
+            "{killed}"
+        );
+        let segv = child_exit(std::process::ExitStatus::from_raw(11));
+        assert_eq!(segv, "killed by signal 11");
+        let code = child_exit(std::process::ExitStatus::from_raw(3 << 8));
+        assert!(code.contains('3'), "{code}");
+    }
 }

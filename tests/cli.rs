@@ -471,6 +471,10 @@ fn bench_model_profile_times_each_op_kind() {
             .map(|o| o["calls"].as_f64().unwrap() * (f(o, "forward_s") + f(o, "backward_s")))
             .sum();
         let step_s = f(p, "forward_s") + f(p, "backward_s");
+        // The step's own memory: its forward pass leaves its graph held, and the passes
+        // peak at least there.
+        assert!(f(p, "step_kept_bytes") > 0.0, "{p}");
+        assert!(f(p, "step_peak_bytes") >= f(p, "step_kept_bytes"), "{p}");
         assert!(step_s > 0.0 && ops_s > 0.0 && ops_s < 5.0 * step_s, "{p}");
     }
 }

@@ -149,8 +149,30 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             }),
         ));
     }
-    // On a GPU the convolution is `conv_node.rs` (candle's products in one node), on the
-    // CPU the fused im2col kernel.
+    conv_cases(&mut out)?;
+    for (name, act) in [
+        ("bias", None),
+        ("bias+relu", Some(MlpAct::Relu)),
+        ("bias+leaky_relu", Some(MlpAct::LeakyRelu(0.01))),
+        ("bias+gelu", Some(MlpAct::Gelu)),
+    ] {
+        out.push((
+            format!("{name} [500, 96]"),
+            vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
+            Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
+        ));
+        out.push((
+            format!("{name} extreme [8, 64]"),
+            vec![(extreme(8, 64)? * 1e3)?, normal(&[64], 1.0, 8)?],
+            Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
+        ));
+    }
+    Ok(out)
+}
+
+/// The convolution: on a GPU `conv_node.rs` (candle's products in one node), on the CPU
+/// the fused im2col kernel.
+fn conv_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
     for (name, x, stride) in [
         (
             "conv2d [4, 12, 12, 8] 3×3",
@@ -170,24 +192,7 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             Box::new(move |t| crate::conv2d_nhwc(&t[0], &t[1], stride, 1)),
         ));
     }
-    for (name, act) in [
-        ("bias", None),
-        ("bias+relu", Some(MlpAct::Relu)),
-        ("bias+leaky_relu", Some(MlpAct::LeakyRelu(0.01))),
-        ("bias+gelu", Some(MlpAct::Gelu)),
-    ] {
-        out.push((
-            format!("{name} [500, 96]"),
-            vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
-            Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
-        ));
-        out.push((
-            format!("{name} extreme [8, 64]"),
-            vec![(extreme(8, 64)? * 1e3)?, normal(&[64], 1.0, 8)?],
-            Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
-        ));
-    }
-    Ok(out)
+    Ok(())
 }
 
 /// Each op on the CPU and on `device`, compared.

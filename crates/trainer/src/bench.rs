@@ -224,6 +224,11 @@ pub struct ProfileFigures {
     /// timed steps.
     pub forward_s: f64,
     pub backward_s: f64,
+    /// What the last timed step's forward pass left held (its graph) and the passes'
+    /// peak, beyond what was held before it (`Phases`): the ops' kept bytes against it
+    /// say how much of the graph's memory the ops account for.
+    pub step_kept_bytes: Option<u64>,
+    pub step_peak_bytes: Option<u64>,
     /// Each distinct op call of one step, timed alone (`osrt_kernels::profile`).
     pub ops: Vec<osrt_kernels::profile::CallTime>,
 }
@@ -248,13 +253,14 @@ pub fn profile_step(
     let warmup = if device.is_cpu() { 1 } else { 2 };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let keep = !device.is_cpu();
-    let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
+    let (mut fwd, mut bwd, mut last) = (Vec::new(), Vec::new(), None);
     for i in 0..steps.max(1) + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
         let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
         if let (true, Some(p)) = (i >= warmup, g.phases) {
             fwd.push(p.forward_s);
             bwd.push(p.backward_s);
+            last = Some(p);
         }
         trainer.apply(g.loss, g.grads)?;
     }
@@ -284,6 +290,8 @@ pub fn profile_step(
         kernels: kernels.to_string(),
         forward_s: median(fwd),
         backward_s: median(bwd),
+        step_kept_bytes: last.and_then(|p| p.forward_kept_bytes),
+        step_peak_bytes: last.and_then(|p| p.peak_bytes),
         ops,
     })
 }

@@ -14,6 +14,7 @@ use crate::error::{Result, TrainError};
 use crate::optim::{AdamW, DeviceAdamW, GradSummary, Hyperparams, clip_scale};
 use candle_core::{CpuStorage, Device, Storage, Tensor, Var};
 use osrt_dataset::Batch;
+use osrt_kernels::profile::MemoryMeter;
 use osrt_model::{Osrt, Params};
 use rand::Rng;
 
@@ -54,11 +55,48 @@ pub struct StepGradients<G = Vec<f32>> {
     pub phases: Option<Phases>,
 }
 
-/// Seconds of a step's passes, each ending synchronised with the device.
+/// With the phases timed, the memory the forward pass leaves held (its graph) and the
+/// passes' peak, above what was held when the probe started (before the batch came in).
+struct MemoryProbe {
+    meter: crate::device::Meter,
+    before: Option<u64>,
+}
+
+impl MemoryProbe {
+    fn start(on: bool, device: &Device) -> Self {
+        let meter = crate::device::Meter(device.clone());
+        let before = if on { meter.live() } else { None };
+        if before.is_some() {
+            meter.reset_peak();
+        }
+        Self { meter, before }
+    }
+
+    /// Bytes held now beyond the start (`None` when off: nothing is read or synchronised).
+    fn held(&self) -> Option<u64> {
+        let before = self.before?;
+        Some(self.meter.live()?.saturating_sub(before))
+    }
+
+    /// The most bytes held at once since the start, beyond it (`None` when off).
+    fn peak(&self) -> Option<u64> {
+        let before = self.before?;
+        Some(self.meter.peak()?.saturating_sub(before))
+    }
+}
+
+/// Seconds of a step's passes, each ending synchronised with the device, and its memory
+/// (heap on the CPU where the binary counts it, the memory pool on a GPU).
 #[derive(Debug, Clone, Copy, serde::Serialize)]
 pub struct Phases {
     pub forward_s: f64,
     pub backward_s: f64,
+    /// Bytes held after the forward pass (the batch and the whole graph) beyond what was
+    /// held before the batch came in.
+    pub forward_kept_bytes: Option<u64>,
+    /// The most bytes held at once through the forward and backward passes, beyond the
+    /// same starting point.
+    pub peak_bytes: Option<u64>,
 }
 
 /// A flat f32 gradient in [`Params::vars`] order: in host memory (what the all-reduce
@@ -335,6 +373,7 @@ impl Trainer {
             *t = std::time::Instant::now();
             Ok(s)
         };
+        let probe = MemoryProbe::start(timing, &self.device);
         let mut clock = std::time::Instant::now();
         let t = BatchTensors::new(batch, &self.device)?;
         let noise = self.slot_noise(batch.batch_size, rng)?;
@@ -353,8 +392,10 @@ impl Trainer {
         )?;
         let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
         let forward_s = lap(&mut clock)?;
+        let forward_kept_bytes = probe.held();
         let mut grads = loss.backward()?;
         let backward_s = lap(&mut clock)?;
+        let peak_bytes = probe.peak();
         let loss_value = loss.to_scalar::<f32>()? as f64;
         // The outputs hold the whole forward graph (every activation): it goes before the
         // flat gradient is built beside the parameters' gradients, or that buffer would
@@ -402,6 +443,8 @@ impl Trainer {
             phases: timing.then_some(Phases {
                 forward_s,
                 backward_s,
+                forward_kept_bytes,
+                peak_bytes,
             }),
         })
     }
