@@ -30,8 +30,8 @@ fn biased(x: &[f32], b: &[f32]) -> Vec<f32> {
     z
 }
 
-struct BiasActOp {
-    act: Option<MlpAct>,
+pub(crate) struct BiasActOp {
+    pub(crate) act: Option<MlpAct>,
 }
 
 impl CustomOp2 for BiasActOp {
@@ -87,8 +87,8 @@ impl CustomOp2 for BiasActOp {
 }
 
 /// `dz = dy · act'(x + b)`.
-struct BiasActBwd {
-    act: MlpAct,
+pub(crate) struct BiasActBwd {
+    pub(crate) act: MlpAct,
 }
 
 impl CustomOp3 for BiasActBwd {

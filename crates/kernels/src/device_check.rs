@@ -1,5 +1,5 @@
 //! Whether a device's one-node ops compute what the CPU's do: each op with a CUDA kernel
-//! (`cuda.rs`) or a node of its own there (attention, convolution), on the same seeded inputs (ordinary and extreme) on the CPU and on the
+//! (`cuda.rs`) or a node of its own there (attention, convolution, MLP), on the same seeded inputs (ordinary and extreme) on the CPU and on the
 //! device, values and input gradients of `Σ op(args) ⊙ w` compared. `osrt check-device`
 //! reports it beside the whole train step; on the CPU it compares the CPU with itself.
 
@@ -149,7 +149,7 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             }),
         ));
     }
-    conv_cases(&mut out)?;
+    node_cases(&mut out)?;
     for (name, act) in [
         ("bias", None),
         ("bias+relu", Some(MlpAct::Relu)),
@@ -170,9 +170,9 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
     Ok(out)
 }
 
-/// The convolution: on a GPU `conv_node.rs` (candle's products in one node), on the CPU
-/// the fused im2col kernel.
-fn conv_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
+/// The convolution (on a GPU `conv_node.rs`, candle's products in one node; on the CPU
+/// the fused im2col kernel) and the MLP.
+fn node_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
     for (name, x, stride) in [
         (
             "conv2d [4, 12, 12, 8] 3×3",
@@ -190,6 +190,25 @@ fn conv_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
             name.into(),
             vec![x, normal(&[10, c, 3, 3], 0.3, 14)?],
             Box::new(move |t| crate::conv2d_nhwc(&t[0], &t[1], stride, 1)),
+        ));
+    }
+    // The MLP: on a GPU `mlp_node.rs`, on the CPU the fused MLP.
+    for (name, act) in [
+        ("mlp gelu [2, 50, 24]", MlpAct::Gelu),
+        ("mlp leaky_relu [2, 50, 24]", MlpAct::LeakyRelu(0.01)),
+    ] {
+        out.push((
+            name.into(),
+            vec![
+                normal(&[2, 50, 24], 1.0, 15)?,
+                normal(&[40, 24], 0.3, 16)?,
+                normal(&[40], 0.1, 17)?,
+                normal(&[7, 40], 0.3, 18)?,
+                normal(&[7], 0.1, 19)?,
+            ],
+            Box::new(move |t| {
+                crate::mlp(&t[0], &[(&t[1], Some(&t[2])), (&t[3], Some(&t[4]))], act)
+            }),
         ));
     }
     Ok(())

@@ -36,6 +36,7 @@ mod linear;
 mod low_precision;
 mod mix;
 mod mlp;
+mod mlp_node;
 pub mod profile;
 mod softmax;
 #[cfg(test)]

@@ -444,6 +444,13 @@ fn mlp_here(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
     if !(fits && usable(&all)) {
+        // On a GPU, the whole MLP as one node of tensor ops (`mlp_node.rs`).
+        if crate::enabled() && crate::usable_with_cuda_any(&all) && !x.device().is_cpu() {
+            let bf16 = crate::precision() == crate::Precision::Bf16;
+            if let Some(y) = crate::mlp_node::mlp_node(x, layers, act, bf16)? {
+                return Ok(y);
+            }
+        }
         return mlp_layer_by_layer(x, layers, act);
     }
     let (dims, packed) = pack(x.dim(D::Minus1)?, layers)?;

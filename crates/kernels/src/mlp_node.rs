@@ -1,0 +1,374 @@
+//! A whole MLP as one graph node built from tensor ops and the bias-with-activation
+//! kernels, for devices without the fused CPU MLP (a GPU: the products are cuBLAS's).
+//!
+//! Why: layer by layer, every product and every bias-with-activation is a node of
+//! candle's graph, which holds every node's output until the end of the backward pass
+//! and gives each node's gradient a zero tensor and an add; in bf16 each product also
+//! casts its f32 input again. This node runs the same ops on detached tensors and keeps
+//! for the backward pass, per layer, the product's input and its output (the
+//! pre-activation) in the products' precision: in bf16 half the bytes of the f32 tensors
+//! the layer-by-layer graph holds, as PyTorch's autocast keeps them. Its backward pass
+//! takes them layer by layer, so each is freed once used. The values are the
+//! layer-by-layer ones: in bf16 the pre-activation is kept as the product returned it,
+//! before its exact widening to f32, and the next layer's input as the product would
+//! round it.
+
+use crate::bias_act::{BiasActBwd, BiasActOp};
+use crate::linear::ColumnSum;
+use crate::mlp::{MlpAct, MlpLayer};
+use crate::*;
+use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
+
+/// `x: [.., in]` through biased `layers` with `act` between them → `[.., out]` (f32), the
+/// products in bf16 where `bf16` is set. `None` where a layer has no bias or an operand
+/// is not f32 (the caller goes layer by layer).
+pub(crate) fn mlp_node(
+    x: &Tensor,
+    layers: &[MlpLayer],
+    act: MlpAct,
+    bf16: bool,
+) -> Result<Option<Tensor>> {
+    let f32s = x.dtype() == DType::F32
+        && layers.iter().all(|(w, b)| {
+            w.dtype() == DType::F32 && w.rank() == 2 && b.is_some_and(|b| b.dtype() == DType::F32)
+        });
+    if !f32s || layers.is_empty() || x.rank() == 0 {
+        return Ok(None);
+    }
+    let params: Vec<(Tensor, Tensor)> = layers
+        .iter()
+        .filter_map(|(w, b)| Some((w.detach(), (*b)?.detach())))
+        .collect();
+    let (&d_in, lead) = x.dims().split_last().expect("rank ≥ 1");
+    let x2 = x.reshape(((), d_in))?;
+    let plan = Plan { act, bf16, params };
+    let keep = x.track_op()
+        || layers
+            .iter()
+            .any(|(w, b)| w.track_op() || b.is_some_and(|b| b.track_op()));
+    let (y, saved) = plan.forward(&x2.detach(), keep)?;
+    let packed = Tensor::cat(
+        &layers
+            .iter()
+            .flat_map(|(w, b)| [w.flatten_all(), b.expect("checked").flatten_all()])
+            .collect::<Result<Vec<_>>>()?,
+        0,
+    )?;
+    let node = MlpNode {
+        out: std::sync::Mutex::new(Some(y)),
+        saved: Kept::new(saved),
+        plan,
+    };
+    let mut out = lead.to_vec();
+    out.push(layers.last().expect("not empty").0.dim(0)?);
+    Ok(Some(x2.apply_op2(&packed, node)?.reshape(out)?))
+}
+
+/// What one layer keeps for the backward pass: its product's input and output (the
+/// pre-activation, before the bias), in the products' precision.
+type Saved = Vec<(Tensor, Tensor)>;
+
+struct Plan {
+    act: MlpAct,
+    bf16: bool,
+    /// Each layer's weight `[out, in]` and bias `[out]`, detached.
+    params: Vec<(Tensor, Tensor)>,
+}
+
+impl Plan {
+    /// An operand in the products' precision.
+    fn low(&self, t: &Tensor) -> Result<Tensor> {
+        match self.bf16 {
+            true => t.to_dtype(DType::BF16),
+            false => Ok(t.clone()),
+        }
+    }
+
+    /// A product's result back in f32.
+    fn high(&self, t: Tensor) -> Result<Tensor> {
+        match self.bf16 {
+            true => t.to_dtype(DType::F32),
+            false => Ok(t),
+        }
+    }
+
+    /// `[rows, in] → [rows, out]`, and what the backward pass needs where `keep` is set.
+    /// Each layer as `linear_act` composes it: the product with the weight's transpose
+    /// (in bf16 a contiguous copy of it), then the bias with the activation in f32.
+    fn forward(&self, x: &Tensor, keep: bool) -> Result<(Tensor, Option<Saved>)> {
+        let mut saved = Vec::with_capacity(self.params.len());
+        let mut h = x.clone();
+        for (i, (w, b)) in self.params.iter().enumerate() {
+            let hidden = i + 1 < self.params.len();
+            let input = self.low(&h)?;
+            let z = input.matmul(&self.low(&w.t()?)?)?;
+            let act = hidden.then_some(self.act);
+            h = self
+                .high(z.clone())?
+                .contiguous()?
+                .apply_op2_no_bwd(b, &BiasActOp { act })?;
+            if keep {
+                saved.push((input, z));
+            }
+        }
+        Ok((h, keep.then_some(saved)))
+    }
+
+    /// The gradients of the input `[rows, in]` (where `want_dx`) and of the packed
+    /// parameters (each weight then its bias, flattened), from the output's `dy`: per
+    /// layer what candle's backward pass of `linear_act` computes, in the same products.
+    fn backward(
+        &self,
+        mut saved: Saved,
+        dy: &Tensor,
+        want_dx: bool,
+    ) -> Result<(Option<Tensor>, Tensor)> {
+        let mut g = dy.contiguous()?;
+        let mut parts = Vec::with_capacity(2 * self.params.len());
+        let mut dx = None;
+        for (i, (w, b)) in self.params.iter().enumerate().rev() {
+            let (input, z) = saved.pop().expect("one entry per layer");
+            let dz = match i + 1 < self.params.len() {
+                true => {
+                    let z = self.high(z)?.contiguous()?;
+                    z.apply_op3_no_bwd(b, &g, &BiasActBwd { act: self.act })?
+                }
+                false => g,
+            };
+            let db = dz.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
+            let dz_low = self.low(&dz)?;
+            let wt = self.low(&w.t()?)?;
+            // The product was `input · wt`: wt's gradient is inputᵀ · dz, the input's dz · wtᵀ.
+            let dwt = self.high(input.t()?.matmul(&dz_low)?)?;
+            drop(input);
+            parts.push(db.flatten_all()?);
+            parts.push(dwt.t()?.flatten_all()?);
+            g = match i > 0 || want_dx {
+                true => self.high(dz_low.matmul(&wt.t()?)?)?.contiguous()?,
+                false => dz,
+            };
+            if i == 0 && want_dx {
+                dx = Some(g.clone());
+            }
+        }
+        parts.reverse();
+        Ok((dx, Tensor::cat(&parts, 0)?))
+    }
+}
+
+struct MlpNode {
+    /// The finished forward pass, handed over once.
+    out: std::sync::Mutex<Option<Tensor>>,
+    saved: Kept<Saved>,
+    plan: Plan,
+}
+
+impl MlpNode {
+    fn output(&self) -> Result<Tensor> {
+        let Some(t) = self.out.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+            candle_core::bail!("mlp node: forward pass run twice");
+        };
+        // The storage is handed over whole: it must be exactly the output.
+        let l = t.layout();
+        if !(l.is_contiguous() && l.start_offset() == 0) {
+            candle_core::bail!("mlp node: the output is not a whole contiguous buffer");
+        }
+        Ok(t)
+    }
+}
+
+impl CustomOp2 for MlpNode {
+    fn name(&self) -> &'static str {
+        "osrt-mlp-node"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let out = self.output()?;
+        let (storage, layout) = out.storage_and_layout();
+        match &*storage {
+            candle_core::Storage::Cpu(s) => Ok((
+                candle_core::backend::BackendStorage::try_clone(s, layout)?,
+                out.shape().clone(),
+            )),
+            _ => candle_core::bail!("mlp node: output on another device"),
+        }
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        let out = self.output()?;
+        let (storage, layout) = out.storage_and_layout();
+        match &*storage {
+            candle_core::Storage::Cuda(s) => Ok((
+                candle_core::backend::BackendStorage::try_clone(s, layout)?,
+                out.shape().clone(),
+            )),
+            _ => candle_core::bail!("mlp node: output on another device"),
+        }
+    }
+
+    /// The layers backward, last first (see [`Plan::backward`]); a second backward pass
+    /// through the same graph finds the kept tensors gone and runs the forward pass again.
+    fn bwd(
+        &self,
+        x: &Tensor,
+        packed: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let saved = match self.saved.take() {
+            Some(s) => s,
+            None => match self.plan.forward(&x.detach(), true)?.1 {
+                Some(s) => s,
+                None => candle_core::bail!("mlp node: nothing kept"),
+            },
+        };
+        let (dx, dp) = self.plan.backward(saved, grad, x.track_op())?;
+        Ok((dx, packed.track_op().then_some(dp)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::{finite_difference_check, randn};
+    use crate::{Precision, with_fused, with_precision};
+    use candle_core::Var;
+
+    /// The layers one by one as a GPU ran them before this node: `linear_act` each.
+    fn layer_by_layer(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
+        let mut h = x.clone();
+        for (i, (w, b)) in layers.iter().enumerate() {
+            let hidden = i + 1 < layers.len();
+            h = crate::linear::linear_act(&h, w, *b, hidden.then_some(act))?;
+        }
+        Ok(h)
+    }
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    }
+
+    /// Value and gradients (input, then each weight and bias) of `Σ mlp(x) ⊙ w`.
+    fn run(
+        node: bool,
+        p: Precision,
+        act: MlpAct,
+        x: &Var,
+        params: &[(Var, Var)],
+    ) -> (Vec<f32>, Vec<Vec<f32>>) {
+        with_fused(true, || {
+            with_precision(p, || {
+                let layers: Vec<MlpLayer> = params
+                    .iter()
+                    .map(|(w, b)| (w.as_tensor(), Some(b.as_tensor())))
+                    .collect();
+                let y = match node {
+                    true => mlp_node(x.as_tensor(), &layers, act, p == Precision::Bf16)
+                        .unwrap()
+                        .unwrap(),
+                    false => layer_by_layer(x.as_tensor(), &layers, act).unwrap(),
+                };
+                let w = randn(y.dims(), 1.0, 77);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let mut grads = vec![values(g.get(x.as_tensor()).unwrap())];
+                for (w, b) in params {
+                    grads.push(values(g.get(w.as_tensor()).unwrap()));
+                    grads.push(values(g.get(b.as_tensor()).unwrap()));
+                }
+                (values(&y), grads)
+            })
+        })
+    }
+
+    /// The node computes what the layer-by-layer graph computes, in f32 and in bf16
+    /// (bf16 products on the CPU's gemm), for each activation and for ordinary and
+    /// extreme inputs: the same values and gradients (zeros may differ in sign, as
+    /// candle's accumulation adds +0), all finite.
+    #[test]
+    fn the_node_computes_the_layer_by_layer_graph() {
+        for p in [Precision::F32, Precision::Bf16] {
+            for act in [MlpAct::Relu, MlpAct::LeakyRelu(0.01), MlpAct::Gelu] {
+                for scale in [1.0f32, 1e-20, 1e12] {
+                    let x = Var::from_tensor(&randn(&[2, 7, 12], scale, 1)).unwrap();
+                    let dims = [12, 20, 16, 5];
+                    let params: Vec<(Var, Var)> = dims
+                        .windows(2)
+                        .enumerate()
+                        .map(|(i, d)| {
+                            let w = randn(&[d[1], d[0]], 0.4, 10 + i as u64);
+                            let b = randn(&[d[1]], 0.2, 20 + i as u64);
+                            (Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap())
+                        })
+                        .collect();
+                    let (y1, g1) = run(true, p, act, &x, &params);
+                    let (y0, g0) = run(false, p, act, &x, &params);
+                    let case = format!("{p} {act:?} scale {scale:e}");
+                    assert_eq!(y1, y0, "values, {case}");
+                    for (k, (a, b)) in g1.iter().zip(&g0).enumerate() {
+                        assert_eq!(a, b, "gradient {k}, {case}");
+                        assert!(a.iter().all(|v| v.is_finite()), "gradient {k}, {case}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// The f32 node against finite differences in f64 (where `f` takes the composed
+    /// layers), and a second backward pass through the same graph (the kept tensors
+    /// taken by the first) gives the same gradients.
+    #[test]
+    fn the_f32_node_matches_finite_differences_and_a_second_backward() {
+        let args = [
+            randn(&[3, 4, 6], 1.0, 1),
+            randn(&[8, 6], 0.5, 2),
+            randn(&[8], 0.2, 3),
+            randn(&[3, 8], 0.5, 4),
+            randn(&[3], 0.2, 5),
+        ];
+        let f = |t: &[Tensor]| -> Result<Tensor> {
+            let layers = [(&t[1], Some(&t[2])), (&t[3], Some(&t[4]))];
+            // The f64 evaluations of the finite differences take the composed layers.
+            match crate::enabled() && t[0].dtype() == DType::F32 {
+                true => Ok(mlp_node(&t[0], &layers, MlpAct::Gelu, false)?.expect("fits")),
+                false => crate::mlp_layer_by_layer(&t[0], &layers, MlpAct::Gelu),
+            }
+        };
+        finite_difference_check(&args, f);
+        let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
+        let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+        let loss = with_fused(true, || f(&ts))
+            .unwrap()
+            .sqr()
+            .unwrap()
+            .sum_all()
+            .unwrap();
+        let (g1, g2) = (loss.backward().unwrap(), loss.backward().unwrap());
+        for v in &vars {
+            let (a, b) = (
+                g1.get(v.as_tensor()).unwrap(),
+                g2.get(v.as_tensor()).unwrap(),
+            );
+            assert_eq!(values(a), values(b));
+        }
+        // A layer without a bias is not the node's: the caller goes layer by layer.
+        let no_bias = [(&args[1], None)];
+        assert!(
+            mlp_node(&args[0], &no_bias, MlpAct::Relu, false)
+                .unwrap()
+                .is_none()
+        );
+    }
+}
