@@ -10,25 +10,16 @@
 //! node on `(q, k, v)` whose forward returns a copy of it (the size of the output, not of
 //! the weights).
 
+use crate::handover::Handover;
 use crate::*;
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};
-use std::sync::Mutex;
 
 /// The finished forward pass, handed over once to [`AttentionNode`]'s forward.
 struct AttentionNode {
-    out: Mutex<Option<Tensor>>,
+    out: Handover,
     /// Attention weights `[b·h, n, m]`, kept for the backward pass when it can follow.
     weights: Kept<Tensor>,
     scale: f64,
-}
-
-impl AttentionNode {
-    fn output(&self) -> Result<Tensor> {
-        match self.out.lock().unwrap_or_else(|e| e.into_inner()).take() {
-            Some(t) => Ok(t),
-            None => candle_core::bail!("attention node: forward pass run twice"),
-        }
-    }
 }
 
 impl CustomOp3 for AttentionNode {
@@ -45,15 +36,7 @@ impl CustomOp3 for AttentionNode {
         _: &CpuStorage,
         _: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cpu(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("attention node: output on another device"),
-        }
+        self.out.cpu("attention node")
     }
 
     #[cfg(feature = "cuda")]
@@ -66,15 +49,7 @@ impl CustomOp3 for AttentionNode {
         _: &candle_core::CudaStorage,
         _: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cuda(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("attention node: output on another device"),
-        }
+        self.out.cuda("attention node")
     }
 
     /// With `A` the weights and `G` the output's gradient: `dV = Aᵀ G`, `dA = G Vᵀ`,
@@ -122,7 +97,7 @@ pub(crate) fn attention_heads(q: &Tensor, k: &Tensor, v: &Tensor, scale: f64) ->
     let out = matmul(&a, &vd)?.contiguous()?;
     let keep = q.track_op() || k.track_op() || v.track_op();
     let node = AttentionNode {
-        out: Mutex::new(Some(out)),
+        out: Handover::new(out)?,
         weights: Kept::new(keep.then_some(a)),
         scale,
     };

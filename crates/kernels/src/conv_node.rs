@@ -13,8 +13,8 @@
 //! transposed gradient for the kernel. The result is handed to the graph through the
 //! node's forward pass, which returns a copy of it (the size of the output).
 
+use crate::handover::Handover;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
-use std::sync::Mutex;
 
 /// `x: [n, h, w, c_in]`, `kernel: [c_out, c_in, k, k]` → `[n, h_out, w_out, c_out]`, over
 /// groups of `group` images, with bf16 operands (the result in f32) where `bf16` is set.
@@ -32,9 +32,9 @@ pub(crate) fn conv2d_node(
         group: group.max(1),
         bf16,
     };
-    let y = geom.forward(&x.detach(), &kernel.detach())?.contiguous()?;
+    let y = geom.forward(&x.detach(), &kernel.detach())?;
     let node = ConvNode {
-        out: Mutex::new(Some(y)),
+        out: Handover::new(y)?,
         geom,
     };
     x.apply_op2(kernel, node)
@@ -98,23 +98,8 @@ impl Geom {
 }
 
 struct ConvNode {
-    /// The finished forward pass, handed over once.
-    out: Mutex<Option<Tensor>>,
+    out: Handover,
     geom: Geom,
-}
-
-impl ConvNode {
-    fn output(&self) -> Result<Tensor> {
-        let Some(t) = self.out.lock().unwrap_or_else(|e| e.into_inner()).take() else {
-            candle_core::bail!("conv node: forward pass run twice");
-        };
-        // The storage is handed over whole: it must be exactly the output.
-        let l = t.layout();
-        if !(l.is_contiguous() && l.start_offset() == 0) {
-            candle_core::bail!("conv node: the output is not a whole contiguous buffer");
-        }
-        Ok(t)
-    }
 }
 
 impl CustomOp2 for ConvNode {
@@ -129,15 +114,7 @@ impl CustomOp2 for ConvNode {
         _: &CpuStorage,
         _: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cpu(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("conv node: output on another device"),
-        }
+        self.out.cpu("conv node")
     }
 
     #[cfg(feature = "cuda")]
@@ -148,15 +125,7 @@ impl CustomOp2 for ConvNode {
         _: &candle_core::CudaStorage,
         _: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cuda(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("conv node: output on another device"),
-        }
+        self.out.cuda("conv node")
     }
 
     /// Candle's convolution backward per group (see the module docs); the kernel's

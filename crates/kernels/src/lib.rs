@@ -31,6 +31,7 @@ pub mod cuda;
 pub mod device_check;
 pub mod fastmath;
 mod gemm;
+mod handover;
 mod layer_norm;
 mod linear;
 mod low_precision;

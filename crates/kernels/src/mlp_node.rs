@@ -14,6 +14,7 @@
 //! round it.
 
 use crate::bias_act::{BiasActBwd, BiasActOp};
+use crate::handover::Handover;
 use crate::linear::ColumnSum;
 use crate::mlp::{MlpAct, MlpLayer};
 use crate::*;
@@ -55,7 +56,7 @@ pub(crate) fn mlp_node(
         0,
     )?;
     let node = MlpNode {
-        out: std::sync::Mutex::new(Some(y)),
+        out: Handover::new(y)?,
         saved: Kept::new(saved),
         plan,
     };
@@ -157,24 +158,9 @@ impl Plan {
 }
 
 struct MlpNode {
-    /// The finished forward pass, handed over once.
-    out: std::sync::Mutex<Option<Tensor>>,
+    out: Handover,
     saved: Kept<Saved>,
     plan: Plan,
-}
-
-impl MlpNode {
-    fn output(&self) -> Result<Tensor> {
-        let Some(t) = self.out.lock().unwrap_or_else(|e| e.into_inner()).take() else {
-            candle_core::bail!("mlp node: forward pass run twice");
-        };
-        // The storage is handed over whole: it must be exactly the output.
-        let l = t.layout();
-        if !(l.is_contiguous() && l.start_offset() == 0) {
-            candle_core::bail!("mlp node: the output is not a whole contiguous buffer");
-        }
-        Ok(t)
-    }
 }
 
 impl CustomOp2 for MlpNode {
@@ -189,15 +175,7 @@ impl CustomOp2 for MlpNode {
         _: &CpuStorage,
         _: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cpu(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("mlp node: output on another device"),
-        }
+        self.out.cpu("mlp node")
     }
 
     #[cfg(feature = "cuda")]
@@ -208,15 +186,7 @@ impl CustomOp2 for MlpNode {
         _: &candle_core::CudaStorage,
         _: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        let out = self.output()?;
-        let (storage, layout) = out.storage_and_layout();
-        match &*storage {
-            candle_core::Storage::Cuda(s) => Ok((
-                candle_core::backend::BackendStorage::try_clone(s, layout)?,
-                out.shape().clone(),
-            )),
-            _ => candle_core::bail!("mlp node: output on another device"),
-        }
+        self.out.cuda("mlp node")
     }
 
     /// The layers backward, last first (see [`Plan::backward`]); a second backward pass
