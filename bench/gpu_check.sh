@@ -13,7 +13,8 @@
 #   bench/gpu_check.sh visit   # one call of a short visit, most important first: the ops
 #                              # and steps against the CPU, the paper preset's 1-view step
 #                              # (time, peak memory) in f32 and bf16 beside PyTorch, then
-#                              # both sides' profiles of it (at most 590 s of timeouts)
+#                              # both sides' profiles of it, and the 5-view batch-8 bf16
+#                              # step against its earlier peak (at most 600 s of timeouts)
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -153,7 +154,7 @@ profile)
         --out "$OUT/torch-profile-lite.json" 2>&1 | tail -n 72
     ;;
 visit)
-    timeout 120 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
+    timeout 100 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
     echo "check-device rc $?"
     python3 - "$OUT/check.json" <<'PY'
 import json, sys
@@ -173,7 +174,7 @@ PY
         timeout 80 "$BIN" bench model "${paper[@]}" --steps 5 --precision "$prec" \
             --out "$OUT/osrt-paper1-$prec.json" 2>&1 | tail -n 6
     done
-    timeout 90 python3 bench/torch_step.py --device cuda --presets paper --batch-size 32 \
+    timeout 80 python3 bench/torch_step.py --device cuda --presets paper --batch-size 32 \
         --image-size 128 --cases 1x8192 --dtypes f32,bf16 --steps 5 --no-render \
         --out "$OUT/torch-paper.json" 2>&1 | tail -n 6
     for prec in bf16 f32; do
@@ -184,6 +185,11 @@ PY
     timeout 60 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size 32 \
         --image-size 128 --cases 1x8192 --dtypes bf16 --steps 2 --no-render \
         --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 36
+    # Beside the one-node ops' earlier figure (docs/gpu.md: 21.6 GiB fused, 43.5 composed).
+    echo "== osrt paper b8 5x2304 bf16 fused"
+    timeout 40 "$BIN" bench model --device cuda --step-only --presets paper --image-size 128 \
+        --batch-size 8 --input-views 5 --rays-per-scene 2304 --precision bf16 --steps 3 \
+        --out "$OUT/osrt-paper5-b8-bf16.json" 2>&1 | tail -n 4
     ;;
 *)
     echo "usage: bench/gpu_check.sh train|bench|memory|profile|visit"
