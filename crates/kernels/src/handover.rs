@@ -50,3 +50,33 @@ impl Handover {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    /// A view (permuted, or narrowed away from its storage's start) is handed over as
+    /// its own values in order, not as the storage it views; a second forward pass is
+    /// an error.
+    #[test]
+    fn a_view_is_handed_over_as_its_values() {
+        let t = Tensor::arange(0f32, 24.0, &Device::Cpu).unwrap();
+        let t = t.reshape((2, 3, 4)).unwrap();
+        for view in [
+            t.permute((2, 0, 1)).unwrap(),
+            t.narrow(0, 1, 1).unwrap(),
+            t.clone(),
+        ] {
+            let want = view.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let h = Handover::new(view.clone()).unwrap();
+            let (s, shape) = h.cpu("test").unwrap();
+            assert_eq!(shape, *view.shape());
+            let CpuStorage::F32(got) = s else {
+                panic!("f32 in, f32 out")
+            };
+            assert_eq!(got, want);
+            assert!(h.cpu("test").unwrap_err().to_string().contains("run twice"));
+        }
+    }
+}
