@@ -102,6 +102,7 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
         let variants: &[Kernels] = match a.kernels {
             Some(Kernels::Fused) => &[Kernels::Fused],
             Some(Kernels::Composed) => &[Kernels::Composed],
+            Some(Kernels::Device) => &[Kernels::Device],
             None if a.step_only || a.device.is_cuda() => &[Kernels::Fused],
             None => &[Kernels::Fused, Kernels::Composed],
         };
@@ -347,11 +348,7 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
             println!(
                 "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} view(s), {} rays, {}px, {} {})",
                 s["preset"].as_str().unwrap_or(""),
-                if s["fused"] == true {
-                    "fused"
-                } else {
-                    "composed"
-                },
+                s["kernels"].as_str().unwrap_or(""),
                 ms("median_step_s"),
                 s["scenes_per_s"].as_f64().unwrap_or(0.0),
                 ms("median_forward_backward_s"),

@@ -437,7 +437,7 @@ fn attention_composed_here(
             .reshape((b * heads, len, dh))
     };
     let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
-    if usable_with_cuda(&[&q, &k, &v]) && !q.device().is_cpu() && n > 0 && m > 0 {
+    if usable_with_cuda(&[&q, &k, &v]) && crate::device_graph(&q) && n > 0 && m > 0 {
         // A GPU: one node that keeps only the weights (`attention_node.rs`).
         return super::attention_node::attention_heads(&q, &k, &v, scale)?
             .reshape((b, heads, n, dh))?

@@ -62,18 +62,22 @@ impl CustomOp3 for AttentionNode {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (q, k, v) = (q.detach(), k.detach(), v.detach());
-        let a = match self.weights.take() {
-            Some(a) => a,
-            None => scores(&q, &k, self.scale)?,
-        };
-        let g = grad.detach().contiguous()?;
-        let dv = matmul(&a.t()?, &g)?;
-        let da = matmul(&g, &v.t()?)?.contiguous()?;
-        let dl = (softmax::softmax_grad(&a, &da)? * self.scale)?;
-        let dq = matmul(&dl, &k)?;
-        let dk = matmul(&dl.t()?, &q)?;
-        Ok((Some(dq), Some(dk), Some(dv)))
+        // The products below are this node's backward pass, not ops of the step's own
+        // (a profile recording the step must not count them apart).
+        crate::profile::nested(|| {
+            let (q, k, v) = (q.detach(), k.detach(), v.detach());
+            let a = match self.weights.take() {
+                Some(a) => a,
+                None => scores(&q, &k, self.scale)?,
+            };
+            let g = grad.detach().contiguous()?;
+            let dv = matmul(&a.t()?, &g)?;
+            let da = matmul(&g, &v.t()?)?.contiguous()?;
+            let dl = (softmax::softmax_grad(&a, &da)? * self.scale)?;
+            let dq = matmul(&dl, &k)?;
+            let dk = matmul(&dl.t()?, &q)?;
+            Ok((Some(dq), Some(dk), Some(dv)))
+        })
     }
 }
 

@@ -154,14 +154,14 @@ fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) 
         // the buffer's memory.
         let per_image = ho * wo * c * k * k;
         let group = (MAX_UNFOLDED / per_image.max(1)).max(1);
-        if x.device().is_cpu() {
-            return conv(x);
-        }
-        if enabled() {
+        if enabled() && device_graph(x) {
             // One node over all groups, keeping no per-group copies (`conv_node.rs`).
             let f32s = x.dtype() == candle_core::DType::F32 && kernel.dtype() == x.dtype();
             let bf16 = precision() == Precision::Bf16 && f32s;
             return crate::conv_node::conv2d_node(x, kernel, stride, padding, group, bf16);
+        }
+        if x.device().is_cpu() {
+            return conv(x);
         }
         return in_groups(x, group, conv);
     }

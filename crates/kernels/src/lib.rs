@@ -150,15 +150,20 @@ pub(crate) fn in_precision(
 }
 
 /// Which ops graphs are built from: `fused` (this crate's one-node kernels where they
-/// apply; the default) or `composed` (candle's own ops only). The two compute the same
-/// functions; fused is the fast path on CPUs, composed the reference (on a GPU, fused
-/// means LayerNorm and softmax as one-node CUDA ops, the rest composed).
+/// apply; the default), `composed` (candle's own ops only) or `device` (the graph a GPU
+/// builds with `fused`, on any device). The three compute the same functions; fused is
+/// the fast path on CPUs, composed the reference. On a GPU, fused means the ops with CUDA
+/// kernels (LayerNorm, softmax, bias with activation) and the nodes built from tensor ops
+/// (attention, convolution, MLP, bf16 products) as one node each, candle's ops elsewhere;
+/// `device` builds that same graph on the CPU, where its memory can be counted and its
+/// training compared with the fused CPU ops'.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Kernels {
     #[default]
     Fused,
     Composed,
+    Device,
 }
 
 impl std::fmt::Display for Kernels {
@@ -166,6 +171,7 @@ impl std::fmt::Display for Kernels {
         f.write_str(match self {
             Self::Fused => "fused",
             Self::Composed => "composed",
+            Self::Device => "device",
         })
     }
 }
@@ -176,8 +182,9 @@ impl std::str::FromStr for Kernels {
         match s {
             "fused" => Ok(Self::Fused),
             "composed" => Ok(Self::Composed),
+            "device" => Ok(Self::Device),
             other => Err(format!(
-                "unknown kernels `{other}`: expected fused or composed"
+                "unknown kernels `{other}`: expected fused, composed or device"
             )),
         }
     }
@@ -188,9 +195,15 @@ pub fn kernels() -> Kernels {
     KERNELS.with(|k| k.get())
 }
 
-/// Whether graphs built on this thread use the fused ops.
+/// Whether graphs built on this thread use one-node ops (`fused` or `device`).
 pub fn enabled() -> bool {
-    kernels() == Kernels::Fused
+    kernels() != Kernels::Composed
+}
+
+/// Whether `t`'s ops take the device graph's nodes: on a GPU, or anywhere with
+/// [`Kernels::Device`].
+pub(crate) fn device_graph(t: &Tensor) -> bool {
+    !t.device().is_cpu() || kernels() == Kernels::Device
 }
 
 /// Runs `f` with graphs on this thread built from `k`.
@@ -267,7 +280,7 @@ fn cpu_storage(s: &candle_core::Storage) -> Result<&CpuStorage> {
 }
 
 fn usable(ts: &[&Tensor]) -> bool {
-    enabled()
+    kernels() == Kernels::Fused
         && ts
             .iter()
             .all(|t| t.dtype() == candle_core::DType::F32 && t.device().is_cpu() && t.rank() >= 1)

@@ -445,7 +445,7 @@ fn mlp_here(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
     if !(fits && usable(&all)) {
         // On a GPU, the whole MLP as one node of tensor ops (`mlp_node.rs`).
-        if crate::enabled() && crate::usable_with_cuda_any(&all) && !x.device().is_cpu() {
+        if crate::enabled() && crate::usable_with_cuda_any(&all) && crate::device_graph(x) {
             let bf16 = crate::precision() == crate::Precision::Bf16;
             if let Some(y) = crate::mlp_node::mlp_node(x, layers, act, bf16)? {
                 return Ok(y);
@@ -589,7 +589,7 @@ fn mlp_layer_by_layer_here(x: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
     let mut h = x.clone();
     for (i, (w, b)) in layers.iter().enumerate() {
         let hidden = i + 1 < layers.len();
-        if usable_with_cuda(&[&h, w]) && !h.device().is_cpu() {
+        if usable_with_cuda(&[&h, w]) && crate::device_graph(&h) {
             h = super::linear::linear_act(&h, w, *b, hidden.then_some(act))?;
             continue;
         }

@@ -386,6 +386,25 @@ mod tests {
         assert_eq!(DEPTH.with(|d| d.get()), 0);
     }
 
+    /// A recording that spans the backward pass too (as the profiled step's does) holds
+    /// the step's ops only: the products inside a node's backward pass (the device
+    /// graph's attention node) are not calls of their own.
+    #[test]
+    fn a_nodes_backward_pass_records_nothing() {
+        let q = Var::from_tensor(&randn(&[2, 5, 8], 1.0, 1)).unwrap();
+        let kv = Var::from_tensor(&randn(&[2, 3, 8], 1.0, 2)).unwrap();
+        let rec = Recorder::default();
+        crate::with_kernels(crate::Kernels::Device, || {
+            recording(Some(rec.clone()), || {
+                let (k, v) = (kv.as_tensor(), kv.as_tensor());
+                let y = crate::attention(q.as_tensor(), k, v, 2, 0.5).unwrap();
+                y.sum_all().unwrap().backward().unwrap();
+            })
+        });
+        let kinds: Vec<_> = rec.take().iter().map(|c| c.kind).collect();
+        assert_eq!(kinds, ["attention"]);
+    }
+
     /// Calls of one signature are timed once and counted; an op none of whose operands
     /// carried a gradient has no backward pass; the table comes largest first.
     #[test]

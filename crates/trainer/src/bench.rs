@@ -31,6 +31,8 @@ pub struct StepFigures {
     pub precision: String,
     /// Whether the fused ops (osrt_kernels, CPU only) ran.
     pub fused: bool,
+    /// The job's kernels (`fused`, `composed`, `device`).
+    pub kernels: String,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
     /// On a GPU: a round trip of a gradient-sized f32 buffer, device → host → device, as
@@ -185,6 +187,7 @@ pub fn bench_step(
         device: crate::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
         fused: job.train.kernels == osrt_model::Kernels::Fused && device.is_cpu(),
+        kernels: job.train.kernels.to_string(),
         median_step_s: m,
         median_forward_backward_s: median(fb_s),
         median_gradient_transfer_s: if transfer_s.is_empty() {

@@ -90,16 +90,15 @@ pub fn estimate(
         threads,
     };
     let gpu = t.device.is_cuda();
+    // `device` kernels build the GPU's graph on any device.
     let path = if !gpu && t.kernels == Kernels::Fused && t.precision == Precision::F32 {
         OpPath::Fused
-    } else {
-        if gpu {
-            OpPath::Gpu {
-                bf16: t.precision == Precision::Bf16,
-            }
-        } else {
-            OpPath::Composed
+    } else if gpu || t.kernels == Kernels::Device {
+        OpPath::Gpu {
+            bf16: t.precision == Precision::Bf16,
         }
+    } else {
+        OpPath::Composed
     };
     let f = osrt_model::footprint::step(&job.model, &shape, path)?;
     let params = f.parameters as f64;
