@@ -93,8 +93,8 @@ pub struct TrainArgs {
     /// Matrix products in f32 or bf16 (GPU only; weights and optimiser stay f32).
     #[arg(long)]
     pub precision: Option<Precision>,
-    /// `fused` (the one-node CPU kernels; the default) or `composed` (candle's ops only):
-    /// the same functions, at different speeds.
+    /// `fused` (the one-node CPU kernels; the default), `composed` (candle's ops only) or
+    /// `device` (the GPU's graph, on any device): the same functions, at different speeds.
     #[arg(long)]
     pub kernels: Option<Kernels>,
     /// Override seconds between validation runs.
