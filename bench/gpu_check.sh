@@ -37,6 +37,23 @@ if ldd "$BIN" | grep "not found"; then
     exit 1
 fi
 
+# The ops and steps of `check-device` against the CPU within $1 seconds, summarised.
+check_device() {
+    timeout "$1" "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
+    echo "check-device rc $?"
+    python3 - "$OUT/check.json" <<'PY'
+import json, sys
+try:
+    c = json.load(open(sys.argv[1]))
+except Exception as e:
+    sys.exit(f"no check-device result: {e}")
+for o in c["ops"]:
+    print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} finite {o["finite"]} pass {o["pass"]}')
+for s in c["steps"]:
+    print(f'step {s["preset"]:<15} {s["kernels"]:<8} {s["precision"]:<5} grad rel {s["gradient_rel_l2"]:.2e} worst {s["worst_parameter"]} {s["worst_parameter_rel_l2"]:.2e} step {s["step_rel_max"]:.1e} pass {s["pass"]}')
+PY
+}
+
 case "${1:-}" in
 train)
     # 1. The default dataset (20,000 scenes at 32 px, what `osrt train` generates into
@@ -96,19 +113,7 @@ bench)
 memory)
     # The paper's model at batch 32: the ops one by one and the whole step against the CPU
     # first, then peak device memory and step time beside PyTorch eager, same cases.
-    timeout 240 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
-    echo "check-device rc $?"
-    python3 - "$OUT/check.json" <<'PY'
-import json, sys
-try:
-    c = json.load(open(sys.argv[1]))
-except Exception as e:
-    sys.exit(f"no check-device result: {e}")
-for o in c["ops"]:
-    print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} finite {o["finite"]} pass {o["pass"]}')
-for s in c["steps"]:
-    print(f'step {s["preset"]:<15} {s["kernels"]:<8} {s["precision"]:<5} grad rel {s["gradient_rel_l2"]:.2e} worst {s["worst_parameter"]} {s["worst_parameter_rel_l2"]:.2e} step {s["step_rel_max"]:.1e} pass {s["pass"]}')
-PY
+    check_device 240
     paper=(--device cuda --steps 5 --step-only --presets paper --image-size 128 --batch-size 32)
     for vr in "1 8192" "5 2304"; do
         set -- $vr
@@ -154,19 +159,7 @@ profile)
         --out "$OUT/torch-profile-lite.json" 2>&1 | tail -n 72
     ;;
 visit)
-    timeout 100 "$BIN" check-device --json --presets tiny,clevr-lite-cpu >"$OUT/check.json"
-    echo "check-device rc $?"
-    python3 - "$OUT/check.json" <<'PY'
-import json, sys
-try:
-    c = json.load(open(sys.argv[1]))
-except Exception as e:
-    sys.exit(f"no check-device result: {e}")
-for o in c["ops"]:
-    print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} pass {o["pass"]}')
-for s in c["steps"]:
-    print(f'step {s["preset"]:<15} {s["kernels"]:<8} {s["precision"]:<5} grad rel {s["gradient_rel_l2"]:.2e} step {s["step_rel_max"]:.1e} pass {s["pass"]}')
-PY
+    check_device 100
     paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size 32
         --input-views 1 --rays-per-scene 8192)
     for prec in f32 bf16; do

@@ -262,22 +262,6 @@ fn print_profile(p: &serde_json::Value) {
         bwd * 1e3,
     );
     let ops: Vec<_> = p["ops"].as_array().into_iter().flatten().collect();
-    // Per kind: calls, forward s, backward s, kept bytes (all calls), largest call peak.
-    let mut kinds: Vec<(String, u64, f64, f64, f64, f64)> = Vec::new();
-    for o in &ops {
-        let kind = o["kind"].as_str().unwrap_or("").to_string();
-        let n = o["calls"].as_u64().unwrap_or(0);
-        let (of, ob) = (n as f64 * f(o, "forward_s"), n as f64 * f(o, "backward_s"));
-        let (kept, peak) = (n as f64 * f(o, "kept_bytes"), f(o, "peak_bytes"));
-        match kinds.iter_mut().find(|k| k.0 == kind) {
-            Some(k) => {
-                (k.1, k.2, k.3, k.4) = (k.1 + n, k.2 + of, k.3 + ob, k.4 + kept);
-                k.5 = k.5.max(peak);
-            }
-            None => kinds.push((kind, n, of, ob, kept, peak)),
-        }
-    }
-    kinds.sort_by(|a, b| (b.2 + b.3).total_cmp(&(a.2 + a.3)));
     println!(
         "    {:<12} {:>6} {:>11} {:>11} {:>11} {:>9} {:>10} {:>14}",
         "op",
@@ -291,16 +275,19 @@ fn print_profile(p: &serde_json::Value) {
     );
     let (step, mib) = (fwd + bwd, |b: f64| b / (1u64 << 20) as f64);
     let (mut sf, mut sb, mut sk) = (0.0, 0.0, 0.0);
-    for (kind, n, of, ob, kept, peak) in &kinds {
+    for k in p["kinds"].as_array().into_iter().flatten() {
+        let (of, ob, kept) = (f(k, "forward_s"), f(k, "backward_s"), f(k, "kept_bytes"));
         (sf, sb, sk) = (sf + of, sb + ob, sk + kept);
         println!(
-            "    {kind:<12} {n:>6} {:>11.2} {:>11.2} {:>11.2} {:>8.1}% {:>10.1} {:>10.1} MiB",
+            "    {:<12} {:>6} {:>11.2} {:>11.2} {:>11.2} {:>8.1}% {:>10.1} {:>10.1} MiB",
+            k["kind"].as_str().unwrap_or(""),
+            k["calls"].as_u64().unwrap_or(0),
             of * 1e3,
             ob * 1e3,
             (of + ob) * 1e3,
             100.0 * (of + ob) / step,
-            mib(*kept),
-            mib(*peak),
+            mib(kept),
+            mib(f(k, "peak_bytes")),
         );
     }
     if let (Some(kept), Some(peak)) = (p["step_kept_bytes"].as_f64(), p["step_peak_bytes"].as_f64())

@@ -470,6 +470,15 @@ fn bench_model_profile_times_each_op_kind() {
             .iter()
             .map(|o| o["calls"].as_f64().unwrap() * (f(o, "forward_s") + f(o, "backward_s")))
             .sum();
+        // The per-kind table counts every call once.
+        let calls = |v: &serde_json::Value| -> u64 {
+            v.as_array()
+                .unwrap()
+                .iter()
+                .map(|o| o["calls"].as_u64().unwrap())
+                .sum()
+        };
+        assert_eq!(calls(&p["kinds"]), calls(&p["ops"]), "{p}");
         let step_s = f(p, "forward_s") + f(p, "backward_s");
         // The step's own memory: its forward pass leaves its graph held, and the passes
         // peak at least there.

@@ -297,21 +297,38 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-/// Per-kind totals of [`time_calls`]' figures: `(kind, calls, forward_s, backward_s)`,
-/// largest total first.
-pub fn by_kind(times: &[CallTime]) -> Vec<(&'static str, usize, f64, f64)> {
-    let mut kinds: BTreeMap<&'static str, (usize, f64, f64)> = BTreeMap::new();
+/// One op kind's share of a step: its calls' totals.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct KindTime {
+    pub kind: &'static str,
+    pub calls: usize,
+    /// Seconds of all its calls' forward passes, and backward passes.
+    pub forward_s: f64,
+    pub backward_s: f64,
+    /// Bytes all its calls keep from forward to backward (`None` without a meter).
+    pub kept_bytes: Option<u64>,
+    /// The largest peak of one of its calls.
+    pub peak_bytes: Option<u64>,
+}
+
+/// Per-kind totals of [`time_calls`]' figures, largest total time first.
+pub fn by_kind(times: &[CallTime]) -> Vec<KindTime> {
+    let mut kinds: BTreeMap<&'static str, KindTime> = BTreeMap::new();
     for t in times {
-        let k = kinds.entry(t.kind).or_default();
-        k.0 += t.calls;
-        k.1 += t.calls as f64 * t.forward_s;
-        k.2 += t.calls as f64 * t.backward_s;
+        let k = kinds.entry(t.kind).or_insert_with(|| KindTime {
+            kind: t.kind,
+            ..Default::default()
+        });
+        let n = t.calls as u64;
+        k.calls += t.calls;
+        k.forward_s += n as f64 * t.forward_s;
+        k.backward_s += n as f64 * t.backward_s;
+        k.kept_bytes = t.kept_bytes.map(|b| k.kept_bytes.unwrap_or(0) + n * b);
+        k.peak_bytes = t.peak_bytes.map(|b| k.peak_bytes.unwrap_or(0).max(b));
     }
-    let mut out: Vec<_> = kinds
-        .into_iter()
-        .map(|(k, (n, f, b))| (k, n, f, b))
-        .collect();
-    out.sort_by(|a, b| (b.2 + b.3).total_cmp(&(a.2 + a.3)));
+    let mut out: Vec<_> = kinds.into_values().collect();
+    let total = |k: &KindTime| k.forward_s + k.backward_s;
+    out.sort_by(|a, b| total(b).total_cmp(&total(a)));
     out
 }
 
@@ -430,6 +447,6 @@ mod tests {
         let total = |t: &CallTime| t.calls as f64 * (t.forward_s + t.backward_s);
         assert!(total(&times[0]) >= total(&times[1]));
         let kinds = by_kind(&times);
-        assert_eq!(kinds.iter().map(|k| k.1).sum::<usize>(), 4);
+        assert_eq!(kinds.iter().map(|k| k.calls).sum::<usize>(), 4);
     }
 }

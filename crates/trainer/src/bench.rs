@@ -234,6 +234,8 @@ pub struct ProfileFigures {
     pub step_peak_bytes: Option<u64>,
     /// Each distinct op call of one step, timed alone (`osrt_kernels::profile`).
     pub ops: Vec<osrt_kernels::profile::CallTime>,
+    /// The same per op kind, largest total time first.
+    pub kinds: Vec<osrt_kernels::profile::KindTime>,
 }
 
 /// Profiles `job`'s train step on `device`: `steps` whole steps (after the warm-up) for
@@ -295,6 +297,7 @@ pub fn profile_step(
         backward_s: median(bwd),
         step_kept_bytes: last.and_then(|p| p.forward_kept_bytes),
         step_peak_bytes: last.and_then(|p| p.peak_bytes),
+        kinds: profile::by_kind(&ops),
         ops,
     })
 }
