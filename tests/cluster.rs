@@ -567,7 +567,8 @@ fn records_of_failed_reports_are_delivered_later() {
         }
         assert!(
             since.elapsed() < Duration::from_secs(60),
-            "metrics.jsonl did not grow for 60 s ({seen} bytes)"
+            "metrics.jsonl did not grow for 60 s ({seen} bytes); the worker's log:\n{}",
+            std::fs::read_to_string(&log).unwrap_or_default()
         );
         std::thread::sleep(Duration::from_millis(300));
         proxy.cut();

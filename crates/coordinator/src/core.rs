@@ -245,6 +245,11 @@ impl Core {
         write
     }
 
+    /// The newest step of the records (what `metrics.jsonl` holds once written).
+    pub fn last_record_step(&self) -> Option<u64> {
+        self.records.iter().map(|(s, _)| *s).max()
+    }
+
     /// A metrics write failed: the next one writes the file whole.
     pub fn metrics_write_failed(&mut self) {
         self.rewrite = true;

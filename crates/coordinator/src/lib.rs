@@ -4,11 +4,13 @@
 //! with the records as TensorBoard events ([`events`]).
 //!
 //! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
-//! the loop that times out silent members and persists state.
+//! the loop that times out silent members and persists state; [`retention`] deletes old
+//! checkpoints.
 
 pub mod core;
 pub mod error;
 pub mod events;
+pub mod retention;
 pub mod service;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};

@@ -4,6 +4,7 @@
 use crate::core::{Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, record_step};
 use crate::error::CoordinatorError;
 use crate::events::Events;
+use crate::retention::Retention;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
@@ -260,9 +261,7 @@ impl Coordinator {
                 // it are replayed and their records sent again, so none is missing.
                 // No record at all: the job starts over.
                 let last_record = records.iter().filter_map(|l| record_step(l)).max();
-                let at_most = last_record
-                    .unwrap_or(0)
-                    .min(p.last_checkpoint.unwrap_or(u64::MAX));
+                let at_most = checkpoint::resume_bound(last_record, p.last_checkpoint);
                 let checkpoint = checkpoint::latest_verified(&run, Some(at_most)).await?;
                 tracing::info!(
                     job = %p.job_id,
@@ -380,6 +379,8 @@ impl Coordinator {
         let mut store = StoreRetry::default();
         let can_append = self.local_metrics().is_some();
         let mut last_renewal = Instant::now();
+        let mut retention = Retention::default();
+        let keep_last = self.shared.with(|c, _| c.spec.cluster.keep_last);
         loop {
             tokio::select! {
                 _ = &mut shutdown => break,
@@ -394,7 +395,7 @@ impl Coordinator {
                 let flush = write_now
                     && c.dirty_metrics
                     && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
-                let metrics = flush.then(|| c.metrics_write(can_append));
+                let metrics = flush.then(|| (c.metrics_write(can_append), c.last_record_step()));
                 // Events follow what metrics.jsonl holds.
                 let work = (write_now
                     && !c.dirty_metrics
@@ -405,12 +406,14 @@ impl Coordinator {
             });
             let run = &self.shared.run;
             let (had_job, had_metrics) = (job.is_some(), metrics.is_some());
+            let job_checkpoint = job.as_ref().map(|p| p.last_checkpoint);
             let mut written: Result<(), CoordinatorError> = Ok(());
             if let Some(p) = job {
                 let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
                 written = write_file(run, JOB_FILE, bytes).await.map_err(Into::into);
             }
-            if let Some(w) = metrics {
+            let metrics_last = metrics.as_ref().map(|(_, last)| *last);
+            if let Some((w, _)) = metrics {
                 if written.is_ok() {
                     written = self.write_metrics(w).await;
                     last_flush = Instant::now();
@@ -441,6 +444,13 @@ impl Coordinator {
             if had_job || had_metrics || had_events {
                 store.succeeded();
             }
+            if let Some(c) = job_checkpoint {
+                retention.job_written(c);
+            }
+            if let Some(r) = metrics_last {
+                retention.metrics_written(r);
+            }
+            retention.maybe_start(run, keep_last);
             let events_dirty = self.shared.events.lock().await.is_dirty();
             let pending = {
                 let c = self.shared.core.lock().expect("state");
@@ -453,25 +463,36 @@ impl Coordinator {
                 }
             }
         }
-        self.write_last(can_append).await?;
+        self.write_last(can_append, &mut retention, keep_last)
+            .await?;
         Ok(self.status())
     }
 
     /// What the run folder lacks, written once more (the job is over, or a signal stopped
-    /// the coordinator), and the lease released.
-    async fn write_last(&self, can_append: bool) -> Result<(), CoordinatorError> {
+    /// the coordinator), a last retention pass, and the lease released.
+    async fn write_last(
+        &self,
+        can_append: bool,
+        retention: &mut Retention,
+        keep_last: usize,
+    ) -> Result<(), CoordinatorError> {
         let (job, metrics) = self.shared.with(|c, _| {
             let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
-            let metrics = c.dirty_metrics.then(|| c.metrics_write(can_append));
+            let metrics = c
+                .dirty_metrics
+                .then(|| (c.metrics_write(can_append), c.last_record_step()));
             (job, metrics)
         });
         if let Some(p) = job {
             let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
             write_file(&self.shared.run, JOB_FILE, bytes).await?;
+            retention.job_written(p.last_checkpoint);
         }
-        if let Some(w) = metrics {
+        if let Some((w, last)) = metrics {
             self.write_metrics(w).await?;
+            retention.metrics_written(last);
         }
+        retention.finish(&self.shared.run, keep_last).await;
         let work = self.shared.with(|c, _| c.events_work());
         self.shared.events.lock().await.write(work).await?;
         if let Some(lease) = self.shared.lease.lock().await.take() {

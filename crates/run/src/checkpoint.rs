@@ -459,11 +459,27 @@ async fn delete_checkpoint(run: &Location, step: u64) -> Result<()> {
     Ok(())
 }
 
+/// The newest step a coordinator continuing the job in this run folder may start from,
+/// given the newest step whose record `metrics.jsonl` holds and `job.json`'s
+/// `last_checkpoint`: it continues from the newest verified checkpoint at or before it
+/// (never past its records, so none goes missing). No record: the job starts over.
+pub fn resume_bound(last_record: Option<u64>, last_checkpoint: Option<u64>) -> u64 {
+    last_record
+        .unwrap_or(0)
+        .min(last_checkpoint.unwrap_or(u64::MAX))
+}
+
 /// Deletes committed checkpoints beyond the newest `keep_last` (at least 1) and the best
-/// by validation FG-ARI (then PSNR). Folders without a manifest are neither counted nor
-/// deleted (one may be a checkpoint being written). The manifest goes first, so a
-/// half-deleted folder is simply torn.
-pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64>> {
+/// by validation FG-ARI (then PSNR), but never the newest committed one at or before
+/// `resume_bound` (see [`resume_bound`]) nor any newer: a coordinator restarted now would
+/// continue from it. Folders without a manifest are neither counted nor deleted (one may
+/// be a checkpoint being written). The manifest goes first, so a half-deleted folder is
+/// simply torn.
+pub async fn apply_retention(
+    run: &Location,
+    keep_last: usize,
+    resume_bound: u64,
+) -> Result<Vec<u64>> {
     let keep_last = keep_last.max(1);
     let mut steps = Vec::new();
     for s in list_steps(run).await? {
@@ -497,9 +513,11 @@ pub async fn apply_retention(run: &Location, keep_last: usize) -> Result<Vec<u64
             best = Some((s, score));
         }
     }
+    // `steps` is newest first.
+    let resume = steps.iter().copied().find(|&s| s <= resume_bound);
     let mut deleted = Vec::new();
     for &s in steps.iter().skip(keep_last) {
-        if best.is_some_and(|(b, _)| b == s) {
+        if best.is_some_and(|(b, _)| b == s) || resume.is_some_and(|r| s >= r) {
             continue;
         }
         delete_checkpoint(run, s).await?;

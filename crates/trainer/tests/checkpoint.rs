@@ -215,9 +215,9 @@ async fn retention_never_counts_torn_folders() {
         let m = run.path(&format!("checkpoints/step-{s:09}/MANIFEST.json"));
         run.store.delete(&m).await.unwrap();
     }
-    assert_eq!(apply_retention(&run, 2).await.unwrap(), vec![10]);
+    assert_eq!(apply_retention(&run, 2, u64::MAX).await.unwrap(), vec![10]);
     assert_eq!(latest_verified(&run, None).await.unwrap(), Some(30));
-    assert_eq!(apply_retention(&run, 0).await.unwrap(), vec![20]);
+    assert_eq!(apply_retention(&run, 0, u64::MAX).await.unwrap(), vec![20]);
     assert_eq!(latest_verified(&run, None).await.unwrap(), Some(30));
     assert_eq!(
         list_steps(&run).await.unwrap(),
@@ -234,12 +234,30 @@ async fn retention_keeps_the_newest_and_the_best() {
     for (s, f) in scores {
         commit(&t, &run, state(s, Some(f))).await;
     }
-    let deleted = apply_retention(&run, 2).await.unwrap();
+    let deleted = apply_retention(&run, 2, u64::MAX).await.unwrap();
     assert_eq!(deleted, vec![30, 10]);
     assert_eq!(list_steps(&run).await.unwrap(), vec![50, 40, 20]);
     for s in [50, 40, 20] {
         checkpoint::verify(&run, s).await.unwrap();
     }
+}
+
+/// Retention never deletes the checkpoint a restarted coordinator would continue from
+/// (the newest at or before the resume bound) nor a newer one, whatever `keep_last`.
+#[tokio::test]
+async fn retention_keeps_the_checkpoint_a_restart_continues_from() {
+    let run = Location::parse("memory://ckpt-retention-bound/run").unwrap();
+    let t = trainer();
+    for s in [10, 20, 30, 40, 50] {
+        commit(&t, &run, state(s, None)).await;
+    }
+    // Records reached step 27: a restart continues from 20.
+    assert_eq!(apply_retention(&run, 1, 27).await.unwrap(), vec![10]);
+    assert_eq!(list_steps(&run).await.unwrap(), vec![50, 40, 30, 20]);
+    assert_eq!(latest_verified(&run, Some(27)).await.unwrap(), Some(20));
+    // Nothing at or before the bound: a restart starts over, nothing to keep for it.
+    assert_eq!(apply_retention(&run, 1, 5).await.unwrap(), vec![40, 30, 20]);
+    assert_eq!(list_steps(&run).await.unwrap(), vec![50]);
 }
 
 /// Two writers commit one step at once (a second job on the folder): each writes its own

@@ -473,14 +473,7 @@ async fn run_generation(
             });
         }
         if let Some(snap) = end.snapshot {
-            let save = commit_and_report(
-                snap,
-                run.clone(),
-                link.clone(),
-                unsent.clone(),
-                end.last,
-                c.keep_last,
-            );
+            let save = commit_and_report(snap, run.clone(), link.clone(), unsent.clone(), end.last);
             save_in_background(&mut pending_save, save, end.last).await?;
         }
         if end.last {
@@ -693,18 +686,13 @@ async fn commit_and_report(
     link: CoordinatorLink,
     unsent: Vec<MetricsRecord>,
     last: bool,
-    keep_last: usize,
 ) -> Result<u64> {
     let step = snap.commit(&run).await?;
     if !unsent.is_empty() {
         link.held_records(step, &unsent).await?;
     }
+    // Old checkpoints are the coordinator's to delete (`osrt_coordinator::retention`).
     link.checkpoint(step, last).await?;
-    match checkpoint::apply_retention(&run, keep_last).await {
-        Ok(deleted) if !deleted.is_empty() => tracing::debug!(?deleted, "old checkpoints deleted"),
-        Ok(_) => {}
-        Err(e) => tracing::warn!(error = %e, "retention failed"),
-    }
     Ok(step)
 }
 
