@@ -728,6 +728,7 @@ fn calls_without_the_job_token_are_refused_and_health_answers() {
                 name: "intruder".into(),
                 collective_addr: "http://127.0.0.1:1".into(),
                 threads: 1,
+                instance: 0,
             })
             .await
             .unwrap_err();
@@ -748,6 +749,7 @@ fn calls_without_the_job_token_are_refused_and_health_answers() {
                 name: "old".into(),
                 collective_addr: "http://127.0.0.1:1".into(),
                 threads: 1,
+                instance: 0,
             })
             .await
             .unwrap_err();
@@ -759,6 +761,7 @@ fn calls_without_the_job_token_are_refused_and_health_answers() {
             name: "x".repeat(bytes),
             collective_addr: "http://127.0.0.1:1".into(),
             threads: 1,
+            instance: 0,
         };
         let e = ok.register(sized(6 << 20)).await.unwrap_err();
         assert_eq!(e.code(), tonic::Code::FailedPrecondition, "decoded: {e}");

@@ -76,8 +76,24 @@ pub struct Member {
     pub name: String,
     pub addr: String,
     pub threads: u32,
+    /// The worker process's random instance (0: none sent).
+    pub instance: u64,
     pub last_seen: Instant,
     pub step: u64,
+}
+
+/// What a worker registers with.
+#[derive(Debug, Clone)]
+pub struct Registration {
+    pub protocol_version: u32,
+    /// For logs (host and pid); not an identity.
+    pub name: String,
+    /// `http(s)://host:port` of the worker's Collective service.
+    pub addr: String,
+    pub threads: u32,
+    /// Random per worker process (0: none): a repeated registration of one instance is
+    /// the same member.
+    pub instance: u64,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -341,14 +357,17 @@ impl Core {
         }
     }
 
-    pub fn register(
-        &mut self,
-        protocol_version: u32,
-        name: String,
-        addr: String,
-        threads: u32,
-        now: Instant,
-    ) -> Result<u64, Status> {
+    /// Admits a worker and returns its id. A registration of an instance already a member
+    /// (its first reply was lost, and the worker asked again) returns that member's id:
+    /// a second member would be a ghost the ring waits for until its heartbeat times out.
+    pub fn register(&mut self, r: Registration, now: Instant) -> Result<u64, Status> {
+        let Registration {
+            protocol_version,
+            name,
+            addr,
+            threads,
+            instance,
+        } = r;
         if protocol_version != PROTOCOL_VERSION {
             return Err(Status::failed_precondition(format!(
                 "protocol version {protocol_version}, this coordinator speaks {PROTOCOL_VERSION}"
@@ -369,6 +388,15 @@ impl Core {
         }
         if self.is_over() {
             return Err(Status::failed_precondition("the job is over"));
+        }
+        if let Some(m) = self
+            .members
+            .values_mut()
+            .find(|m| instance != 0 && m.instance == instance)
+        {
+            m.last_seen = now;
+            tracing::info!(worker_id = m.id, %name, "worker registered again (a lost reply)");
+            return Ok(m.id);
         }
         let max = self.spec.cluster.max_workers;
         if self.members.len() >= max {
@@ -397,6 +425,7 @@ impl Core {
                 name,
                 addr,
                 threads,
+                instance,
                 last_seen: now,
                 step: 0,
             },

@@ -1,7 +1,9 @@
 //! The Coordinator gRPC service over a shared [`Core`], the monitor loop (heartbeat
 //! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
 
-use crate::core::{Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, record_step};
+use crate::core::{
+    Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, Registration, record_step,
+};
 use crate::error::CoordinatorError;
 use crate::events::Events;
 use crate::retention::Retention;
@@ -670,15 +672,16 @@ impl coordinator_server::Coordinator for Service {
         request: Request<v1::RegisterRequest>,
     ) -> Result<Response<v1::RegisterReply>, Status> {
         let r = request.into_inner();
+        let registration = Registration {
+            protocol_version: r.protocol_version,
+            name: r.name,
+            addr: r.collective_addr,
+            threads: r.threads,
+            instance: r.instance,
+        };
         let (id, job) = self.shared.with(|c, now| {
-            c.register(
-                r.protocol_version,
-                r.name,
-                r.collective_addr,
-                r.threads,
-                now,
-            )
-            .map(|id| (id, c.spec.job_id.clone()))
+            c.register(registration, now)
+                .map(|id| (id, c.spec.job_id.clone()))
         })?;
         Ok(Response::new(v1::RegisterReply { job, worker_id: id }))
     }

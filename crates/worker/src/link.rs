@@ -41,15 +41,16 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
 }
 
 /// Whether a failed call may succeed if made again: the coordinator unreachable or busy,
-/// or the connection lost during the call (tonic then answers `Unknown` with the
-/// transport error as the source).
+/// or the connection lost during the call (tonic then answers `Unknown`, or `Cancelled`
+/// when hyper saw the connection close, with the transport error as the source; a
+/// `Cancelled` the coordinator itself sent has no such source).
 fn is_transient(s: &tonic::Status) -> bool {
     use std::error::Error;
     match s.code() {
         tonic::Code::Unavailable
         | tonic::Code::DeadlineExceeded
         | tonic::Code::ResourceExhausted => true,
-        tonic::Code::Unknown => s
+        tonic::Code::Unknown | tonic::Code::Cancelled => s
             .source()
             .is_some_and(|e| e.downcast_ref::<tonic::transport::Error>().is_some()),
         _ => false,

@@ -135,6 +135,14 @@ pub async fn run_worker_until(
     result
 }
 
+/// This worker process's instance: random, never 0 (0 says "none").
+fn instance() -> u64 {
+    static INSTANCE: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *INSTANCE.get_or_init(|| rand::random::<u64>() | 1)
+}
+
+/// Registers with the coordinator, retrying while it is unreachable or the call is cut
+/// off; a repeat whose first reply was lost gets the first one's id (same instance).
 async fn register(
     opts: &WorkerOptions,
     client: &mut Client,
@@ -145,6 +153,7 @@ async fn register(
         name: opts.name.clone(),
         collective_addr: collective_addr.to_string(),
         threads: opts.threads as u32,
+        instance: instance(),
     };
     let reply = with_retry(opts.coordinator_timeout, "register", || {
         let mut c = client.clone();

@@ -45,8 +45,18 @@ fn prog(
     }
 }
 
+fn registration(protocol_version: u32, name: &str, addr: &str) -> Registration {
+    Registration {
+        protocol_version,
+        name: name.into(),
+        addr: addr.into(),
+        threads: 1,
+        instance: 0,
+    }
+}
+
 fn reg(c: &mut Core, now: Instant) -> u64 {
-    c.register(PROTOCOL_VERSION, "w".into(), "http://x:1".into(), 1, now)
+    c.register(registration(PROTOCOL_VERSION, "w", "http://x:1"), now)
         .unwrap()
 }
 
@@ -339,12 +349,12 @@ fn restarts_are_bounded_and_bad_registrations_refused() {
     let t = Instant::now();
     let mut c = Core::new(spec(1, 1, 1), t);
     let e = c
-        .register(99, "w".into(), "http://x:1".into(), 1, t)
+        .register(registration(99, "w", "http://x:1"), t)
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::FailedPrecondition);
     let a = reg(&mut c, t);
     let e = c
-        .register(PROTOCOL_VERSION, "w".into(), "http://y:1".into(), 1, t)
+        .register(registration(PROTOCOL_VERSION, "w", "http://y:1"), t)
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted);
     c.tick(t);
@@ -389,7 +399,7 @@ fn the_ring_is_capped_at_the_global_batch() {
     );
     assert_eq!(c.ring.len(), 2);
     let e = c
-        .register(PROTOCOL_VERSION, "w3".into(), "http://x:1".into(), 1, t)
+        .register(registration(PROTOCOL_VERSION, "w3", "http://x:1"), t)
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted);
     assert!(e.message().contains("train.batch_size"), "{}", e.message());
@@ -401,17 +411,14 @@ fn an_address_that_names_no_host_is_refused() {
     let mut c = Core::new(spec(1, 4, 3), t);
     for addr in ["http://0.0.0.0:7071", "https://[::]:7071"] {
         let e = c
-            .register(PROTOCOL_VERSION, "w".into(), addr.into(), 1, t)
+            .register(registration(PROTOCOL_VERSION, "w", addr), t)
             .unwrap_err();
         assert_eq!(e.code(), tonic::Code::InvalidArgument);
         assert!(e.message().contains("--advertise"), "{}", e.message());
     }
     assert!(
         c.register(
-            PROTOCOL_VERSION,
-            "w".into(),
-            "http://10.0.0.7:7071".into(),
-            1,
+            registration(PROTOCOL_VERSION, "w", "http://10.0.0.7:7071"),
             t
         )
         .is_ok()
@@ -461,4 +468,28 @@ fn hashes_a_rank_never_reports_stay_bounded() {
         c.hashes.keys().next(),
         Some(&(1001 - MAX_PENDING_HASH_STEPS as u64))
     );
+}
+
+/// A worker that registers again because the reply was lost (same instance) is the same
+/// member: no second id, no ghost in the ring; another instance is a new member.
+#[test]
+fn a_repeated_registration_of_one_instance_is_one_member() {
+    let t = Instant::now();
+    let mut c = Core::new(spec(1, 4, 3), t);
+    let r = Registration {
+        instance: 7,
+        ..registration(PROTOCOL_VERSION, "w", "http://x:1")
+    };
+    let a = c.register(r.clone(), t).unwrap();
+    assert_eq!(c.register(r.clone(), t).unwrap(), a);
+    assert_eq!(c.members.len(), 1);
+    c.tick(t + Duration::from_secs(2));
+    assert_eq!(c.phase, Phase::Running);
+    assert_eq!(c.ring, vec![a]);
+    let generation = c.generation;
+    assert_eq!(c.register(r.clone(), t).unwrap(), a);
+    assert_eq!(c.generation, generation, "no new generation for a repeat");
+    let b = c.register(Registration { instance: 8, ..r }, t).unwrap();
+    assert_ne!(a, b);
+    assert_eq!(c.members.len(), 2);
 }
