@@ -5,7 +5,7 @@ use rayon::prelude::*;
 
 /// Geometry of a square-kernel convolution over NHWC input.
 #[derive(Debug, Clone, Copy)]
-struct ConvGeom {
+pub(crate) struct ConvGeom {
     n: usize,
     h: usize,
     w: usize,
@@ -18,6 +18,27 @@ struct ConvGeom {
 }
 
 impl ConvGeom {
+    /// `n` images of `h × w × c`, a `k × k` kernel (that fits the padded input).
+    pub(crate) fn new(
+        n: usize,
+        (h, w, c): (usize, usize, usize),
+        k: usize,
+        stride: usize,
+        pad: usize,
+    ) -> Self {
+        Self {
+            n,
+            h,
+            w,
+            c,
+            k,
+            stride,
+            pad,
+            ho: (h + 2 * pad - k) / stride + 1,
+            wo: (w + 2 * pad - k) / stride + 1,
+        }
+    }
+
     /// Input position of output `(oy, ox)` at kernel tap `(ky, kx)`, if inside the image.
     #[inline]
     fn source(&self, oy: usize, ox: usize, ky: usize, kx: usize) -> Option<(usize, usize)> {
@@ -70,6 +91,15 @@ impl CustomOp1 for Im2Col {
 }
 
 /// Im2col's adjoint: patch gradients summed back into NHWC `[n, h, w, c]`.
+///
+/// # Shapes
+/// `cols: [n·ho·wo, c·k·k]` (f32; on a GPU also bf16) → `[n, h, w, c]` (f32)
+pub(crate) fn col2im(cols: &Tensor, g: ConvGeom) -> Result<Tensor> {
+    cols.contiguous()?.apply_op1_no_bwd(&Col2Im(g))
+}
+
+/// Every pixel's sum is added in one order on every device: output rows ascending (the
+/// CPU's scatter), which the GPU's gather follows tap by tap, so both give the same bits.
 struct Col2Im(ConvGeom);
 
 impl CustomOp1 for Col2Im {
@@ -102,6 +132,17 @@ impl CustomOp1 for Col2Im {
             }
         });
         Ok((CpuStorage::F32(out), Shape::from((g.n, g.h, g.w, g.c))))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        let g = self.0;
+        let dims = [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo];
+        crate::cuda::col2im(s, l, dims)
     }
 }
 

@@ -182,6 +182,55 @@ extern "C" __global__ void osrt_softmax_bwd(const float* y, const float* dy, flo
     float* dxr = dx + row * d;
     for (int i = lane; i < d; i += 32) dxr[i] = yr[i] * (dyr[i] - dot);
 }
+
+// The gradient of an unfolding (col2im): dx[b, y, x, c] (NHWC) is the sum of the entries
+// of `cols` ([b·ho·wo, c·k·k], each row's entries ordered (channel, ky, kx)) that the
+// unfolding read from that pixel. A thread per pixel gathers them; the taps are visited
+// last to first, which is the order the CPU's scatter adds them in (output rows
+// ascending), so both give the same bits. No atomics: the sums do not depend on timing.
+__device__ __forceinline__ float load_col(const float* c, long i) { return c[i]; }
+__device__ __forceinline__ float load_col(const unsigned short* c, long i) {
+    return __uint_as_float(((unsigned int)c[i]) << 16);  // bf16 is f32's upper half
+}
+template <typename T>
+__device__ void col2im(const T* cols, float* dx, long total, int h, int w, int ch, int k,
+                       int stride, int pad, int ho, int wo) {
+    long patch = (long)ch * k * k;
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < total;
+         i += (long)gridDim.x * blockDim.x) {
+        int c = (int)(i % ch);
+        long r = i / ch;
+        int x = (int)(r % w);
+        r /= w;
+        int y = (int)(r % h);
+        long b = r / h;
+        float s = 0.f;
+        for (int ky = k - 1; ky >= 0; --ky) {
+            int ty = y + pad - ky;
+            if (ty < 0 || ty % stride) continue;
+            int oy = ty / stride;
+            if (oy >= ho) continue;
+            for (int kx = k - 1; kx >= 0; --kx) {
+                int tx = x + pad - kx;
+                if (tx < 0 || tx % stride) continue;
+                int ox = tx / stride;
+                if (ox >= wo) continue;
+                s += load_col(cols, ((b * ho + oy) * wo + ox) * patch + ((long)c * k + ky) * k + kx);
+            }
+        }
+        dx[i] = s;
+    }
+}
+extern "C" __global__ void osrt_col2im_f32(const float* cols, float* dx, long total, int h,
+                                           int w, int ch, int k, int stride, int pad, int ho,
+                                           int wo) {
+    col2im(cols, dx, total, h, w, ch, k, stride, pad, ho, wo);
+}
+extern "C" __global__ void osrt_col2im_bf16(const unsigned short* cols, float* dx, long total,
+                                            int h, int w, int ch, int k, int stride, int pad,
+                                            int ho, int wo) {
+    col2im(cols, dx, total, h, w, ch, k, stride, pad, ho, wo);
+}
 "#;
 
 /// Module name under which the device caches the loaded kernels.
@@ -527,5 +576,80 @@ pub fn column_sum(a: &CudaStorage, la: &Layout, d: usize) -> Result<(CudaStorage
     Ok((
         CudaStorage::wrap_cuda_slice(out, dev.clone()),
         Shape::from(d),
+    ))
+}
+
+/// Col2im (`conv.rs`): `cols: [n·ho·wo, c·k·k]` in f32 or bf16 → `[n, h, w, c]` in f32;
+/// `dims` = `[n, h, w, c, k, stride, pad, ho, wo]`.
+pub fn col2im(cols: &CudaStorage, l: &Layout, dims: [usize; 9]) -> Result<(CudaStorage, Shape)> {
+    let [n, h, w, c, k, stride, pad, ho, wo] = dims;
+    let expected = n * ho * wo * c * k * k;
+    if l.shape().elem_count() != expected {
+        candle_core::bail!(
+            "col2im: {} values are not the {n}·{ho}·{wo} rows of {c}·{k}·{k} columns",
+            l.shape().elem_count()
+        )
+    }
+    let Some((a, b)) = l.contiguous_offsets() else {
+        candle_core::bail!("col2im: the CUDA kernel needs contiguous columns")
+    };
+    let small = |v: usize| {
+        i32::try_from(v).map_err(|_| candle_core::Error::Msg(format!("col2im: size {v} too large")))
+    };
+    let (hi, wi, ci, ki, si, pi, hoi, woi) = (
+        small(h)?,
+        small(w)?,
+        small(c)?,
+        small(k)?,
+        small(stride.max(1))?,
+        small(pad)?,
+        small(ho)?,
+        small(wo)?,
+    );
+    let dev = device(cols);
+    let total = n * h * w * c;
+    let total64 = total as i64;
+    // SAFETY: every element is written by the kernel below.
+    let mut dx = unsafe { dev.alloc::<f32>(total.max(1))? };
+    let launch = |name: &str| dev.get_or_load_custom_func(name, MODULE, ptx()?);
+    match cols.dtype() {
+        candle_core::DType::F32 => {
+            let v = cols.as_cuda_slice::<f32>()?.slice(a..b);
+            let f = launch("osrt_col2im_f32")?;
+            let mut l = f.builder();
+            l.arg(&v).arg(&mut dx).arg(&total64);
+            l.arg(&hi)
+                .arg(&wi)
+                .arg(&ci)
+                .arg(&ki)
+                .arg(&si)
+                .arg(&pi)
+                .arg(&hoi)
+                .arg(&woi);
+            // SAFETY: the arguments match the kernel's signature; `v` holds every row
+            // the kernel reads (its size was checked above).
+            unsafe { l.launch(elementwise_launch(total)) }.w()?;
+        }
+        candle_core::DType::BF16 => {
+            let v = cols.as_cuda_slice::<half::bf16>()?.slice(a..b);
+            let f = launch("osrt_col2im_bf16")?;
+            let mut l = f.builder();
+            l.arg(&v).arg(&mut dx).arg(&total64);
+            l.arg(&hi)
+                .arg(&wi)
+                .arg(&ci)
+                .arg(&ki)
+                .arg(&si)
+                .arg(&pi)
+                .arg(&hoi)
+                .arg(&woi);
+            // SAFETY: as above; bf16 values are read as their 16 bits.
+            unsafe { l.launch(elementwise_launch(total)) }.w()?;
+        }
+        other => candle_core::bail!("col2im: columns of {other:?}, expected f32 or bf16"),
+    }
+    Ok((
+        CudaStorage::wrap_cuda_slice(dx, dev.clone()),
+        Shape::from((n, h, w, c)),
     ))
 }
