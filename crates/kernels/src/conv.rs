@@ -47,10 +47,65 @@ impl ConvGeom {
         (iy < self.h && ix < self.w).then_some((iy, ix))
     }
 
+    /// The output's size `[n, ho, wo]`.
+    pub(crate) fn output(&self) -> (usize, usize, usize) {
+        (self.n, self.ho, self.wo)
+    }
+
+    /// Row `row` = (image, oy) of the unfolding of NHWC `x` into `o` (`wo` patches,
+    /// zeroed: the padding stays 0).
+    fn unfold_row<T: Copy>(&self, x: &[T], row: usize, o: &mut [T]) {
+        let (b, oy) = (row / self.ho, row % self.ho);
+        let (p, k) = (self.patch(), self.k);
+        for ox in 0..self.wo {
+            let o = &mut o[ox * p..(ox + 1) * p];
+            for ky in 0..k {
+                for kx in 0..k {
+                    if let Some((iy, ix)) = self.source(oy, ox, ky, kx) {
+                        let src = &x[((b * self.h + iy) * self.w + ix) * self.c..][..self.c];
+                        for (ci, v) in src.iter().enumerate() {
+                            o[(ci * k + ky) * k + kx] = *v;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Image `b`'s patch gradients in `cols` added onto its pixels in `o` (NHWC, zeroed),
+    /// output rows ascending: the order every device adds them in.
+    fn fold_image<T: Copy + std::ops::AddAssign>(&self, cols: &[T], b: usize, o: &mut [T]) {
+        let (p, k) = (self.patch(), self.k);
+        for oy in 0..self.ho {
+            for ox in 0..self.wo {
+                let row = &cols[((b * self.ho + oy) * self.wo + ox) * p..][..p];
+                for ky in 0..k {
+                    for kx in 0..k {
+                        if let Some((iy, ix)) = self.source(oy, ox, ky, kx) {
+                            let dst = &mut o[(iy * self.w + ix) * self.c..][..self.c];
+                            for (ci, d) in dst.iter_mut().enumerate() {
+                                *d += row[(ci * k + ky) * k + kx];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     /// Columns per patch, ordered (channel, ky, kx) like a `[c_out, c_in, k, k]` kernel.
     fn patch(&self) -> usize {
         self.c * self.k * self.k
     }
+}
+
+/// Patches of NHWC input as rows, without a backward pass (the GPU's convolution node
+/// differentiates itself).
+///
+/// # Shapes
+/// `x: [n, h, w, c]` (f32; on a GPU also bf16) → `[n·ho·wo, c·k·k]` in `x`'s type
+pub(crate) fn im2col(x: &Tensor, g: ConvGeom) -> Result<Tensor> {
+    x.contiguous()?.apply_op1_no_bwd(&Im2Col(g))
 }
 
 /// Patches of NHWC input as rows: `[n·ho·wo, c·k·k]`.
@@ -62,27 +117,37 @@ impl CustomOp1 for Im2Col {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-        let x = f32_slice(s, l, "im2col")?;
         let g = self.0;
         let p = g.patch();
+        let shape = Shape::from((g.n * g.ho * g.wo, p));
+        if let CpuStorage::F64(v) = s {
+            // For gradient checks in f64 (`conv_node.rs`), serially.
+            let Some((a, b)) = l.contiguous_offsets() else {
+                candle_core::bail!("im2col: contiguous input expected")
+            };
+            let mut out = vec![0f64; g.n * g.ho * g.wo * p];
+            for (row, o) in out.chunks_mut(p * g.wo).enumerate() {
+                g.unfold_row(&v[a..b], row, o);
+            }
+            return Ok((CpuStorage::F64(out), shape));
+        }
+        let x = f32_slice(s, l, "im2col")?;
         // Each task zeroes its chunk (the padding stays 0) before writing the patches.
         let out = buffer::par_filled(g.n * g.ho * g.wo * p, p * g.wo, |row, o| {
-            let (b, oy) = (row / g.ho, row % g.ho);
-            for ox in 0..g.wo {
-                let o = &mut o[ox * p..(ox + 1) * p];
-                for ky in 0..g.k {
-                    for kx in 0..g.k {
-                        if let Some((iy, ix)) = g.source(oy, ox, ky, kx) {
-                            let src = &x[((b * g.h + iy) * g.w + ix) * g.c..][..g.c];
-                            for (ci, v) in src.iter().enumerate() {
-                                o[(ci * g.k + ky) * g.k + kx] = *v;
-                            }
-                        }
-                    }
-                }
-            }
+            g.unfold_row(x, row, o)
         });
-        Ok((CpuStorage::F32(out), Shape::from((g.n * g.ho * g.wo, p))))
+        Ok((CpuStorage::F32(out), shape))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        let g = self.0;
+        let dims = [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo];
+        crate::cuda::im2col(s, l, dims)
     }
 
     fn bwd(&self, _x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
@@ -108,30 +173,27 @@ impl CustomOp1 for Col2Im {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-        let cols = f32_slice(s, l, "col2im")?;
         let g = self.0;
-        let p = g.patch();
         let img = g.h * g.w * g.c;
+        let shape = Shape::from((g.n, g.h, g.w, g.c));
+        if let CpuStorage::F64(v) = s {
+            // For gradient checks in f64 (`conv_node.rs`), serially.
+            let Some((a, b)) = l.contiguous_offsets() else {
+                candle_core::bail!("col2im: contiguous columns expected")
+            };
+            let mut out = vec![0f64; g.n * img];
+            for (b_i, o) in out.chunks_mut(img).enumerate() {
+                g.fold_image(&v[a..b], b_i, o);
+            }
+            return Ok((CpuStorage::F64(out), shape));
+        }
+        let cols = f32_slice(s, l, "col2im")?;
         let mut out = vec![0f32; g.n * img];
         // One task per image: every write of an image lands in its own slice.
-        out.par_chunks_mut(img).enumerate().for_each(|(b, o)| {
-            for oy in 0..g.ho {
-                for ox in 0..g.wo {
-                    let row = &cols[((b * g.ho + oy) * g.wo + ox) * p..][..p];
-                    for ky in 0..g.k {
-                        for kx in 0..g.k {
-                            if let Some((iy, ix)) = g.source(oy, ox, ky, kx) {
-                                let dst = &mut o[(iy * g.w + ix) * g.c..][..g.c];
-                                for (ci, d) in dst.iter_mut().enumerate() {
-                                    *d += row[(ci * g.k + ky) * g.k + kx];
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-        });
-        Ok((CpuStorage::F32(out), Shape::from((g.n, g.h, g.w, g.c))))
+        out.par_chunks_mut(img)
+            .enumerate()
+            .for_each(|(b, o)| g.fold_image(cols, b, o));
+        Ok((CpuStorage::F32(out), shape))
     }
 
     #[cfg(feature = "cuda")]

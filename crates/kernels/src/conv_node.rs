@@ -1,22 +1,26 @@
-//! A convolution over channels-last input as one graph node built from tensor ops, for
-//! devices without osrt's own convolution kernel (a GPU: candle's unfolding and cuBLAS).
+//! A convolution over channels-last input as one graph node, for devices without osrt's
+//! fused convolution (a GPU): the input's unfolding (im2col, `conv.rs`, a CUDA kernel on
+//! a GPU) times the kernel matrix (cuBLAS), over groups of images.
 //!
-//! Why: composed, the device convolution runs over groups of images (`conv.rs`: candle's
-//! unfolded buffer is indexed with 32-bit numbers), each group is its own chain of graph
-//! nodes, and the concatenation of their outputs keeps every group's output beside the
-//! whole output until the backward pass; in bf16 each group also keeps the bf16 copies
-//! of its input and of its output. This node runs the same ops in the same order on
-//! detached tensors and keeps only its f32 operands (the input, which the step keeps for
-//! the previous op anyway, and the kernel). Its backward pass goes group by group in the
-//! forward pass's precision. For the input: the columns' gradient as one matrix product
-//! of the output's gradient with the kernel (cuBLAS on a GPU), summed back onto the
-//! pixels (`conv::col2im`, in f32, deterministic); candle's own input gradient, a
-//! transposed convolution, is a direct loop over every output pixel's channels and taps
-//! on a GPU. For the kernel: candle's convolution of the transposed input with the
-//! transposed gradient (an unfolding and a product). The result is handed to the graph
-//! through the node's forward pass, which returns a copy of it (the size of the output).
+//! Why one node: composed, the device convolution runs over groups of images (`conv.rs`:
+//! candle's unfolded buffer is indexed with 32-bit numbers; the groups also cap the
+//! unfolded buffer's memory here), each group is its own chain of graph nodes, and the
+//! concatenation of their outputs keeps every group's output beside the whole output
+//! until the backward pass; in bf16 each group also keeps the bf16 copies of its input
+//! and of its output. This node keeps only its f32 operands (the input, which the step
+//! keeps for the previous op anyway, and the kernel).
+//!
+//! Why its own unfolding: the output comes out channels-last, with no permuted copies of
+//! the input and the output around candle's channels-first convolution; and the backward
+//! pass is two products. Group by group in the forward pass's precision: the input's
+//! gradient is the output's gradient times the kernel matrix, summed back onto the
+//! pixels (col2im, in f32, deterministic); candle's own, a transposed convolution, is a
+//! direct loop over every output pixel's channels and taps on a GPU. The kernel's
+//! gradient is the output's gradient (transposed) times the input's unfolding, made
+//! again. The result is handed to the graph through the node's forward pass, which
+//! returns a copy of it (the size of the output).
 
-use crate::conv::{ConvGeom, col2im};
+use crate::conv::{ConvGeom, col2im, im2col};
 use crate::handover::Handover;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 
@@ -76,17 +80,25 @@ impl Geom {
         (0..n).step_by(g).map(|i| (i, g.min(n - i))).collect()
     }
 
-    /// The forward pass as `conv.rs` composes it: per group, the operands in the products'
-    /// precision, candle's convolution in NCHW, the result back in NHWC and f32.
+    /// The unfolding of `len` images of `x`'s size under `kernel`.
+    fn fold(&self, len: usize, x: &Tensor, kernel: &Tensor) -> Result<ConvGeom> {
+        let (_, h, w, c) = x.dims4()?;
+        let k = kernel.dim(2)?;
+        Ok(ConvGeom::new(len, (h, w, c), k, self.stride, self.padding))
+    }
+
+    /// The forward pass: per group, the operands in the products' precision, the
+    /// input's unfolding (im2col) times the kernel matrix's transpose (cuBLAS on a GPU),
+    /// which is the output in NHWC, back in f32.
     fn forward(&self, x: &Tensor, kernel: &Tensor) -> Result<Tensor> {
         let k = self.low(kernel)?;
+        let (co, ci, kh, kw) = k.dims4()?;
+        let kmat_t = k.reshape((co, ci * kh * kw))?.t()?;
         let one = |x: &Tensor| -> Result<Tensor> {
-            let y = self
-                .low(x)?
-                .permute((0, 3, 1, 2))?
-                .conv2d(&k, self.padding, self.stride, 1, 1)?
-                .permute((0, 2, 3, 1))?;
-            self.high(y)
+            let geom = self.fold(x.dim(0)?, x, kernel)?;
+            let y = im2col(&self.low(x)?, geom)?.matmul(&kmat_t)?;
+            let (n, ho, wo) = geom.output();
+            self.high(y.reshape((n, ho, wo, co))?)
         };
         let n = x.dim(0)?;
         if n <= self.group {
@@ -139,8 +151,8 @@ impl CustomOp2 for ConvNode {
     }
 
     /// Per group (see the module docs): the input's gradient by product and col2im, the
-    /// kernel's by candle's convolution; the kernel's gradient is the groups' sum, in
-    /// group order.
+    /// kernel's by product with the unfolding; the kernel's gradient is the groups' sum,
+    /// in group order.
     fn bwd(
         &self,
         x: &Tensor,
@@ -149,33 +161,26 @@ impl CustomOp2 for ConvNode {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let g = self.geom;
-        let (n, h, w, ci) = x.dims4()?;
+        let (n, _, _, ci) = x.dims4()?;
         let (_, _, kh, kw) = kernel.dims4()?;
         let k = g.low(kernel)?;
         let (mut dxs, mut dk) = (Vec::new(), None::<Tensor>);
         for (i, len) in g.groups(n) {
-            // The group's output gradient in the products' precision; NCHW for candle.
+            // The group's output gradient in the products' precision.
             let dy_nhwc = g.low(&grad.narrow(0, i, len)?)?;
-            let dy = dy_nhwc.permute((0, 3, 1, 2))?;
             if x.track_op() {
                 // The columns' gradient, one product with the kernel matrix (cuBLAS on a
                 // GPU), summed back onto the pixels they were read from (col2im, in f32).
                 let rows = dy_rows(&dy_nhwc)?;
                 let dcols = rows.matmul(&k.reshape((k.dim(0)?, ci * kh * kw))?)?;
-                let geom = ConvGeom::new(len, (h, w, ci), kh, g.stride, g.padding);
-                dxs.push(col2im(&dcols, geom)?);
+                dxs.push(col2im(&dcols, g.fold(len, x, kernel)?)?);
             }
             if kernel.track_op() {
-                let xg = g.low(&x.narrow(0, i, len)?)?.permute((0, 3, 1, 2))?;
-                let mut d = xg
-                    .transpose(0, 1)?
-                    .conv2d(&dy.transpose(0, 1)?, g.padding, 1, g.stride, 1)?
-                    .transpose(0, 1)?;
-                let (_, _, dh, dw) = d.dims4()?;
-                if dh != kh || dw != kw {
-                    d = d.narrow(2, 0, kh)?.narrow(3, 0, kw)?;
-                }
-                let d = g.high(d)?;
+                // The output's gradient (transposed) times the input's unfolding again.
+                let xg = g.low(&x.narrow(0, i, len)?)?;
+                let cols = im2col(&xg, g.fold(len, x, kernel)?)?;
+                let d = dy_rows(&dy_nhwc)?.t()?.matmul(&cols)?;
+                let d = g.high(d.reshape(kernel.shape())?)?;
                 dk = Some(match dk {
                     Some(acc) => (acc + d)?,
                     None => d,
@@ -211,11 +216,6 @@ mod tests {
         .unwrap()
     }
 
-    fn bits(t: &Tensor) -> Vec<u32> {
-        let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        v.iter().map(|x| x.to_bits()).collect()
-    }
-
     fn values(t: &Tensor) -> Vec<f32> {
         t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
     }
@@ -232,11 +232,10 @@ mod tests {
         assert!(err <= 1e-6 * norm, "{what}: {err} of {norm}");
     }
 
-    /// Against the composed groups, one group and several, strides 1 and 2, ordinary
-    /// and extreme scales: the same output bits; the input gradient (a product and
-    /// col2im, where candle's is a transposed convolution) within f32 rounding of another
-    /// summation order; the kernel's gradient the same where there is one group, within
-    /// f32 rounding of a different summation order over groups otherwise. All finite. In f32 only: candle's CPU convolution
+    /// Against the composed groups (candle's convolution and its backward pass), one
+    /// group and several, strides 1 and 2, ordinary and extreme scales: values and both
+    /// gradients (unfolding and products here) within f32 rounding of another summation
+    /// order, relative L2 ≤ 1e-6. All finite. In f32 only: candle's CPU convolution
     /// has no bf16 product; the bf16 node runs in `osrt check-device`'s bf16 steps on a
     /// GPU (the `tiny` and `clevr-lite-cpu` encoders), against the CPU's f32 step.
     #[test]
@@ -264,11 +263,8 @@ mod tests {
                 };
                 let ((y1, dx1, dk1), (y0, dx0, dk0)) = (run(true), run(false));
                 let case = format!("scale {scale:e} bf16 {bf16} stride {stride} group {group}");
-                assert_eq!(bits(&y1), bits(&y0), "values, {case}");
+                assert_close(&values(&y1), &values(&y0), &format!("values, {case}"));
                 let (a, b) = (values(&dk1), values(&dk0));
-                if group >= 5 {
-                    assert_eq!(a, b, "kernel gradient, {case}");
-                }
                 assert_close(&a, &b, &format!("kernel gradient, {case}"));
                 assert_close(
                     &values(&dx1),

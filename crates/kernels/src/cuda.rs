@@ -221,6 +221,39 @@ __device__ void col2im(const T* cols, float* dx, long total, int h, int w, int c
         dx[i] = s;
     }
 }
+// The unfolding (im2col) of NHWC x: cols[r, j] for row r = (b, oy, ox) and column
+// j = (c, ky, kx) is x[b, oy·stride + ky − pad, ox·stride + kx − pad, c], 0 outside the
+// image. A thread per column entry; values are copied, never converted.
+template <typename T>
+__device__ void im2col(const T* x, T* cols, long total, int h, int w, int ch, int k,
+                       int stride, int pad, int ho, int wo) {
+    long patch = (long)ch * k * k;
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < total;
+         i += (long)gridDim.x * blockDim.x) {
+        long j = i % patch;
+        long r = i / patch;
+        int kx = (int)(j % k);
+        int ky = (int)((j / k) % k);
+        int c = (int)(j / ((long)k * k));
+        int ox = (int)(r % wo);
+        int oy = (int)((r / wo) % ho);
+        long b = r / ((long)wo * ho);
+        int iy = oy * stride + ky - pad;
+        int ix = ox * stride + kx - pad;
+        bool inside = iy >= 0 && iy < h && ix >= 0 && ix < w;
+        cols[i] = inside ? x[((b * h + iy) * w + ix) * ch + c] : (T)0;
+    }
+}
+extern "C" __global__ void osrt_im2col_f32(const float* x, float* cols, long total, int h,
+                                           int w, int ch, int k, int stride, int pad, int ho,
+                                           int wo) {
+    im2col(x, cols, total, h, w, ch, k, stride, pad, ho, wo);
+}
+extern "C" __global__ void osrt_im2col_bf16(const unsigned short* x, unsigned short* cols,
+                                            long total, int h, int w, int ch, int k,
+                                            int stride, int pad, int ho, int wo) {
+    im2col(x, cols, total, h, w, ch, k, stride, pad, ho, wo);
+}
 extern "C" __global__ void osrt_col2im_f32(const float* cols, float* dx, long total, int h,
                                            int w, int ch, int k, int stride, int pad, int ho,
                                            int wo) {
@@ -579,77 +612,103 @@ pub fn column_sum(a: &CudaStorage, la: &Layout, d: usize) -> Result<(CudaStorage
     ))
 }
 
-/// Col2im (`conv.rs`): `cols: [n·ho·wo, c·k·k]` in f32 or bf16 → `[n, h, w, c]` in f32;
-/// `dims` = `[n, h, w, c, k, stride, pad, ho, wo]`.
-pub fn col2im(cols: &CudaStorage, l: &Layout, dims: [usize; 9]) -> Result<(CudaStorage, Shape)> {
-    let [n, h, w, c, k, stride, pad, ho, wo] = dims;
-    let expected = n * ho * wo * c * k * k;
+/// An unfolding's sizes as the kernels' `int`s: `[h, w, c, k, stride, pad, ho, wo]`.
+fn fold_ints(dims: [usize; 9], what: &str) -> Result<[i32; 8]> {
+    let [_, h, w, c, k, stride, pad, ho, wo] = dims;
+    let mut out = [0i32; 8];
+    for (o, v) in out.iter_mut().zip([h, w, c, k, stride.max(1), pad, ho, wo]) {
+        *o = i32::try_from(v)
+            .map_err(|_| candle_core::Error::Msg(format!("{what}: size {v} too large")))?;
+    }
+    Ok(out)
+}
+
+/// The offsets of a contiguous input of `expected` values in its storage.
+fn fold_input(l: &Layout, expected: usize, what: &str) -> Result<(usize, usize)> {
     if l.shape().elem_count() != expected {
         candle_core::bail!(
-            "col2im: {} values are not the {n}·{ho}·{wo} rows of {c}·{k}·{k} columns",
+            "{what}: {} values where the geometry needs {expected}",
             l.shape().elem_count()
         )
     }
-    let Some((a, b)) = l.contiguous_offsets() else {
-        candle_core::bail!("col2im: the CUDA kernel needs contiguous columns")
+    match l.contiguous_offsets() {
+        Some(o) => Ok(o),
+        None => candle_core::bail!("{what}: the CUDA kernel needs a contiguous input"),
+    }
+}
+
+/// Runs unfolding kernel `name` (arguments: input, output, total, then `ints`) over
+/// `total` outputs; `$input` and `$out` are device buffers of the kernel's types.
+macro_rules! launch_fold {
+    ($dev:expr, $name:expr, $input:expr, $out:expr, $total:expr, $ints:expr) => {{
+        let f = $dev.get_or_load_custom_func($name, MODULE, ptx()?)?;
+        let mut l = f.builder();
+        let total64 = $total as i64;
+        let ints: [i32; 8] = $ints;
+        l.arg($input).arg($out).arg(&total64);
+        for v in &ints {
+            l.arg(v);
+        }
+        // SAFETY: the kernels take (input, output, total, h, w, c, k, stride, pad, ho,
+        // wo); the input holds every value they read (its size was checked against the
+        // geometry) and the output `total` values.
+        unsafe { l.launch(elementwise_launch($total)) }.w()?;
+    }};
+}
+
+/// Im2col (`conv.rs`): NHWC `x: [n, h, w, c]` in f32 or bf16 → `[n·ho·wo, c·k·k]` in its
+/// type; `dims` = `[n, h, w, c, k, stride, pad, ho, wo]`.
+pub fn im2col(x: &CudaStorage, l: &Layout, dims: [usize; 9]) -> Result<(CudaStorage, Shape)> {
+    let [n, h, w, c, k, _, _, ho, wo] = dims;
+    let (a, b) = fold_input(l, n * h * w * c, "im2col")?;
+    let ints = fold_ints(dims, "im2col")?;
+    let dev = device(x).clone();
+    let total = n * ho * wo * c * k * k;
+    let out = match x.dtype() {
+        candle_core::DType::F32 => {
+            let v = x.as_cuda_slice::<f32>()?.slice(a..b);
+            // SAFETY: every element is written by the kernel.
+            let mut cols = unsafe { dev.alloc::<f32>(total.max(1))? };
+            launch_fold!(dev, "osrt_im2col_f32", &v, &mut cols, total, ints);
+            CudaStorage::wrap_cuda_slice(cols, dev)
+        }
+        candle_core::DType::BF16 => {
+            // Copied as their 16 bits.
+            let v = x.as_cuda_slice::<half::bf16>()?.slice(a..b);
+            // SAFETY: as above.
+            let mut cols = unsafe { dev.alloc::<half::bf16>(total.max(1))? };
+            launch_fold!(dev, "osrt_im2col_bf16", &v, &mut cols, total, ints);
+            CudaStorage::wrap_cuda_slice(cols, dev)
+        }
+        other => candle_core::bail!("im2col: input of {other:?}, expected f32 or bf16"),
     };
-    let small = |v: usize| {
-        i32::try_from(v).map_err(|_| candle_core::Error::Msg(format!("col2im: size {v} too large")))
-    };
-    let (hi, wi, ci, ki, si, pi, hoi, woi) = (
-        small(h)?,
-        small(w)?,
-        small(c)?,
-        small(k)?,
-        small(stride.max(1))?,
-        small(pad)?,
-        small(ho)?,
-        small(wo)?,
-    );
-    let dev = device(cols);
+    Ok((out, Shape::from((n * ho * wo, c * k * k))))
+}
+
+/// Col2im (`conv.rs`): `cols: [n·ho·wo, c·k·k]` in f32 or bf16 → `[n, h, w, c]` in f32;
+/// `dims` = `[n, h, w, c, k, stride, pad, ho, wo]`.
+pub fn col2im(cols: &CudaStorage, l: &Layout, dims: [usize; 9]) -> Result<(CudaStorage, Shape)> {
+    let [n, h, w, c, k, _, _, ho, wo] = dims;
+    let (a, b) = fold_input(l, n * ho * wo * c * k * k, "col2im")?;
+    let ints = fold_ints(dims, "col2im")?;
+    let dev = device(cols).clone();
     let total = n * h * w * c;
-    let total64 = total as i64;
     // SAFETY: every element is written by the kernel below.
     let mut dx = unsafe { dev.alloc::<f32>(total.max(1))? };
-    let launch = |name: &str| dev.get_or_load_custom_func(name, MODULE, ptx()?);
     match cols.dtype() {
         candle_core::DType::F32 => {
             let v = cols.as_cuda_slice::<f32>()?.slice(a..b);
-            let f = launch("osrt_col2im_f32")?;
-            let mut l = f.builder();
-            l.arg(&v).arg(&mut dx).arg(&total64);
-            l.arg(&hi)
-                .arg(&wi)
-                .arg(&ci)
-                .arg(&ki)
-                .arg(&si)
-                .arg(&pi)
-                .arg(&hoi)
-                .arg(&woi);
-            // SAFETY: the arguments match the kernel's signature; `v` holds every row
-            // the kernel reads (its size was checked above).
-            unsafe { l.launch(elementwise_launch(total)) }.w()?;
+            launch_fold!(dev, "osrt_col2im_f32", &v, &mut dx, total, ints);
         }
         candle_core::DType::BF16 => {
+            // Read as their 16 bits.
             let v = cols.as_cuda_slice::<half::bf16>()?.slice(a..b);
-            let f = launch("osrt_col2im_bf16")?;
-            let mut l = f.builder();
-            l.arg(&v).arg(&mut dx).arg(&total64);
-            l.arg(&hi)
-                .arg(&wi)
-                .arg(&ci)
-                .arg(&ki)
-                .arg(&si)
-                .arg(&pi)
-                .arg(&hoi)
-                .arg(&woi);
-            // SAFETY: as above; bf16 values are read as their 16 bits.
-            unsafe { l.launch(elementwise_launch(total)) }.w()?;
+            launch_fold!(dev, "osrt_col2im_bf16", &v, &mut dx, total, ints);
         }
         other => candle_core::bail!("col2im: columns of {other:?}, expected f32 or bf16"),
     }
     Ok((
-        CudaStorage::wrap_cuda_slice(dx, dev.clone()),
+        CudaStorage::wrap_cuda_slice(dx, dev),
         Shape::from((n, h, w, c)),
     ))
 }
