@@ -643,7 +643,8 @@ macro_rules! launch_fold {
     ($dev:expr, $name:expr, $input:expr, $out:expr, $total:expr, $ints:expr) => {{
         let f = $dev.get_or_load_custom_func($name, MODULE, ptx()?)?;
         let mut l = f.builder();
-        let total64 = $total as i64;
+        let total: usize = $total;
+        let total64 = total as i64;
         let ints: [i32; 8] = $ints;
         l.arg($input).arg($out).arg(&total64);
         for v in &ints {
@@ -652,7 +653,7 @@ macro_rules! launch_fold {
         // SAFETY: the kernels take (input, output, total, h, w, c, k, stride, pad, ho,
         // wo); the input holds every value they read (its size was checked against the
         // geometry) and the output `total` values.
-        unsafe { l.launch(elementwise_launch($total)) }.w()?;
+        unsafe { l.launch(elementwise_launch(total)) }.w()?;
     }};
 }
 
