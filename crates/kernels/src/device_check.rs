@@ -170,8 +170,9 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
     Ok(out)
 }
 
-/// The convolution (on a GPU `conv_node.rs`, candle's products in one node; on the CPU
-/// the fused im2col kernel) and the MLP.
+/// The convolution (on a GPU `conv_node.rs`: osrt's unfolding and col2im kernels around
+/// cuBLAS products in one node; on the CPU the fused im2col kernel), square and not, and
+/// the MLP.
 fn node_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
     for (name, x, stride) in [
         (
@@ -182,6 +183,11 @@ fn node_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
         (
             "conv2d [3, 16, 16, 6] 3×3 stride 2",
             normal(&[3, 16, 16, 6], 1.0, 13)?,
+            2,
+        ),
+        (
+            "conv2d [2, 9, 6, 5] 3×3 stride 2",
+            normal(&[2, 9, 6, 5], 1.0, 20)?,
             2,
         ),
     ] {
