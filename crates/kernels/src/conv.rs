@@ -47,6 +47,13 @@ impl ConvGeom {
         (iy < self.h && ix < self.w).then_some((iy, ix))
     }
 
+    /// `[n, h, w, c, k, stride, pad, ho, wo]`, as the CUDA kernels take them.
+    #[cfg(feature = "cuda")]
+    fn sizes(&self) -> [usize; 9] {
+        let g = self;
+        [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo]
+    }
+
     /// The output's size `[n, ho, wo]`.
     pub(crate) fn output(&self) -> (usize, usize, usize) {
         (self.n, self.ho, self.wo)
@@ -145,9 +152,7 @@ impl CustomOp1 for Im2Col {
         s: &candle_core::CudaStorage,
         l: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        let g = self.0;
-        let dims = [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo];
-        crate::cuda::im2col(s, l, dims)
+        crate::cuda::im2col(s, l, self.0.sizes())
     }
 
     fn bwd(&self, _x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
@@ -202,9 +207,7 @@ impl CustomOp1 for Col2Im {
         s: &candle_core::CudaStorage,
         l: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        let g = self.0;
-        let dims = [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo];
-        crate::cuda::col2im(s, l, dims)
+        crate::cuda::col2im(s, l, self.0.sizes())
     }
 }
 

@@ -164,22 +164,21 @@ impl CustomOp2 for ConvNode {
         let (n, _, _, ci) = x.dims4()?;
         let (_, _, kh, kw) = kernel.dims4()?;
         let k = g.low(kernel)?;
+        let kmat = k.reshape((k.dim(0)?, ci * kh * kw))?;
         let (mut dxs, mut dk) = (Vec::new(), None::<Tensor>);
         for (i, len) in g.groups(n) {
-            // The group's output gradient in the products' precision.
-            let dy_nhwc = g.low(&grad.narrow(0, i, len)?)?;
+            // The group's output gradient as rows, in the products' precision.
+            let dy = dy_rows(&g.low(&grad.narrow(0, i, len)?)?)?;
             if x.track_op() {
                 // The columns' gradient, one product with the kernel matrix (cuBLAS on a
                 // GPU), summed back onto the pixels they were read from (col2im, in f32).
-                let rows = dy_rows(&dy_nhwc)?;
-                let dcols = rows.matmul(&k.reshape((k.dim(0)?, ci * kh * kw))?)?;
-                dxs.push(col2im(&dcols, g.fold(len, x, kernel)?)?);
+                dxs.push(col2im(&dy.matmul(&kmat)?, g.fold(len, x, kernel)?)?);
             }
             if kernel.track_op() {
                 // The output's gradient (transposed) times the input's unfolding again.
                 let xg = g.low(&x.narrow(0, i, len)?)?;
                 let cols = im2col(&xg, g.fold(len, x, kernel)?)?;
-                let d = dy_rows(&dy_nhwc)?.t()?.matmul(&cols)?;
+                let d = dy.t()?.matmul(&cols)?;
                 let d = g.high(d.reshape(kernel.shape())?)?;
                 dk = Some(match dk {
                     Some(acc) => (acc + d)?,
