@@ -13,6 +13,10 @@
 //! Every segment is summed exactly once, in ring order starting at its first sender, and
 //! then copied byte for byte: **all replicas end with bit-identical buffers**.
 //!
+//! Buckets are also the unit of staging ([`Ring::all_reduce_staged`]): a buffer whose
+//! floats arrive bucket by bucket (a GPU's gradient copied to the host) is sent as each
+//! bucket arrives, and each bucket's sums are handed on as soon as they are final.
+//!
 //! Every chunk is tagged `(job, generation, step, bucket, phase, round, chunk, from_rank)`;
 //! the receiving server refuses another job's chunks, stale generations and steps, a
 //! sender that is not its ring predecessor, an unknown bucket and a wrong length. Every RPC
@@ -78,6 +82,12 @@ pub enum CollectiveError {
         rank: usize,
         range: Range<usize>,
         timeout: Duration,
+    },
+    #[error("rank {rank}: staging bucket {bucket} failed: {reason}")]
+    Stage {
+        rank: usize,
+        bucket: usize,
+        reason: String,
     },
     #[error("cannot connect to {addr}: {reason}")]
     Connect { addr: String, reason: String },
@@ -174,6 +184,44 @@ impl Layout {
             Phase::ReduceScatter => (rank + w - round) % w,
             _ => (rank + 1 + w - round) % w,
         }
+    }
+}
+
+/// Where an all-reduce's buffer comes from and where its sums go, one bucket at a time
+/// ([`Ring::all_reduce_staged`]): a gradient that lives on a GPU is copied to the host
+/// bucket by bucket while the ring already works on the buckets before it, and each
+/// bucket's sums can go back as soon as they are final.
+///
+/// Buckets are numbered in [`Layout`] order (from the buffer's end), and every method is
+/// called for bucket 0, 1, … in turn, once each.
+pub trait Stage: Send {
+    /// Resolves once bucket `bucket` can be written into the buffer. The ring polls it
+    /// beside its other work and may drop it unfinished to poll it again later, so it
+    /// must be cancel-safe.
+    fn staged(
+        &mut self,
+        bucket: usize,
+    ) -> impl std::future::Future<Output = Result<(), String>> + Send;
+    /// Writes bucket `bucket`'s floats into `dst` (its range of the buffer), after
+    /// [`Stage::staged`] resolved for it.
+    fn fill(&mut self, bucket: usize, dst: &mut [f32]) -> Result<(), String>;
+    /// This rank holds the final sums of bucket `bucket`: `sums` is its range of the
+    /// buffer, which it keeps until the all-reduce returns.
+    fn reduced(&mut self, bucket: usize, sums: &[f32]) -> Result<(), String>;
+}
+
+/// The stage of a buffer that is complete before the all-reduce starts.
+struct Whole;
+
+impl Stage for Whole {
+    async fn staged(&mut self, _: usize) -> Result<(), String> {
+        Ok(())
+    }
+    fn fill(&mut self, _: usize, _: &mut [f32]) -> Result<(), String> {
+        Ok(())
+    }
+    fn reduced(&mut self, _: usize, _: &[f32]) -> Result<(), String> {
+        Ok(())
     }
 }
 
@@ -311,8 +359,35 @@ impl Ring {
         if self.cfg.world() == 1 {
             return Ok(());
         }
+        self.run(step, buf, None::<&mut Whole>).await
+    }
+
+    /// [`Ring::all_reduce`] of a buffer that `stage` fills bucket by bucket as the ring
+    /// needs each one (`buf` only has to have the right length), telling `stage` each
+    /// bucket's sums as soon as they are final. A rank sends or takes in a bucket's
+    /// chunks only once it filled the bucket, so the arithmetic and every bit are those
+    /// of [`Ring::all_reduce`] of the filled buffer; what changes is that filling one
+    /// bucket overlaps the ring's work on the others.
+    pub async fn all_reduce_staged(
+        &mut self,
+        step: u64,
+        buf: &mut Vec<f32>,
+        stage: &mut impl Stage,
+    ) -> Result<(), CollectiveError> {
+        if self.cfg.world() == 1 {
+            return alone(self.cfg.rank, &self.layout(buf.len()), buf, stage).await;
+        }
+        self.run(step, buf, Some(stage)).await
+    }
+
+    async fn run(
+        &mut self,
+        step: u64,
+        buf: &mut Vec<f32>,
+        stage: Option<&mut impl Stage>,
+    ) -> Result<(), CollectiveError> {
         let mut shared = LentBuffer::new(std::mem::take(buf));
-        let result = self.ring_all_reduce(step, &mut shared).await;
+        let result = self.ring_all_reduce(step, &mut shared, stage).await;
         // After success the successor has taken every chunk, so the transport lets go of
         // the loans at once; after a failure they may sit in a dead connection's queue,
         // and a copy now beats waiting for it.
@@ -329,9 +404,14 @@ impl Ring {
         &mut self,
         step: u64,
         shared: &mut LentBuffer,
+        mut stage: Option<&mut impl Stage>,
     ) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         let layout = self.layout(shared.len());
+        let buckets = layout.buckets.len();
+        // Buckets filled so far (in layout order): a rank sends a bucket's chunks, and
+        // takes in its predecessor's, only once the bucket holds its own floats.
+        let mut filled = if stage.is_some() { 0 } else { buckets };
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
         let next = (rank + 1) % w;
@@ -369,6 +449,9 @@ impl Ring {
         loop {
             // Queue what is ready while there is room, without waiting.
             while let Some(entry) = ready.first_entry() {
+                if entry.key().bucket as usize >= filled {
+                    break;
+                }
                 let Some(permit) = sender.try_reserve() else {
                     break;
                 };
@@ -385,10 +468,36 @@ impl Ring {
             // the call, a dead predecessor fails the receive at its deadline, a successor
             // that takes nothing fails the send at its deadline.
             let key = hop.map_or_else(Key::default, |h| h.id.key(self.cfg.generation, step));
+            let can_send = ready
+                .first_key_value()
+                .is_some_and(|(id, _)| (id.bucket as usize) < filled);
+            let can_receive = hop.is_some_and(|h| (h.id.bucket as usize) < filled);
+            let stage_failed = |bucket, reason| CollectiveError::Stage {
+                rank,
+                bucket,
+                reason,
+            };
             tokio::select! {
                 biased;
                 status = call.ended() => return Err(send_error(status)),
-                permit = timeout(self.cfg.timeout, sender.reserve()), if !ready.is_empty() => {
+                // The next bucket as soon as it is there: its first chunks can then go
+                // out while this rank waits on the ring.
+                staged = stage_next(&mut stage, filled), if filled < buckets => {
+                    staged.map_err(|e| stage_failed(filled, e))?;
+                    let s = stage.as_deref_mut().expect("enabled only when staged");
+                    let range = layout.buckets[filled].clone();
+                    shared
+                        .write(range, self.cfg.timeout, |dst| s.fill(filled, dst))
+                        .await
+                        .map_err(|e| CollectiveError::StillLent {
+                            rank,
+                            range: e.0,
+                            timeout: self.cfg.timeout,
+                        })?
+                        .map_err(|e| stage_failed(filled, e))?;
+                    filled += 1;
+                }
+                permit = timeout(self.cfg.timeout, sender.reserve()), if can_send => {
                     let permit = match permit {
                         Ok(Ok(p)) => p,
                         Ok(Err(_)) => {
@@ -399,12 +508,20 @@ impl Ring {
                     let (id, out) = ready.pop_first().expect("ready is not empty");
                     send(shared, permit, id, out);
                 }
-                data = self.mailbox.take(key, self.cfg.timeout), if hop.is_some() => {
+                data = self.mailbox.take(key, self.cfg.timeout), if can_receive => {
                     let hop = hop.expect("enabled only with a chunk to receive");
                     let data = hop.check(data, rank, w, self.cfg.timeout)?;
                     let to = (&mut *shared, &mut call, &mut ready);
                     hop.take_in(data, to, (rank, self.cfg.timeout), &send_error).await?;
                     received += 1;
+                    // A bucket's last chunk in: all its segments are final on this rank.
+                    let b = hop.id.bucket as usize;
+                    if let Some(s) = stage.as_deref_mut()
+                        && schedule.get(received).is_none_or(|h| h.id.bucket as usize != b)
+                    {
+                        let sums = shared.view(layout.buckets[b].clone());
+                        s.reduced(b, sums).map_err(|e| stage_failed(b, e))?;
+                    }
                 }
             }
         }
@@ -420,6 +537,35 @@ impl Ring {
     fn in_flight(&self) -> usize {
         (IN_FLIGHT_BYTES / (self.cfg.chunk_floats.clamp(1, MAX_CHUNK_FLOATS) * 4)).clamp(2, 64)
     }
+}
+
+/// Bucket `bucket` of `stage` staged (never called without a stage: the ring fills
+/// nothing then).
+async fn stage_next(stage: &mut Option<&mut impl Stage>, bucket: usize) -> Result<(), String> {
+    match stage {
+        Some(s) => s.staged(bucket).await,
+        None => Ok(()),
+    }
+}
+
+/// A staged all-reduce on a ring of one: every bucket filled, and its sums are its own.
+async fn alone(
+    rank: usize,
+    layout: &Layout,
+    buf: &mut [f32],
+    stage: &mut impl Stage,
+) -> Result<(), CollectiveError> {
+    for (b, range) in layout.buckets.iter().enumerate() {
+        let failed = |reason| CollectiveError::Stage {
+            rank,
+            bucket: b,
+            reason,
+        };
+        stage.staged(b).await.map_err(failed)?;
+        stage.fill(b, &mut buf[range.clone()]).map_err(failed)?;
+        stage.reduced(b, &buf[range.clone()]).map_err(failed)?;
+    }
+    Ok(())
 }
 
 /// The chunks a rank sends first: its round-0 reduce-scatter segment of every bucket.

@@ -140,6 +140,19 @@ impl LentBuffer {
         self.shared.len
     }
 
+    /// The floats of `range`, read in place (reading is allowed while ranges are lent;
+    /// the borrow rules out a write until the slice is gone).
+    pub(crate) fn view(&self, range: Range<usize>) -> &[f32] {
+        let shared = &*self.shared;
+        assert!(
+            range.start <= range.end && range.end <= shared.len,
+            "view {range:?}"
+        );
+        // SAFETY: in bounds; writes take `&mut self`, so none runs while this borrow of
+        // `self` lives, and loans only read.
+        unsafe { std::slice::from_raw_parts(shared.ptr.add(range.start), range.len()) }
+    }
+
     /// The floats of `range` as wire bytes that borrow the buffer (little-endian machines)
     /// or own a copy (big-endian ones, where the bytes differ from memory).
     pub(crate) fn lend(&self, range: Range<usize>) -> Bytes {

@@ -4,13 +4,14 @@
 
 use bytes::Bytes;
 use osrt_collective::chunk_wire;
-use osrt_collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, serve};
+use osrt_collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, Stage, serve};
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::v1::collective_client::CollectiveClient;
 use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
 use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::oneshot;
@@ -166,6 +167,146 @@ async fn ring_all_reduce_sums_and_replicas_are_bit_identical() {
             );
         }
     }
+}
+
+/// A stage fed bucket by bucket by a producer task at its own pace (as a GPU's copies to
+/// the host arrive), recording every bucket's sums as the ring reports them.
+struct Feed {
+    rx: tokio::sync::mpsc::Receiver<(usize, Vec<f32>)>,
+    /// A bucket received but not yet written (kept across a cancelled `staged`).
+    pending: Option<(usize, Vec<f32>)>,
+    reduced: Vec<(usize, Vec<f32>)>,
+    fail_at: Option<usize>,
+}
+
+impl Feed {
+    /// Feeds `input`'s buckets (of `layout`) in order, each after a random pause of up to
+    /// `pause_us` microseconds.
+    fn of(input: &[f32], layout: &Layout, seed: u64, pause_us: u64) -> Self {
+        let (tx, rx) = tokio::sync::mpsc::channel(1);
+        let pieces: Vec<(usize, Vec<f32>)> = (layout.buckets.iter().cloned())
+            .map(|r: Range<usize>| input[r].to_vec())
+            .enumerate()
+            .collect();
+        tokio::spawn(async move {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            for p in pieces {
+                tokio::time::sleep(Duration::from_micros(rng.random_range(0..=pause_us))).await;
+                if tx.send(p).await.is_err() {
+                    return;
+                }
+            }
+        });
+        Self {
+            rx,
+            pending: None,
+            reduced: Vec::new(),
+            fail_at: None,
+        }
+    }
+}
+
+impl Stage for Feed {
+    async fn staged(&mut self, bucket: usize) -> Result<(), String> {
+        if self.fail_at == Some(bucket) {
+            return Err("injected staging failure".into());
+        }
+        if self.pending.is_none() {
+            self.pending = Some(self.rx.recv().await.ok_or("the producer is gone")?);
+        }
+        let got = self.pending.as_ref().map(|p| p.0);
+        assert_eq!(got, Some(bucket), "buckets staged out of order");
+        Ok(())
+    }
+
+    fn fill(&mut self, bucket: usize, dst: &mut [f32]) -> Result<(), String> {
+        let (b, v) = self.pending.take().expect("fill after staged");
+        assert_eq!(b, bucket);
+        dst.copy_from_slice(&v);
+        Ok(())
+    }
+
+    fn reduced(&mut self, bucket: usize, sums: &[f32]) -> Result<(), String> {
+        self.reduced.push((bucket, sums.to_vec()));
+        Ok(())
+    }
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+/// A buffer filled bucket by bucket while the ring runs gives the bits of the plain
+/// all-reduce of the whole buffer on every rank, and the stage hears of every bucket's
+/// sums once, in order, with the bucket's final floats; on rings of 1 to 3 ranks, with
+/// pieces arriving at random times (and, for one run, all at once).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_staged_all_reduce_gives_the_bits_of_the_plain_one() {
+    for (world, chunk, pause_us) in [
+        (1usize, 4096, 500),
+        (2, 4096, 3000),
+        (2, 1000, 0),
+        (3, 256, 2000),
+    ] {
+        let nodes = start(world, "test-job").await;
+        let len = 100_003;
+        let inputs: Vec<Vec<f32>> = (0..world).map(|r| random(len, 10 + r as u64)).collect();
+        let mut tasks = Vec::new();
+        for rank in 0..world {
+            let cfg = config(&nodes, rank, 30_000, chunk, Duration::from_secs(10));
+            let mut ring = Ring::new(cfg, nodes[rank].mailbox.clone()).unwrap();
+            let input = inputs[rank].clone();
+            tasks.push(tokio::spawn(async move {
+                let mut plain = input.clone();
+                ring.all_reduce(0, &mut plain).await.unwrap();
+                let layout = ring.layout(len);
+                let mut feed = Feed::of(&input, &layout, rank as u64, pause_us);
+                // Whatever is in the buffer beforehand does not count.
+                let mut staged = vec![f32::NAN; len];
+                ring.all_reduce_staged(1, &mut staged, &mut feed)
+                    .await
+                    .unwrap();
+                (plain, staged, feed.reduced, layout)
+            }));
+        }
+        for t in tasks {
+            let (plain, staged, reduced, layout) = t.await.unwrap();
+            assert_eq!(bits(&staged), bits(&plain), "world {world}: staged differs");
+            let order: Vec<usize> = reduced.iter().map(|r| r.0).collect();
+            assert_eq!(order, (0..layout.buckets.len()).collect::<Vec<_>>());
+            for (b, sums) in reduced {
+                let r = layout.buckets[b].clone();
+                assert_eq!(bits(&sums), bits(&plain[r]), "world {world}: bucket {b}");
+            }
+        }
+    }
+}
+
+/// A stage that fails ends its rank's all-reduce with the stage's reason and bucket; the
+/// other rank's fails at its deadline instead of hanging.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failing_stage_fails_the_all_reduce() {
+    let nodes = start(2, "test-job").await;
+    let len = 100_003;
+    let mut tasks = Vec::new();
+    for rank in 0..2 {
+        let cfg = config(&nodes, rank, 30_000, 4096, Duration::from_millis(500));
+        let mut ring = Ring::new(cfg, nodes[rank].mailbox.clone()).unwrap();
+        let input = random(len, rank as u64);
+        tasks.push(tokio::spawn(async move {
+            let mut feed = Feed::of(&input, &ring.layout(len), 0, 0);
+            feed.fail_at = (rank == 1).then_some(2);
+            let mut buf = vec![0.0; len];
+            ring.all_reduce_staged(0, &mut buf, &mut feed).await
+        }));
+    }
+    let r0 = tasks.remove(0).await.unwrap();
+    let r1 = tasks.remove(0).await.unwrap();
+    assert!(
+        matches!(&r1, Err(CollectiveError::Stage { rank: 1, bucket: 2, reason }) if reason.contains("injected")),
+        "{r1:?}"
+    );
+    assert!(r0.is_err(), "rank 0 finished an all-reduce rank 1 left");
 }
 
 fn chunk(job: &str, generation: u64, step: u64, from: u32, data: Vec<f32>) -> Chunk {

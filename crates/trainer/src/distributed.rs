@@ -94,36 +94,58 @@ pub fn contribution(
     let mut buf = grads.into_host()?;
     let bad = !g.loss.is_finite() || buf.iter().any(|x| !x.is_finite());
     buf.iter_mut().for_each(|x| *x *= n);
+    buf.extend(control(rank, g.loss, g.samples, signals, bad));
+    Ok(buf)
+}
+
+/// This rank's control values (the layout above) for a gradient of `samples` scenes whose
+/// loss or gradient is non-finite where `bad`.
+pub fn control(
+    rank: usize,
+    loss: f64,
+    samples: usize,
+    signals: Signals,
+    bad: bool,
+) -> [f32; CONTROL_FLOATS] {
+    let n = samples as f32;
     let mine = if rank == 0 {
         signals
     } else {
         Signals::default()
     };
-    buf.extend([
+    [
         n,
-        g.loss as f32 * n,
+        loss as f32 * n,
         f32::from(u8::from(mine.evaluate)),
         f32::from(u8::from(mine.stop)),
         f32::from(u8::from(bad)),
         if bad { (rank + 1) as f32 } else { 0.0 },
-    ]);
-    Ok(buf)
+    ]
 }
 
 /// The step every rank derives from the summed buffers.
 pub fn reduced_from(mut buf: Vec<f32>) -> Reduced {
     let p = buf.len() - CONTROL_FLOATS;
-    let (total, loss_sum, evaluate, stop) = (buf[p], buf[p + 1], buf[p + 2], buf[p + 3]);
-    let (bad_count, bad_rank_sum) = (buf[p + 4] as u32, buf[p + 5] as usize);
+    let mut sums = [0.0; CONTROL_FLOATS];
+    sums.copy_from_slice(&buf[p..]);
+    let total = sums[0];
+    buf.truncate(p);
+    buf.iter_mut().for_each(|x| *x /= total);
+    reduced_with(Gradient::Host(buf), &sums)
+}
+
+/// The step every rank derives from the summed control values, with `grads` the summed
+/// gradient already divided by the scene count (`sums[0]`).
+pub fn reduced_with(grads: Gradient, sums: &[f32; CONTROL_FLOATS]) -> Reduced {
+    let [total, loss_sum, evaluate, stop, bad_count, bad_rank_sum] = *sums;
+    let (bad_count, bad_rank_sum) = (bad_count as u32, bad_rank_sum as usize);
     let nonfinite = NonFiniteRanks {
         count: bad_count,
         only: (bad_count == 1).then(|| bad_rank_sum.saturating_sub(1)),
     };
-    buf.truncate(p);
-    buf.iter_mut().for_each(|x| *x /= total);
     Reduced {
         summary: None,
-        grads: Gradient::Host(buf),
+        grads,
         loss: (loss_sum / total) as f64,
         samples: total as f64,
         signals: Signals {

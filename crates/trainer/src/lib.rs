@@ -22,6 +22,7 @@ pub mod pictures;
 pub mod render;
 pub mod retry;
 pub mod shard;
+pub mod staging;
 pub mod step;
 
 pub use config::{ClusterConfig, JobConfig, TrainConfig};

@@ -29,6 +29,7 @@ use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::{self, Snapshot};
 use osrt_trainer::config::{ClusterConfig, JobConfig};
 use osrt_trainer::learner::{Learner, Start};
+use osrt_trainer::staging::Staging;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -453,6 +454,8 @@ async fn run_generation(
     // A save still running when the generation is aborted is cancelled (its checkpoint
     // stays torn: no manifest); a finished generation awaits it.
     let mut pending_save: Option<AbortOnDrop<Result<u64>>> = None;
+    // A GPU's gradient on its way to the ring and back (kept from step to step).
+    let mut staging = None;
     loop {
         if let Some(a) = live.take_abort() {
             return Ok(a);
@@ -463,7 +466,16 @@ async fn run_generation(
         }
         live.step.store(step, Ordering::Relaxed);
         let deadline = plan.deadline_unix_s;
-        let reduced = match reduced_step(&mut learner, ring.as_mut(), step, rank, deadline).await? {
+        let reduced = match reduced_step(
+            &mut learner,
+            &mut ring,
+            &mut staging,
+            step,
+            rank,
+            deadline,
+        )
+        .await?
+        {
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
@@ -501,7 +513,8 @@ async fn run_generation(
 /// of the step.
 async fn reduced_step(
     learner: &mut Learner,
-    ring: Option<&mut Ring>,
+    ring: &mut Option<Ring>,
+    staging: &mut Option<Staging>,
     step: u64,
     rank: usize,
     deadline_unix_s: Option<f64>,
@@ -510,7 +523,7 @@ async fn reduced_step(
     let g = learner.gradients().await?;
     let gradients_s = t.elapsed().as_secs_f64();
     let signals = learner.signals(deadline_unix_s);
-    let reduced = reduce(ring, step + 1, rank, g, signals).await;
+    let reduced = reduce(ring.as_mut(), staging, step + 1, rank, g, signals).await;
     let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
     tracing::debug!(
         step,

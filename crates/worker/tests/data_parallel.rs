@@ -10,7 +10,7 @@ use osrt_proto::auth::Token;
 use osrt_trainer::distributed::Signals;
 use osrt_trainer::{JobConfig, Trainer};
 use osrt_worker::reduce::reduce;
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Duration;
 
@@ -25,17 +25,15 @@ fn scenes(n: u64) -> Vec<Scene> {
         .collect()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn two_half_batches_step_like_one_full_batch() {
-    let job = JobConfig::preset("tiny").unwrap();
-    let data = scenes(16);
+/// A ring of two ranks over real gRPC on loopback.
+async fn rings(job: &str, bucket_floats: usize, chunk_floats: usize) -> Vec<Ring> {
     let token = Token::generate();
     let mut addrs = Vec::new();
     let mut boxes = Vec::new();
     for _ in 0..2 {
         let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         addrs.push(format!("http://{}", l.local_addr().unwrap()));
-        let m = Mailbox::new("eq");
+        let m = Mailbox::new(job);
         tokio::spawn(serve(
             l,
             m.clone(),
@@ -45,17 +43,17 @@ async fn two_half_batches_step_like_one_full_batch() {
         ));
         boxes.push(m);
     }
-    let mut rings: Vec<Ring> = (0..2)
+    (0..2)
         .map(|rank| {
             Ring::new(
                 RingConfig {
-                    job: "eq".into(),
+                    job: job.into(),
                     generation: 1,
                     first_step: 0,
                     rank,
                     peers: addrs.clone(),
-                    bucket_floats: 5000,
-                    chunk_floats: 1000,
+                    bucket_floats,
+                    chunk_floats,
                     timeout: Duration::from_secs(10),
                     token: token.clone(),
                     tls: None,
@@ -64,7 +62,14 @@ async fn two_half_batches_step_like_one_full_batch() {
             )
             .unwrap()
         })
-        .collect();
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_half_batches_step_like_one_full_batch() {
+    let job = JobConfig::preset("tiny").unwrap();
+    let data = scenes(16);
+    let mut rings = rings("eq", 5000, 1000).await;
     let mut single = Trainer::new(job.clone(), Device::Cpu).unwrap();
     let mut r0 = Trainer::new(job.clone(), Device::Cpu).unwrap();
     let mut r1 = Trainer::new(job, Device::Cpu).unwrap();
@@ -85,7 +90,7 @@ async fn two_half_batches_step_like_one_full_batch() {
         let full = build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(step)).unwrap();
         let rng = || ChaCha8Rng::seed_from_u64(100 + step);
         let g = single.gradients(&full, &mut rng()).unwrap();
-        let one = reduce(None, step + 1, 0, g, Signals::default())
+        let one = reduce(None, &mut None, step + 1, 0, g, Signals::default())
             .await
             .unwrap();
         single.apply(one.loss, one.grads).unwrap();
@@ -93,9 +98,24 @@ async fn two_half_batches_step_like_one_full_batch() {
         let g0 = r0.gradients(&full.slice(0..share), &mut rng()).unwrap();
         let g1 = r1.gradients(&full.slice(share..4), &mut rng()).unwrap();
         let (ring0, ring1) = rings.split_at_mut(1);
+        let (mut none0, mut none1) = (None, None);
         let (a, b) = tokio::join!(
-            reduce(Some(&mut ring0[0]), step + 1, 0, g0, Signals::default()),
-            reduce(Some(&mut ring1[0]), step + 1, 1, g1, Signals::default()),
+            reduce(
+                Some(&mut ring0[0]),
+                &mut none0,
+                step + 1,
+                0,
+                g0,
+                Signals::default()
+            ),
+            reduce(
+                Some(&mut ring1[0]),
+                &mut none1,
+                step + 1,
+                1,
+                g1,
+                Signals::default()
+            ),
         );
         let (a, b) = (a.unwrap(), b.unwrap());
         assert_eq!(a.samples, 4.0);
@@ -120,9 +140,24 @@ async fn two_half_batches_step_like_one_full_batch() {
         .unwrap();
     g1.grads[5] = f32::NAN;
     let (ring0, ring1) = rings.split_at_mut(1);
+    let (mut none0, mut none1) = (None, None);
     let (a, b) = tokio::join!(
-        reduce(Some(&mut ring0[0]), 5, 0, g0, Signals::default()),
-        reduce(Some(&mut ring1[0]), 5, 1, g1, Signals::default()),
+        reduce(
+            Some(&mut ring0[0]),
+            &mut none0,
+            5,
+            0,
+            g0,
+            Signals::default()
+        ),
+        reduce(
+            Some(&mut ring1[0]),
+            &mut none1,
+            5,
+            1,
+            g1,
+            Signals::default()
+        ),
     );
     for r in [a.unwrap(), b.unwrap()] {
         assert!(r.grads.host().unwrap()[5].is_nan());
@@ -156,4 +191,86 @@ async fn two_half_batches_step_like_one_full_batch() {
         moved > 1e-3,
         "the steps changed the weights (max move {moved})"
     );
+}
+
+fn random(n: usize, seed: u64) -> Vec<f32> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n).map(|_| rng.random_range(-1e3f32..1e3)).collect()
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+/// A gradient on a device (here a CPU tensor, which takes the same path as a GPU's but
+/// for the page-locked memory) staged through the ring bucket by bucket reduces to the
+/// bits the host path gives, with the same loss, scene count, signals and non-finite
+/// ranks, on both ranks, step after step with the staging kept; also where the control
+/// values straddle buckets (4-float buckets: one of control values only, one of both).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_staged_device_gradient_reduces_to_the_host_paths_bits() {
+    use osrt_trainer::StepGradients;
+    use osrt_trainer::step::Gradient;
+    for (bucket, params) in [(4usize, 1003usize), (5000, 40_001)] {
+        let mut host_rings = rings("host", bucket, 1000).await;
+        let mut staged_rings = rings("staged", bucket, 1000).await;
+        let mut staging = [None, None];
+        for step in 0..3u64 {
+            let mut grads = [random(params, 2 * step), random(params, 2 * step + 1)];
+            if step == 2 {
+                grads[1][params / 2] = f32::NAN;
+            }
+            let signals = Signals {
+                evaluate: step == 1,
+                stop: step == 2,
+            };
+            let g = |rank: usize, device: bool| StepGradients {
+                loss: 0.25 + rank as f64 + step as f64,
+                grads: if device {
+                    let v = grads[rank].clone();
+                    Gradient::Device(
+                        candle_core::Tensor::from_vec(v, params, &Device::Cpu).unwrap(),
+                    )
+                } else {
+                    Gradient::Host(grads[rank].clone())
+                },
+                samples: 1 + rank + step as usize,
+                phases: None,
+            };
+            let (h0, h1) = host_rings.split_at_mut(1);
+            let (mut none0, mut none1) = (None, None);
+            let (a, b) = tokio::join!(
+                reduce(Some(&mut h0[0]), &mut none0, step, 0, g(0, false), signals),
+                reduce(Some(&mut h1[0]), &mut none1, step, 1, g(1, false), signals),
+            );
+            let host = [a.unwrap(), b.unwrap()];
+            let (s0, s1) = staged_rings.split_at_mut(1);
+            let (st0, st1) = staging.split_at_mut(1);
+            let (a, b) = tokio::join!(
+                reduce(Some(&mut s0[0]), &mut st0[0], step, 0, g(0, true), signals),
+                reduce(Some(&mut s1[0]), &mut st1[0], step, 1, g(1, true), signals),
+            );
+            let staged = [a.unwrap(), b.unwrap()];
+            for (h, s) in host.iter().zip(&staged) {
+                let Gradient::Device(t) = &s.grads else {
+                    panic!("the staged gradient came back to the host")
+                };
+                let sg = t.to_vec1::<f32>().unwrap();
+                let differs = (bits(&sg).iter().zip(bits(h.grads.host().unwrap())))
+                    .position(|(a, b)| *a != b);
+                assert_eq!(
+                    differs, None,
+                    "bucket {bucket} step {step}: first differing float"
+                );
+                assert_eq!(s.loss.to_bits(), h.loss.to_bits());
+                assert_eq!(s.samples, h.samples);
+                assert_eq!(s.signals, h.signals);
+                assert_eq!(s.nonfinite, h.nonfinite);
+            }
+            assert_eq!(staged[0].samples, (3 + 2 * step) as f64);
+            assert_eq!(staged[1].signals, signals, "rank 0's signals reach rank 1");
+            let want_bad = if step == 2 { Some(1) } else { None };
+            assert_eq!(staged[0].nonfinite.only, want_bad);
+        }
+    }
 }

@@ -1,0 +1,480 @@
+//! A device gradient on its way through a ring all-reduce of two or more workers: to the
+//! host once and back once per step, one ring bucket at a time, so that copying a bucket
+//! overlaps the ring's work on the buckets before it.
+//!
+//! Per step ([`Staging::begin`] → [`Transfer`] → [`Transfer::finish`]):
+//! 1. one device reduction gives the gradient's finiteness (the control values need it
+//!    before the first bucket goes out); a thread queues every bucket's copy to the host
+//!    on the device's stream, into page-locked memory on a GPU (the copies then run at
+//!    the bus's speed and without staging through a driver buffer), and hands each
+//!    bucket over as its copy completes, in the ring's order;
+//! 2. the ring fills its buffer from each bucket as it needs it, weighting it by this
+//!    rank's scene count on the way ([`Transfer::fill`]);
+//! 3. as soon as a bucket's sums are final, they are divided by the global scene count
+//!    into the same page-locked memory and queued for the device ([`Transfer::reduced`]),
+//!    while the ring still works on the next buckets.
+//!
+//! The arithmetic is [`crate::distributed::contribution`]'s and
+//! [`crate::distributed::reduced_from`]'s, float for float: the reduced gradient has the
+//! same bits as through the host path. The page-locked memory, the ring's buffer and the
+//! host copies of each bucket are kept from step to step.
+
+use crate::distributed::{self, Reduced, Signals};
+use crate::error::{Result, TrainError};
+use crate::optim::GradSummary;
+use crate::step::{CONTROL_FLOATS, Gradient, StepGradients};
+use candle_core::{Device, Tensor};
+use std::ops::Range;
+
+/// The host memory of one bucket's gradient: page-locked on a GPU.
+enum Piece {
+    Plain(Vec<f32>),
+    #[cfg(feature = "cuda")]
+    Pinned(cuda::Pinned),
+}
+
+impl Piece {
+    fn new(device: &Device, len: usize) -> Result<Self> {
+        match device {
+            #[cfg(feature = "cuda")]
+            Device::Cuda(d) => Ok(Self::Pinned(cuda::Pinned::new(d, len)?)),
+            _ => Ok(Self::Plain(vec![0.0; len])),
+        }
+    }
+
+    /// The floats, once every copy queued into or out of them has completed.
+    fn floats(&self) -> Result<&[f32]> {
+        match self {
+            Self::Plain(v) => Ok(v),
+            #[cfg(feature = "cuda")]
+            Self::Pinned(p) => p.floats(),
+        }
+    }
+
+    fn floats_mut(&mut self) -> Result<&mut [f32]> {
+        match self {
+            Self::Plain(v) => Ok(v),
+            #[cfg(feature = "cuda")]
+            Self::Pinned(p) => p.floats_mut(),
+        }
+    }
+}
+
+/// Where the reduced gradient goes: a device buffer of the gradient's length.
+enum Target {
+    Host(Vec<f32>),
+    #[cfg(feature = "cuda")]
+    Cuda(cuda::DeviceBuffer),
+}
+
+impl Target {
+    fn new(device: &Device, len: usize) -> Result<Self> {
+        match device {
+            #[cfg(feature = "cuda")]
+            Device::Cuda(d) => Ok(Self::Cuda(cuda::DeviceBuffer::new(d, len)?)),
+            Device::Cpu => Ok(Self::Host(vec![0.0; len])),
+            other => Err(TrainError::Device(format!(
+                "staging a gradient for the all-reduce: {other:?} is not supported"
+            ))),
+        }
+    }
+
+    /// Queues `piece` into `range` (on a GPU: a copy on the device's stream, which the
+    /// optimiser's kernels follow).
+    fn upload(&mut self, range: Range<usize>, piece: &Piece) -> Result<()> {
+        match (self, piece) {
+            (Self::Host(t), p) => t[range].copy_from_slice(p.floats()?),
+            #[cfg(feature = "cuda")]
+            (Self::Cuda(t), Piece::Pinned(p)) => t.upload(range, p)?,
+            #[cfg(feature = "cuda")]
+            (Self::Cuda(_), Piece::Plain(_)) => {
+                unreachable!("a GPU's pieces are page-locked")
+            }
+        }
+        Ok(())
+    }
+
+    fn into_tensor(self) -> Result<Tensor> {
+        match self {
+            Self::Host(t) => {
+                let n = t.len();
+                Ok(Tensor::from_vec(t, n, &Device::Cpu)?)
+            }
+            #[cfg(feature = "cuda")]
+            Self::Cuda(t) => t.into_tensor(),
+        }
+    }
+}
+
+/// One worker's staging memory for a gradient of a fixed length and ring layout, kept
+/// from step to step.
+pub struct Staging {
+    device: Device,
+    params: usize,
+    /// The ring's buckets over the buffer (`params + CONTROL_FLOATS` floats), in ring
+    /// order.
+    buckets: Vec<Range<usize>>,
+    /// Each bucket's gradient floats (its range less the control values); `None` where
+    /// a failed step lost one (it is allocated again).
+    pieces: Vec<Option<Piece>>,
+    /// The ring's buffer.
+    buffer: Vec<f32>,
+}
+
+impl Staging {
+    /// Staging for a gradient of `params` floats on `device`, all-reduced as a buffer of
+    /// `params + CONTROL_FLOATS` floats cut into `buckets` (the ring's layout).
+    pub fn new(device: &Device, params: usize, buckets: Vec<Range<usize>>) -> Result<Self> {
+        let len = params + CONTROL_FLOATS;
+        let mut covered = 0;
+        for r in &buckets {
+            covered += r.len();
+            if r.end > len {
+                return Err(TrainError::Device(format!(
+                    "staging: bucket {r:?} beyond the buffer's {len} floats"
+                )));
+            }
+        }
+        if covered != len {
+            return Err(TrainError::Device(format!(
+                "staging: the buckets cover {covered} of the buffer's {len} floats"
+            )));
+        }
+        let mut me = Self {
+            device: device.clone(),
+            params,
+            buckets,
+            pieces: Vec::new(),
+            buffer: vec![0.0; len],
+        };
+        me.pieces = (0..me.buckets.len()).map(|_| None).collect();
+        me.allocate()?;
+        Ok(me)
+    }
+
+    /// Whether this staging serves a gradient of `params` floats cut into `buckets`.
+    pub fn fits(&self, device: &Device, params: usize, buckets: &[Range<usize>]) -> bool {
+        self.device.same_device(device) && self.params == params && self.buckets == buckets
+    }
+
+    fn grads_of(&self, b: usize) -> Range<usize> {
+        let r = &self.buckets[b];
+        r.start.min(self.params)..r.end.min(self.params)
+    }
+
+    fn allocate(&mut self) -> Result<()> {
+        for b in 0..self.buckets.len() {
+            if self.pieces[b].is_none() {
+                let len = self.grads_of(b).len();
+                self.pieces[b] = Some(Piece::new(&self.device, len)?);
+            }
+        }
+        Ok(())
+    }
+
+    /// Starts the step's transfer of rank `rank`'s gradient `g` (on the device): its
+    /// buckets head for the host in ring order.
+    pub fn begin(
+        &mut self,
+        rank: usize,
+        g: StepGradients<Tensor>,
+        signals: Signals,
+    ) -> Result<Transfer<'_>> {
+        if g.grads.dims1()? != self.params {
+            return Err(TrainError::Device(format!(
+                "staging: a gradient of {} floats for staging of {}",
+                g.grads.dims1()?,
+                self.params
+            )));
+        }
+        self.allocate()?;
+        let summary = GradSummary::of_tensor(&g.grads)?;
+        let bad = !g.loss.is_finite() || !summary.finite();
+        let control = distributed::control(rank, g.loss, g.samples, signals, bad);
+        let target = Target::new(&self.device, self.params)?;
+        let jobs: Vec<(usize, Range<usize>, Piece)> = (0..self.buckets.len())
+            .map(|b| {
+                let piece = self.pieces[b].take().expect("allocated above");
+                (b, self.grads_of(b), piece)
+            })
+            .collect();
+        let (tx, arrived) = tokio::sync::mpsc::channel(jobs.len().max(1));
+        let grads = g.grads;
+        let downloads = std::thread::Builder::new()
+            .name("osrt-staging".into())
+            .spawn(move || download(&grads, jobs, &tx))
+            .map_err(|e| TrainError::Device(format!("staging: cannot start a thread: {e}")))?;
+        Ok(Transfer {
+            n: g.samples as f32,
+            control,
+            sums: [f32::NAN; CONTROL_FLOATS],
+            arrived,
+            downloads: Some(downloads),
+            target,
+            staging: self,
+        })
+    }
+}
+
+/// Copies each bucket's floats of `grads` into its piece, all copies queued first, and
+/// hands each over once its copy has completed, in bucket order.
+fn download(
+    grads: &Tensor,
+    jobs: Vec<(usize, Range<usize>, Piece)>,
+    tx: &tokio::sync::mpsc::Sender<Result<(usize, Piece), String>>,
+) {
+    let send = |item| {
+        // A receiver that is gone is a transfer that ended: nothing left to do.
+        let _ = tx.blocking_send(item);
+    };
+    let mut queued = Vec::with_capacity(jobs.len());
+    for (b, range, mut piece) in jobs {
+        if let Err(e) = copy_out(grads, range, &mut piece) {
+            send(Err(format!("copying bucket {b} to the host: {e}")));
+            return;
+        }
+        queued.push((b, piece));
+    }
+    for (b, piece) in queued {
+        match piece.floats() {
+            Ok(_) => send(Ok((b, piece))),
+            Err(e) => {
+                send(Err(format!("copying bucket {b} to the host: {e}")));
+                return;
+            }
+        }
+    }
+}
+
+/// Queues the copy of `grads[range]` into `piece` (done at once on the CPU).
+fn copy_out(grads: &Tensor, range: Range<usize>, piece: &mut Piece) -> Result<()> {
+    match piece {
+        #[cfg(feature = "cuda")]
+        Piece::Pinned(p) => cuda::download(grads, range, p),
+        Piece::Plain(v) => {
+            let part = grads.narrow(0, range.start, range.len())?;
+            v.copy_from_slice(&part.to_vec1::<f32>()?);
+            Ok(())
+        }
+    }
+}
+
+/// The control values' part of a bucket `range` of the ring's buffer, as indices into
+/// the control values (after `params` gradient floats).
+fn control_part(range: &Range<usize>, params: usize) -> Range<usize> {
+    range.start.max(params) - params..range.end.max(params) - params
+}
+
+/// One step's gradient between the device and the ring: the ring's stage
+/// (`osrt_collective::Stage` in the worker) and then the reduced step.
+pub struct Transfer<'a> {
+    staging: &'a mut Staging,
+    /// This rank's scene count, the gradient's weight in the sum.
+    n: f32,
+    control: [f32; CONTROL_FLOATS],
+    /// The summed control values, as their buckets are reduced.
+    sums: [f32; CONTROL_FLOATS],
+    arrived: tokio::sync::mpsc::Receiver<Result<(usize, Piece), String>>,
+    downloads: Option<std::thread::JoinHandle<()>>,
+    target: Target,
+}
+
+impl Transfer<'_> {
+    /// The ring's buffer (its contents are the ring's to fill); back with
+    /// [`Transfer::finish`].
+    pub fn take_buffer(&mut self) -> Vec<f32> {
+        std::mem::take(&mut self.staging.buffer)
+    }
+
+    /// Resolves once bucket `b` is on the host. Cancel-safe: a bucket that arrives is
+    /// kept, whether or not the caller still waits.
+    pub async fn staged(&mut self, b: usize) -> Result<(), String> {
+        while self.staging.pieces[b].is_none() {
+            match self.arrived.recv().await {
+                Some(Ok((i, piece))) => self.staging.pieces[i] = Some(piece),
+                Some(Err(e)) => return Err(e),
+                None => return Err("the copies to the host stopped".into()),
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes bucket `b` of this rank's contribution into `dst` (its range of the ring's
+    /// buffer): the gradient weighted by the scene count, and the control values where
+    /// the bucket holds them.
+    pub fn fill(&mut self, b: usize, dst: &mut [f32]) -> Result<(), String> {
+        let s = &*self.staging;
+        let (range, grads) = (s.buckets[b].clone(), s.grads_of(b));
+        let piece = s.pieces[b]
+            .as_ref()
+            .ok_or("bucket filled before it arrived")?;
+        let src = piece.floats().map_err(|e| e.to_string())?;
+        let n = self.n;
+        let (g, c) = dst.split_at_mut(grads.len());
+        g.iter_mut().zip(src).for_each(|(d, x)| *d = x * n);
+        c.copy_from_slice(&self.control[control_part(&range, s.params)]);
+        Ok(())
+    }
+
+    /// Bucket `b`'s final sums (its range of the ring's buffer): the control values kept,
+    /// the gradient divided by the global scene count and queued for the device.
+    pub fn reduced(&mut self, b: usize, sums: &[f32]) -> Result<(), String> {
+        let s = &mut *self.staging;
+        let (range, grads) = (s.buckets[b].clone(), s.grads_of(b));
+        let (g, c) = sums.split_at(grads.len());
+        self.sums[control_part(&range, s.params)].copy_from_slice(c);
+        if grads.is_empty() {
+            return Ok(());
+        }
+        // The ring's order reduces the buffer's end, where the control values are, first.
+        let total = self.sums[0];
+        let piece = s.pieces[b]
+            .as_mut()
+            .ok_or("bucket reduced before it arrived")?;
+        let dst = piece.floats_mut().map_err(|e| e.to_string())?;
+        dst.iter_mut().zip(g).for_each(|(d, x)| *d = x / total);
+        self.target
+            .upload(grads, piece)
+            .map_err(|e| format!("copying bucket {b} to the device: {e}"))
+    }
+
+    /// The reduced step, with the gradient on the device; `buffer` is the ring's, back
+    /// for the next step.
+    pub fn finish(mut self, buffer: Vec<f32>) -> Result<Reduced> {
+        self.staging.buffer = buffer;
+        self.join();
+        if self.staging.pieces.iter().any(Option::is_none) {
+            return Err(TrainError::Device(
+                "staging: the all-reduce ended before every bucket came back".into(),
+            ));
+        }
+        let target = std::mem::replace(&mut self.target, Target::Host(Vec::new()));
+        let grads = Gradient::Device(target.into_tensor()?);
+        Ok(distributed::reduced_with(grads, &self.sums))
+    }
+
+    /// Waits for the copying thread, keeping the buckets it still hands over.
+    fn join(&mut self) {
+        if let Some(t) = self.downloads.take() {
+            // Ends once its last bucket is sent (the channel holds them all).
+            let _ = t.join();
+        }
+        while let Ok(Ok((i, piece))) = self.arrived.try_recv() {
+            self.staging.pieces[i] = Some(piece);
+        }
+    }
+}
+
+impl Drop for Transfer<'_> {
+    fn drop(&mut self) {
+        // An all-reduce that failed: the copies still under way finish into memory the
+        // next step reuses.
+        self.join();
+        if self.staging.buffer.is_empty() {
+            self.staging.buffer = vec![0.0; self.staging.params + CONTROL_FLOATS];
+        }
+    }
+}
+
+/// Page-locked host memory and the device buffer the reduced gradient lands in.
+#[cfg(feature = "cuda")]
+#[allow(unsafe_code)]
+mod cuda {
+    use crate::error::Result;
+    use candle_core::cuda_backend::cudarc::driver::{CudaSlice, PinnedHostSlice};
+    use candle_core::op::BackpropOp;
+    use candle_core::{CudaDevice, CudaStorage, Storage, Tensor};
+    use std::ops::Range;
+
+    pub struct Pinned {
+        /// At least one float (an empty piece is allocated with one).
+        host: PinnedHostSlice<f32>,
+        len: usize,
+        device: CudaDevice,
+    }
+
+    impl Pinned {
+        pub fn new(device: &CudaDevice, len: usize) -> Result<Self> {
+            let ctx = device.cuda_stream().context().clone();
+            // Ordinary cached memory (no write-combining): the ring reads it on the host.
+            // SAFETY: the floats are unset, and every read waits for the copy that
+            // writes them (`floats` synchronises on the slice's event).
+            let mut host = unsafe { ctx.alloc_pinned_with_flags::<f32>(len.max(1), 0) }
+                .map_err(candle_core::Error::wrap)?;
+            host.as_mut_slice()
+                .map_err(candle_core::Error::wrap)?
+                .fill(0.0);
+            Ok(Self {
+                host,
+                len,
+                device: device.clone(),
+            })
+        }
+
+        pub fn floats(&self) -> Result<&[f32]> {
+            let len = self.len;
+            Ok(&self.host.as_slice().map_err(candle_core::Error::wrap)?[..len])
+        }
+
+        pub fn floats_mut(&mut self) -> Result<&mut [f32]> {
+            let len = self.len;
+            Ok(&mut self.host.as_mut_slice().map_err(candle_core::Error::wrap)?[..len])
+        }
+    }
+
+    /// Queues the copy of `grads[range]` into `piece` on the device's stream.
+    pub fn download(grads: &Tensor, range: Range<usize>, piece: &mut Pinned) -> Result<()> {
+        let (storage, layout) = grads.storage_and_layout();
+        let (Storage::Cuda(s), Some((a, _))) = (&*storage, layout.contiguous_offsets()) else {
+            return Err(crate::TrainError::Device(
+                "staging: the gradient is not a contiguous CUDA tensor".into(),
+            ));
+        };
+        if range.is_empty() {
+            return Ok(());
+        }
+        let src = s
+            .as_cuda_slice::<f32>()?
+            .slice(a + range.start..a + range.end);
+        let stream = piece.device.cuda_stream();
+        stream
+            .memcpy_dtoh(&src, &mut piece.host)
+            .map_err(candle_core::Error::wrap)?;
+        Ok(())
+    }
+
+    pub struct DeviceBuffer {
+        slice: CudaSlice<f32>,
+        device: CudaDevice,
+    }
+
+    impl DeviceBuffer {
+        pub fn new(device: &CudaDevice, len: usize) -> Result<Self> {
+            Ok(Self {
+                slice: device.alloc_zeros::<f32>(len)?,
+                device: device.clone(),
+            })
+        }
+
+        /// Queues the copy of `piece` into `range` on the device's stream.
+        pub fn upload(&mut self, range: Range<usize>, piece: &Pinned) -> Result<()> {
+            let stream = self.device.cuda_stream();
+            let mut dst = self.slice.slice_mut(range);
+            stream
+                .memcpy_htod(&piece.host, &mut dst)
+                .map_err(candle_core::Error::wrap)?;
+            Ok(())
+        }
+
+        pub fn into_tensor(self) -> Result<Tensor> {
+            let n = self.slice.len();
+            let storage = CudaStorage::wrap_cuda_slice(self.slice, self.device);
+            Ok(Tensor::from_storage(
+                Storage::Cuda(storage),
+                n,
+                BackpropOp::none(),
+                false,
+            ))
+        }
+    }
+}
