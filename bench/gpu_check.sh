@@ -10,6 +10,10 @@
 #                              # device memory and step time beside PyTorch, and the small model
 #   bench/gpu_check.sh profile # the time of each op kind, forward and backward, beside the
 #                              # PyTorch profiler's table: paper preset and clevr-lite-cpu b256
+#   bench/gpu_check.sh workers # two workers sharing the GPU (`osrt train --workers 2`),
+#                              # paper preset: each step's gradients and all-reduce time
+#                              # (the gradient staged through page-locked memory), beside
+#                              # one worker's step and its staged round trip (~300 s)
 #   bench/gpu_check.sh visit   # one call of a short visit, most important first: the ops
 #                              # and steps against the CPU, the paper preset's 1-view step
 #                              # (time, peak memory) in f32 and bf16 beside PyTorch, then
@@ -158,6 +162,29 @@ profile)
         --batch-size 256 --dtypes f32,bf16 --steps 5 --no-render \
         --out "$OUT/torch-profile-lite.json" 2>&1 | tail -n 72
     ;;
+workers)
+    # A 128 px dataset for the paper preset (seconds on the host's cores).
+    if [ ! -f data128/manifest.json ]; then
+        timeout 60 "$BIN" data generate --preset clevr-lite --image-size 128 --train 64 --val 4 \
+            --test 4 --out data128 >/dev/null
+    fi
+    # Global batch 8: two processes' steps fit an H100's memory as well as an H200's.
+    for prec in bf16 f32; do
+        echo "== osrt train paper, 2 workers on one GPU, batch 8 (4 each), 1 view, 8192 rays, $prec"
+        rm -rf "runs/workers-$prec"
+        RUST_LOG=osrt_worker=debug,warn timeout 150 "$BIN" train --preset paper --data data128 \
+            --device cuda --workers 2 --precision "$prec" --batch-size 8 --rays-per-scene 8192 \
+            --max-steps 8 --eval-every-s 100000 --eval-scenes 2 --skip-memory-check \
+            --run "runs/workers-$prec" \
+            >"$OUT/workers-$prec.txt" 2>&1
+        echo "train rc $?"
+        python3 bench/worker_steps.py "$OUT/workers-$prec.txt"
+        echo "== osrt paper, one worker's step at batch 4 and the staged round trip, $prec"
+        timeout 60 "$BIN" bench model --device cuda --step-only --presets paper --image-size 128 \
+            --batch-size 4 --input-views 1 --rays-per-scene 8192 --steps 5 --precision "$prec" \
+            --out "$OUT/osrt-paper1-b4-$prec.json" 2>&1 | tail -n 6
+    done
+    ;;
 visit)
     check_device 100
     paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size 32
@@ -185,7 +212,7 @@ visit)
         --out "$OUT/osrt-paper5-b8-bf16.json" 2>&1 | tail -n 4
     ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench|memory|profile|visit"
+    echo "usage: bench/gpu_check.sh train|bench|memory|profile|workers|visit"
     exit 2
     ;;
 esac

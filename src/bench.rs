@@ -369,8 +369,9 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
             }
             if ms("median_gradient_transfer_s") > 0.0 {
                 println!(
-                    "    gradient device → host → device (paid by each of ≥ 2 workers, not \
-                     in the step above): {:.2} ms median ({:.1} % of the step)",
+                    "    gradient device → host → device through the all-reduce's staging \
+                     (paid by each of ≥ 2 workers beside the ring, not in the step above): \
+                     {:.2} ms median ({:.1} % of the step)",
                     ms("median_gradient_transfer_s"),
                     100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
                 );

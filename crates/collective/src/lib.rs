@@ -25,11 +25,14 @@
 pub mod chunk_wire;
 mod loan;
 mod mailbox;
+mod stage;
 
 use crate::chunk_wire::PushChunkServer;
 use crate::loan::LentBuffer;
 use crate::mailbox::Key;
 pub use crate::mailbox::Mailbox;
+pub use crate::stage::Stage;
+use crate::stage::{Fill, Whole};
 use bytes::Bytes;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::tls::Tls;
@@ -187,44 +190,6 @@ impl Layout {
     }
 }
 
-/// Where an all-reduce's buffer comes from and where its sums go, one bucket at a time
-/// ([`Ring::all_reduce_staged`]): a gradient that lives on a GPU is copied to the host
-/// bucket by bucket while the ring already works on the buckets before it, and each
-/// bucket's sums can go back as soon as they are final.
-///
-/// Buckets are numbered in [`Layout`] order (from the buffer's end), and every method is
-/// called for bucket 0, 1, … in turn, once each.
-pub trait Stage: Send {
-    /// Resolves once bucket `bucket` can be written into the buffer. The ring polls it
-    /// beside its other work and may drop it unfinished to poll it again later, so it
-    /// must be cancel-safe.
-    fn staged(
-        &mut self,
-        bucket: usize,
-    ) -> impl std::future::Future<Output = Result<(), String>> + Send;
-    /// Writes bucket `bucket`'s floats into `dst` (its range of the buffer), after
-    /// [`Stage::staged`] resolved for it.
-    fn fill(&mut self, bucket: usize, dst: &mut [f32]) -> Result<(), String>;
-    /// This rank holds the final sums of bucket `bucket`: `sums` is its range of the
-    /// buffer, which it keeps until the all-reduce returns.
-    fn reduced(&mut self, bucket: usize, sums: &[f32]) -> Result<(), String>;
-}
-
-/// The stage of a buffer that is complete before the all-reduce starts.
-struct Whole;
-
-impl Stage for Whole {
-    async fn staged(&mut self, _: usize) -> Result<(), String> {
-        Ok(())
-    }
-    fn fill(&mut self, _: usize, _: &mut [f32]) -> Result<(), String> {
-        Ok(())
-    }
-    fn reduced(&mut self, _: usize, _: &[f32]) -> Result<(), String> {
-        Ok(())
-    }
-}
-
 /// One rank's side of the ring.
 pub struct Ring {
     cfg: RingConfig,
@@ -375,7 +340,7 @@ impl Ring {
         stage: &mut impl Stage,
     ) -> Result<(), CollectiveError> {
         if self.cfg.world() == 1 {
-            return alone(self.cfg.rank, &self.layout(buf.len()), buf, stage).await;
+            return stage::alone(self.cfg.rank, &self.layout(buf.len()), buf, stage).await;
         }
         self.run(step, buf, Some(stage)).await
     }
@@ -404,14 +369,11 @@ impl Ring {
         &mut self,
         step: u64,
         shared: &mut LentBuffer,
-        mut stage: Option<&mut impl Stage>,
+        stage: Option<&mut impl Stage>,
     ) -> Result<(), CollectiveError> {
         let w = self.cfg.world();
         let layout = self.layout(shared.len());
-        let buckets = layout.buckets.len();
-        // Buckets filled so far (in layout order): a rank sends a bucket's chunks, and
-        // takes in its predecessor's, only once the bucket holds its own floats.
-        let mut filled = if stage.is_some() { 0 } else { buckets };
+        let mut fill = Fill::new(stage, &layout, self.cfg.rank, self.cfg.timeout);
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
         let next = (rank + 1) % w;
@@ -424,14 +386,7 @@ impl Ring {
         let schedule = receive_schedule(&layout, rank);
         // Sends that may go out now, by the order the successor consumes them.
         let mut ready = first_sends(&layout, rank);
-        // Every chunk a rank sends, its successor receives: as many as this rank does.
-        // The call's deadline allows each of them the per-chunk timeout; a dead peer is
-        // noticed much sooner, by the waits below.
-        let chunks = u32::try_from(schedule.len() + 1).unwrap_or(u32::MAX);
-        let deadline = self.cfg.timeout.saturating_mul(chunks);
-        let (sender, mut call) =
-            chunk_wire::open_stream(self.next.clone(), &self.auth, deadline, self.in_flight())
-                .map_err(send_error)?;
+        let (sender, mut call) = self.open_call(schedule.len()).map_err(send_error)?;
         let mut first = true;
         let cfg = &self.cfg;
         let mut send =
@@ -449,7 +404,7 @@ impl Ring {
         loop {
             // Queue what is ready while there is room, without waiting.
             while let Some(entry) = ready.first_entry() {
-                if entry.key().bucket as usize >= filled {
+                if !fill.has(entry.key().bucket as usize) {
                     break;
                 }
                 let Some(permit) = sender.try_reserve() else {
@@ -470,33 +425,14 @@ impl Ring {
             let key = hop.map_or_else(Key::default, |h| h.id.key(self.cfg.generation, step));
             let can_send = ready
                 .first_key_value()
-                .is_some_and(|(id, _)| (id.bucket as usize) < filled);
-            let can_receive = hop.is_some_and(|h| (h.id.bucket as usize) < filled);
-            let stage_failed = |bucket, reason| CollectiveError::Stage {
-                rank,
-                bucket,
-                reason,
-            };
+                .is_some_and(|(id, _)| fill.has(id.bucket as usize));
+            let can_receive = hop.is_some_and(|h| fill.has(h.id.bucket as usize));
             tokio::select! {
                 biased;
                 status = call.ended() => return Err(send_error(status)),
                 // The next bucket as soon as it is there: its first chunks can then go
                 // out while this rank waits on the ring.
-                staged = stage_next(&mut stage, filled), if filled < buckets => {
-                    staged.map_err(|e| stage_failed(filled, e))?;
-                    let s = stage.as_deref_mut().expect("enabled only when staged");
-                    let range = layout.buckets[filled].clone();
-                    shared
-                        .write(range, self.cfg.timeout, |dst| s.fill(filled, dst))
-                        .await
-                        .map_err(|e| CollectiveError::StillLent {
-                            rank,
-                            range: e.0,
-                            timeout: self.cfg.timeout,
-                        })?
-                        .map_err(|e| stage_failed(filled, e))?;
-                    filled += 1;
-                }
+                staged = fill.staged(), if fill.pending() => fill.fill(staged, shared).await?,
                 permit = timeout(self.cfg.timeout, sender.reserve()), if can_send => {
                     let permit = match permit {
                         Ok(Ok(p)) => p,
@@ -516,11 +452,8 @@ impl Ring {
                     received += 1;
                     // A bucket's last chunk in: all its segments are final on this rank.
                     let b = hop.id.bucket as usize;
-                    if let Some(s) = stage.as_deref_mut()
-                        && schedule.get(received).is_none_or(|h| h.id.bucket as usize != b)
-                    {
-                        let sums = shared.view(layout.buckets[b].clone());
-                        s.reduced(b, sums).map_err(|e| stage_failed(b, e))?;
+                    if schedule.get(received).is_none_or(|h| h.id.bucket as usize != b) {
+                        fill.reduced(b, shared)?;
                     }
                 }
             }
@@ -532,40 +465,24 @@ impl Ring {
             .map_err(send_error)
     }
 
+    /// The all-reduce's one call to the successor, which receives `chunks` chunks from
+    /// this rank (as many as this rank receives).
+    fn open_call(
+        &self,
+        chunks: usize,
+    ) -> Result<(chunk_wire::ChunkSender, chunk_wire::ChunkCall), Status> {
+        // The call's deadline allows each chunk the per-chunk timeout; a dead peer is
+        // noticed much sooner, by the ring's waits.
+        let chunks = u32::try_from(chunks + 1).unwrap_or(u32::MAX);
+        let deadline = self.cfg.timeout.saturating_mul(chunks);
+        chunk_wire::open_stream(self.next.clone(), &self.auth, deadline, self.in_flight())
+    }
+
     /// Chunks one rank queues for its successor beyond what HTTP/2 flow control lets
     /// through: 8 MiB worth (half the HTTP/2 window), at least 2.
     fn in_flight(&self) -> usize {
         (IN_FLIGHT_BYTES / (self.cfg.chunk_floats.clamp(1, MAX_CHUNK_FLOATS) * 4)).clamp(2, 64)
     }
-}
-
-/// Bucket `bucket` of `stage` staged (never called without a stage: the ring fills
-/// nothing then).
-async fn stage_next(stage: &mut Option<&mut impl Stage>, bucket: usize) -> Result<(), String> {
-    match stage {
-        Some(s) => s.staged(bucket).await,
-        None => Ok(()),
-    }
-}
-
-/// A staged all-reduce on a ring of one: every bucket filled, and its sums are its own.
-async fn alone(
-    rank: usize,
-    layout: &Layout,
-    buf: &mut [f32],
-    stage: &mut impl Stage,
-) -> Result<(), CollectiveError> {
-    for (b, range) in layout.buckets.iter().enumerate() {
-        let failed = |reason| CollectiveError::Stage {
-            rank,
-            bucket: b,
-            reason,
-        };
-        stage.staged(b).await.map_err(failed)?;
-        stage.fill(b, &mut buf[range.clone()]).map_err(failed)?;
-        stage.reduced(b, &buf[range.clone()]).map_err(failed)?;
-    }
-    Ok(())
 }
 
 /// The chunks a rank sends first: its round-0 reduce-scatter segment of every bucket.

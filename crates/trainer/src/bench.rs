@@ -4,7 +4,8 @@
 
 use crate::config::JobConfig;
 use crate::error::Result;
-use crate::step::{BatchTensors, Trainer};
+use crate::staging::{Staging, ring_buckets};
+use crate::step::{BatchTensors, CONTROL_FLOATS, Trainer};
 use candle_core::{DType, Device, Tensor};
 use osrt_dataset::bench::median;
 use osrt_dataset::generator::GeneratorConfig;
@@ -35,8 +36,9 @@ pub struct StepFigures {
     pub kernels: String,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
-    /// On a GPU: a round trip of a gradient-sized f32 buffer, device → host → device, as
-    /// the step makes it for the all-reduce (median; 0 on the CPU).
+    /// On a GPU: a gradient's round trip device → host → device through the staging of a
+    /// ring all-reduce (`crate::staging`, bucket by bucket through page-locked memory,
+    /// without the ring), as each of two or more workers pays it (median; 0 on the CPU).
     pub median_gradient_transfer_s: f64,
     /// Median time of [`Trainer::apply`]: the optimiser step with its clipping and checks.
     pub median_optimizer_s: f64,
@@ -142,6 +144,7 @@ pub fn bench_step(
     // A single worker's step: on a GPU the gradient stays there (the round trip that
     // several workers pay is timed apart, `median_gradient_transfer_s`).
     let keep = !device.is_cpu();
+    let mut staging = None;
     for i in 0..steps + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
         if i == warmup {
@@ -172,7 +175,8 @@ pub fn bench_step(
             peak_heap = crate::memory::peak_heap_bytes().max(peak_heap);
             peak_device = crate::device::device_peak_bytes(device).max(peak_device);
             if !device.is_cpu() {
-                transfer_s.push(gradient_round_trip(trainer.num_parameters(), device)?);
+                let n = trainer.num_parameters();
+                transfer_s.push(gradient_round_trip(&mut staging, n, device)?);
             }
         }
     }
@@ -308,12 +312,20 @@ fn gib(bytes: usize) -> f64 {
 
 /// Seconds for an `n`-float buffer to go device → host → device the way the step moves
 /// its gradient (`to_vec1`, then `from_vec`), synchronised at the end.
-fn gradient_round_trip(n: usize, device: &Device) -> Result<f64> {
+fn gradient_round_trip(staging: &mut Option<Staging>, n: usize, device: &Device) -> Result<f64> {
     let g = Tensor::ones(n, DType::F32, device)?;
+    let staging = match staging {
+        Some(s) => s,
+        None => {
+            // The job's bucket size; the page-locked memory is made once, as a worker does.
+            let bucket = osrt_run::cluster::ClusterConfig::default().bucket_floats;
+            let buckets = ring_buckets(n + CONTROL_FLOATS, bucket);
+            staging.insert(Staging::new(device, n, buckets)?)
+        }
+    };
     device.synchronize()?;
     let t0 = Instant::now();
-    let host = g.to_vec1::<f32>()?;
-    let back = Tensor::from_vec(host, n, device)?;
+    let back = staging.round_trip(&g)?;
     device.synchronize()?;
     let s = t0.elapsed().as_secs_f64();
     drop(back);

@@ -216,6 +216,46 @@ impl Staging {
     }
 }
 
+impl Staging {
+    /// The staged round trip of a gradient alone (a ring of one): to the host bucket by
+    /// bucket and back, weighted and divided by one scene, as each worker of a ring pays
+    /// it beside the ring's own time (`osrt bench model`'s `median_gradient_transfer_s`).
+    pub fn round_trip(&mut self, g: &Tensor) -> Result<Tensor> {
+        let step = StepGradients {
+            loss: 0.0,
+            grads: g.clone(),
+            samples: 1,
+            phases: None,
+        };
+        let mut t = self.begin(0, step, Signals::default())?;
+        let mut buf = t.take_buffer();
+        let failed = |e: String| TrainError::Device(format!("staging: {e}"));
+        for b in 0..t.staging.buckets.len() {
+            t.staged_blocking(b).map_err(failed)?;
+            let range = t.staging.buckets[b].clone();
+            t.fill(b, &mut buf[range.clone()]).map_err(failed)?;
+            t.reduced(b, &buf[range]).map_err(failed)?;
+        }
+        match t.finish(buf)?.grads {
+            Gradient::Device(g) => Ok(g),
+            Gradient::Host(_) => unreachable!("staging ends on the device"),
+        }
+    }
+}
+
+/// The ring's cut of a buffer of `len` floats into buckets of at most `bucket_floats`,
+/// from its end (`osrt_collective::Layout::new`'s, which a test holds this to).
+pub fn ring_buckets(len: usize, bucket_floats: usize) -> Vec<Range<usize>> {
+    let mut buckets = Vec::new();
+    let mut end = len;
+    while end > 0 {
+        let start = end.saturating_sub(bucket_floats.max(1));
+        buckets.push(start..end);
+        end = start;
+    }
+    buckets
+}
+
 /// Copies each bucket's floats of `grads` into its piece, all copies queued first, and
 /// hands each over once its copy has completed, in bucket order.
 fn download(
@@ -291,6 +331,18 @@ impl Transfer<'_> {
     pub async fn staged(&mut self, b: usize) -> Result<(), String> {
         while self.staging.pieces[b].is_none() {
             match self.arrived.recv().await {
+                Some(Ok((i, piece))) => self.staging.pieces[i] = Some(piece),
+                Some(Err(e)) => return Err(e),
+                None => return Err("the copies to the host stopped".into()),
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Transfer::staged`] for a caller outside an async runtime.
+    fn staged_blocking(&mut self, b: usize) -> Result<(), String> {
+        while self.staging.pieces[b].is_none() {
+            match self.arrived.blocking_recv() {
                 Some(Ok((i, piece))) => self.staging.pieces[i] = Some(piece),
                 Some(Err(e)) => return Err(e),
                 None => return Err("the copies to the host stopped".into()),
@@ -476,5 +528,65 @@ mod cuda {
                 false,
             ))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// A gradient alone (weight 1, one scene) comes back with its own bits, extreme
+    /// values included, through buckets of every kind (control values only, control and
+    /// gradient, gradient only), step after step with the same staging.
+    #[test]
+    fn a_round_trip_alone_gives_back_the_gradients_bits() {
+        let mut v: Vec<f32> = (0..1001).map(|i| (i as f32 * 0.37).sin() * 1e3).collect();
+        v[..8].copy_from_slice(&[
+            f32::MAX,
+            -f32::MAX,
+            f32::MIN_POSITIVE,
+            1e-45,
+            -0.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            3.0e38,
+        ]);
+        let g = Tensor::from_vec(v.clone(), v.len(), &Device::Cpu).unwrap();
+        for bucket in [4, 100, 5000] {
+            let buckets = ring_buckets(v.len() + CONTROL_FLOATS, bucket);
+            let mut staging = Staging::new(&Device::Cpu, v.len(), buckets).unwrap();
+            for _ in 0..2 {
+                let back = staging.round_trip(&g).unwrap().to_vec1::<f32>().unwrap();
+                assert_eq!(bits(&back), bits(&v), "buckets of {bucket}");
+            }
+        }
+    }
+
+    /// Buckets that do not cover the buffer exactly once, or a gradient of another
+    /// length, are refused with what was expected.
+    #[test]
+    fn mismatched_buckets_and_gradients_are_refused() {
+        let e = Staging::new(&Device::Cpu, 10, vec![5..10, 0..5])
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("cover 10 of the buffer's 16"), "{e}");
+        let e = Staging::new(&Device::Cpu, 10, vec![8..20, 0..8])
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("beyond the buffer's 16"), "{e}");
+        let mut s = Staging::new(&Device::Cpu, 10, ring_buckets(16, 5)).unwrap();
+        assert!(s.fits(&Device::Cpu, 10, &ring_buckets(16, 5)));
+        assert!(!s.fits(&Device::Cpu, 10, &ring_buckets(16, 4)));
+        let g = Tensor::zeros(11, candle_core::DType::F32, &Device::Cpu).unwrap();
+        let e = s.round_trip(&g).err().unwrap();
+        assert!(
+            e.to_string()
+                .contains("a gradient of 11 floats for staging of 10"),
+            "{e}"
+        );
     }
 }

@@ -465,17 +465,7 @@ async fn run_generation(
             break;
         }
         live.step.store(step, Ordering::Relaxed);
-        let deadline = plan.deadline_unix_s;
-        let reduced = match reduced_step(
-            &mut learner,
-            &mut ring,
-            &mut staging,
-            step,
-            rank,
-            deadline,
-        )
-        .await?
-        {
+        let reduced = match reduced_step(&mut learner, &mut ring, &mut staging, plan).await? {
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
@@ -507,18 +497,17 @@ async fn run_generation(
     Ok(Ended::Finished)
 }
 
-/// Step `step`'s gradients (an error here ends the generation as the trainer's errors
-/// do) reduced over the ring as all-reduce `step + 1` (an error there is the ring's:
-/// the inner result). Logs both phases' seconds at debug level: the all-reduce's share
+/// The learner's next step `step`: its gradients (an error here ends the generation as
+/// the trainer's errors do) reduced over the ring as all-reduce `step + 1`, a GPU's
+/// through `staging` (an error there is the ring's: the inner result). Logs both phases' seconds at debug level: the all-reduce's share
 /// of the step.
 async fn reduced_step(
     learner: &mut Learner,
     ring: &mut Option<Ring>,
     staging: &mut Option<Staging>,
-    step: u64,
-    rank: usize,
-    deadline_unix_s: Option<f64>,
+    plan: &WorkerPlan,
 ) -> Result<Result<osrt_trainer::distributed::Reduced>> {
+    let (step, rank, deadline_unix_s) = (learner.step(), plan.rank, plan.deadline_unix_s);
     let t = Instant::now();
     let g = learner.gradients().await?;
     let gradients_s = t.elapsed().as_secs_f64();

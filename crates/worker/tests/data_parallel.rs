@@ -274,3 +274,12 @@ async fn a_staged_device_gradient_reduces_to_the_host_paths_bits() {
         }
     }
 }
+
+/// The trainer's copy of the ring's cut into buckets is the ring's.
+#[test]
+fn the_stagings_buckets_are_the_rings() {
+    for (len, bucket) in [(1009, 4), (40_007, 5000), (16, 16), (17, 16), (1, 1 << 22)] {
+        let ring = osrt_collective::Layout::new(len, 2, bucket, 1000).buckets;
+        assert_eq!(osrt_trainer::staging::ring_buckets(len, bucket), ring);
+    }
+}
