@@ -17,9 +17,10 @@ pub struct CheckDeviceArgs {
     /// Job presets whose step is compared.
     #[arg(long, value_delimiter = ',', default_value = "tiny,clevr-lite-cpu")]
     pub presets: Vec<String>,
-    /// Precisions of the device's matrix products (the CPU side is always f32).
-    #[arg(long, value_delimiter = ',', default_value = "f32,bf16")]
-    pub precisions: Vec<Precision>,
+    /// Precisions of the device's matrix products (the CPU side is always f32); default
+    /// f32,bf16 on a GPU, f32 where the device is the CPU (whose kernels are f32 only).
+    #[arg(long, value_delimiter = ',')]
+    pub precisions: Option<Vec<Precision>>,
     /// The device's kernels: fused (LayerNorm, softmax and bias+activation as one-node
     /// CUDA ops) and/or composed (candle's ops only).
     #[arg(long, value_delimiter = ',', default_value = "fused,composed")]
@@ -48,6 +49,14 @@ pub fn run(a: CheckDeviceArgs) -> Result<()> {
             "this osrt was built without the `cuda` feature: there are no CUDA kernels to compile"
         );
     }
+    let precisions = match (a.precisions.clone(), a.device.is_cuda()) {
+        (Some(p), false) if p.contains(&Precision::Bf16) => {
+            bail!("--precisions bf16 needs a GPU (--device cuda): the CPU's kernels are f32 only")
+        }
+        (Some(p), _) => p,
+        (None, true) => vec![Precision::F32, Precision::Bf16],
+        (None, false) => vec![Precision::F32],
+    };
     let device = a.device.open()?;
     let ops = osrt_kernels::device_check::compare_ops_with_cpu(&device)?;
     if !a.json {
@@ -65,7 +74,7 @@ pub fn run(a: CheckDeviceArgs) -> Result<()> {
     let mut all = Vec::new();
     for p in &a.presets {
         for &kernels in &a.kernels {
-            for &precision in &a.precisions {
+            for &precision in &precisions {
                 let mut job = JobConfig::preset(p)?;
                 job.train.device = a.device;
                 job.train.precision = precision;

@@ -105,6 +105,41 @@ fn bad_arguments_are_clear_errors() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(want), "{args:?}: {err}");
     }
+    // check-device on the CPU compares f32 only, and says so where bf16 is asked for.
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "check-device",
+            "--device",
+            "cpu",
+            "--precisions",
+            "f32,bf16",
+        ])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--precisions bf16 needs a GPU"), "{err}");
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args([
+            "check-device",
+            "--device",
+            "cpu",
+            "--presets",
+            "tiny",
+            "--json",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let precisions: Vec<&str> = (v["steps"].as_array().unwrap().iter())
+        .map(|s| s["precision"].as_str().unwrap())
+        .collect();
+    assert_eq!(precisions, ["f32", "f32"], "fused and composed, f32 only");
     // Without the `cuda` feature a GPU preset is one clear error, not a worker restart loop.
     if !cfg!(feature = "cuda") {
         let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
