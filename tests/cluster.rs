@@ -10,7 +10,13 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 /// `osrt train` of the tiny preset with 2 workers × 1 thread.
-fn train_env(data: &str, run: &str, steps: u64, extra: &[&str], env: &[(String, String)]) {
+fn train_env(
+    data: &str,
+    run: &str,
+    steps: u64,
+    extra: &[&str],
+    env: &[(String, String)],
+) -> std::process::Output {
     let steps = steps.to_string();
     let mut args = vec![
         "train",
@@ -28,11 +34,11 @@ fn train_env(data: &str, run: &str, steps: u64, extra: &[&str], env: &[(String, 
         &steps,
     ];
     args.extend(extra);
-    osrt_env(&args, env);
+    osrt_env(&args, env)
 }
 
 fn train(data: &Path, run: &Path, steps: u64, extra: &[&str]) {
-    train_env(
+    let _ = train_env(
         data.to_str().unwrap(),
         run.to_str().unwrap(),
         steps,
@@ -101,6 +107,45 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
         .block_on(osrt_trainer::checkpoint::list_steps(&loc))
         .unwrap();
     assert!(kept.len() <= 4 && kept[..3] == [30, 25, 20], "{kept:?}");
+}
+
+/// The GPU's graph on the CPU (`--kernels device`) stages each worker's gradient for the
+/// ring bucket by bucket as a GPU does (`osrt_trainer::staging`): between real processes
+/// the replicas stay bit-identical (the parameter hash after every step) and the loss
+/// falls.
+#[test]
+fn two_workers_on_the_gpus_graph_stage_their_gradients() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let env = [("RUST_LOG".to_string(), "osrt_worker=info,warn".to_string())];
+    let args = ["--kernels", "device"];
+    let out = train_env(
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        16,
+        &args,
+        &env,
+    );
+    let log = String::from_utf8_lossy(&out.stderr);
+    let staged = log.matches("the gradient crosses to the ring and back bucket by bucket");
+    assert_eq!(
+        staged.count(),
+        2,
+        "each worker stages its gradient once made:\n{log}"
+    );
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done");
+    assert_eq!(job["restarts"], 0);
+    assert_eq!(job["hash_checks"], 16, "{job}");
+    let l = losses(&run);
+    assert_eq!(l.len(), 16);
+    let first: f64 = l[..4].iter().map(|x| x.1).sum::<f64>() / 4.0;
+    let last: f64 = l[12..].iter().map(|x| x.1).sum::<f64>() / 4.0;
+    assert!(
+        last < first,
+        "loss should fall: first 4 {first}, last 4 {last}"
+    );
 }
 
 #[test]

@@ -260,7 +260,9 @@ impl Learner {
     /// This rank's gradients of the next step (its share of the global batch), opening
     /// the next epoch where the last one is used up. A worker on a GPU keeps its
     /// gradient there: alone it never leaves the device, and on a ring it goes to the
-    /// host bucket by bucket as the ring needs it (`osrt_trainer::staging`).
+    /// host bucket by bucket as the ring needs it (`crate::staging`). The GPU's graph on
+    /// the CPU (`kernels = "device"`) takes that staged path on a ring too, so that it
+    /// runs where there is no GPU.
     pub async fn gradients(&mut self) -> Result<StepGradients<Gradient>> {
         let step = self.trainer.step;
         if step - self.epoch.start_step >= self.epoch.plan.steps {
@@ -288,7 +290,8 @@ impl Learner {
             .collect();
         let mut rng = step_rng(seed, step, rank, world);
         let (cfg, trainer) = (&self.batch_cfg, &self.trainer);
-        let keep = world == 1 || !crate::device::is_cpu(trainer.device());
+        let keep = !crate::device::is_cpu(trainer.device())
+            || (world > 1 && self.job.train.kernels == osrt_model::Kernels::Device);
         tokio::task::block_in_place(|| {
             let batch = build_batch(&refs, cfg, &mut rng)?;
             trainer.gradients_kept(&batch, &mut rng, keep)

@@ -273,8 +273,10 @@ impl Trainer {
         })
     }
 
-    /// [`Trainer::gradients`], with the flat gradient left on the device where `keep` is
-    /// set and the model runs on one (a single worker has no all-reduce to feed).
+    /// [`Trainer::gradients`], with the flat gradient left a tensor on the model's device
+    /// where `keep` is set ([`Gradient::Device`], also on the CPU): a single worker on a
+    /// GPU has no all-reduce to feed, and a ring stages a device gradient bucket by bucket
+    /// (`crate::staging`).
     pub fn gradients_kept<R: Rng + Send + Clone>(
         &self,
         batch: &Batch,
@@ -401,7 +403,7 @@ impl Trainer {
         // flat gradient is built beside the parameters' gradients, or that buffer would
         // raise the step's peak above the backward pass's.
         drop((loss, out, slots, t));
-        let flat = if crate::device::is_cpu(&self.device) {
+        let flat = if crate::device::is_cpu(&self.device) && !keep {
             // Room for the all-reduce's control values, so that appending them does not
             // move the buffer.
             let cap = self.num_parameters() + CONTROL_FLOATS;

@@ -41,7 +41,14 @@ pub async fn reduce(
     {
         // The old one goes first: its page-locked memory is the size of the gradient.
         *staging = None;
+        let n = buckets.len();
         *staging = Some(Staging::new(&device, params, buckets)?);
+        tracing::info!(
+            params,
+            buckets = n,
+            device = ?device.location(),
+            "the gradient crosses to the ring and back bucket by bucket"
+        );
     }
     let staging = staging.as_mut().expect("made above");
     let g = StepGradients {
