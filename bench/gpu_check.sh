@@ -13,7 +13,8 @@
 #   bench/gpu_check.sh workers # two workers sharing the GPU (`osrt train --workers 2`),
 #                              # paper preset: each step's gradients and all-reduce time
 #                              # (the gradient staged through page-locked memory), beside
-#                              # one worker's step and its staged round trip (~300 s)
+#                              # one worker's step and its staged round trip (≤ 420 s;
+#                              # WORKERS_PRECISIONS=bf16 for one precision)
 #   bench/gpu_check.sh visit   # one call of a short visit, most important first: the ops
 #                              # and steps against the CPU, the paper preset's 1-view step
 #                              # (time, peak memory) in f32 and bf16 beside PyTorch, then
@@ -169,7 +170,8 @@ workers)
             --test 4 --out data128 >/dev/null
     fi
     # Global batch 8: two processes' steps fit an H100's memory as well as an H200's.
-    for prec in bf16 f32; do
+    # WORKERS_PRECISIONS="bf16" halves the call (about 210 s a precision at most).
+    for prec in ${WORKERS_PRECISIONS:-bf16 f32}; do
         echo "== osrt train paper, 2 workers on one GPU, batch 8 (4 each), 1 view, 8192 rays, $prec"
         rm -rf "runs/workers-$prec"
         RUST_LOG=osrt_worker=debug,warn timeout 150 "$BIN" train --preset paper --data data128 \
