@@ -94,14 +94,13 @@ impl Target {
         Ok(())
     }
 
-    fn into_tensor(self) -> Result<Tensor> {
+    /// The reduced gradient: on the GPU a tensor there, on the CPU the host buffer (which
+    /// the CPU's optimiser takes without another copy).
+    fn into_gradient(self) -> Result<Gradient> {
         match self {
-            Self::Host(t) => {
-                let n = t.len();
-                Ok(Tensor::from_vec(t, n, &Device::Cpu)?)
-            }
+            Self::Host(t) => Ok(Gradient::Host(t)),
             #[cfg(feature = "cuda")]
-            Self::Cuda(t) => t.into_tensor(),
+            Self::Cuda(t) => Ok(Gradient::Device(t.into_tensor()?)),
         }
     }
 }
@@ -188,7 +187,10 @@ impl Staging {
             )));
         }
         self.allocate()?;
-        let summary = GradSummary::of_tensor(&g.grads)?;
+        let summary = match with_cpu_floats(&g.grads, GradSummary::of) {
+            Some(s) => s,
+            None => GradSummary::of_tensor(&g.grads)?,
+        };
         let bad = !g.loss.is_finite() || !summary.finite();
         let control = distributed::control(rank, g.loss, g.samples, signals, bad);
         let target = Target::new(&self.device, self.params)?;
@@ -220,7 +222,7 @@ impl Staging {
     /// The staged round trip of a gradient alone (a ring of one): to the host bucket by
     /// bucket and back, weighted and divided by one scene, as each worker of a ring pays
     /// it beside the ring's own time (`osrt bench model`'s `median_gradient_transfer_s`).
-    pub fn round_trip(&mut self, g: &Tensor) -> Result<Tensor> {
+    pub fn round_trip(&mut self, g: &Tensor) -> Result<Gradient> {
         let step = StepGradients {
             loss: 0.0,
             grads: g.clone(),
@@ -236,10 +238,7 @@ impl Staging {
             t.fill(b, &mut buf[range.clone()]).map_err(failed)?;
             t.reduced(b, &buf[range]).map_err(failed)?;
         }
-        match t.finish(buf)?.grads {
-            Gradient::Device(g) => Ok(g),
-            Gradient::Host(_) => unreachable!("staging ends on the device"),
-        }
+        Ok(t.finish(buf)?.grads)
     }
 }
 
@@ -256,8 +255,8 @@ pub fn ring_buckets(len: usize, bucket_floats: usize) -> Vec<Range<usize>> {
     buckets
 }
 
-/// Copies each bucket's floats of `grads` into its piece, all copies queued first, and
-/// hands each over once its copy has completed, in bucket order.
+/// Copies each bucket's floats of `grads` into its piece and hands each over once its
+/// copy has completed, in bucket order; on a GPU all copies are queued first.
 fn download(
     grads: &Tensor,
     jobs: Vec<(usize, Range<usize>, Piece)>,
@@ -267,13 +266,20 @@ fn download(
         // A receiver that is gone is a transfer that ended: nothing left to do.
         let _ = tx.blocking_send(item);
     };
-    let mut queued = Vec::with_capacity(jobs.len());
+    // Page-locked pieces whose copies are queued on the device's stream.
+    #[cfg_attr(not(feature = "cuda"), allow(unused_mut))]
+    let mut queued: Vec<(usize, Piece)> = Vec::with_capacity(jobs.len());
     for (b, range, mut piece) in jobs {
         if let Err(e) = copy_out(grads, range, &mut piece) {
             send(Err(format!("copying bucket {b} to the host: {e}")));
             return;
         }
-        queued.push((b, piece));
+        match piece {
+            // Copied already: the ring may start on it while the next one is copied.
+            Piece::Plain(_) => send(Ok((b, piece))),
+            #[cfg(feature = "cuda")]
+            Piece::Pinned(_) => queued.push((b, piece)),
+        }
     }
     for (b, piece) in queued {
         match piece.floats() {
@@ -292,10 +298,23 @@ fn copy_out(grads: &Tensor, range: Range<usize>, piece: &mut Piece) -> Result<()
         #[cfg(feature = "cuda")]
         Piece::Pinned(p) => cuda::download(grads, range, p),
         Piece::Plain(v) => {
-            let part = grads.narrow(0, range.start, range.len())?;
-            v.copy_from_slice(&part.to_vec1::<f32>()?);
+            if with_cpu_floats(grads, |g| v.copy_from_slice(&g[range.clone()])).is_none() {
+                let part = grads.narrow(0, range.start, range.len())?;
+                v.copy_from_slice(&part.to_vec1::<f32>()?);
+            }
             Ok(())
         }
+    }
+}
+
+/// `f` of a contiguous f32 CPU tensor's floats, read in place; `None` for another tensor.
+fn with_cpu_floats<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> R) -> Option<R> {
+    let (storage, layout) = t.storage_and_layout();
+    match (&*storage, layout.contiguous_offsets()) {
+        (candle_core::Storage::Cpu(candle_core::CpuStorage::F32(data)), Some((a, b))) => {
+            Some(f(&data[a..b]))
+        }
+        _ => None,
     }
 }
 
@@ -390,8 +409,8 @@ impl Transfer<'_> {
             .map_err(|e| format!("copying bucket {b} to the device: {e}"))
     }
 
-    /// The reduced step, with the gradient on the device; `buffer` is the ring's, back
-    /// for the next step.
+    /// The reduced step, with the gradient on the GPU (on the CPU: in a host buffer);
+    /// `buffer` is the ring's, back for the next step.
     pub fn finish(mut self, buffer: Vec<f32>) -> Result<Reduced> {
         self.staging.buffer = buffer;
         self.join();
@@ -401,7 +420,7 @@ impl Transfer<'_> {
             ));
         }
         let target = std::mem::replace(&mut self.target, Target::Host(Vec::new()));
-        let grads = Gradient::Device(target.into_tensor()?);
+        let grads = target.into_gradient()?;
         Ok(distributed::reduced_with(grads, &self.sums))
     }
 
@@ -560,7 +579,7 @@ mod tests {
             let buckets = ring_buckets(v.len() + CONTROL_FLOATS, bucket);
             let mut staging = Staging::new(&Device::Cpu, v.len(), buckets).unwrap();
             for _ in 0..2 {
-                let back = staging.round_trip(&g).unwrap().to_vec1::<f32>().unwrap();
+                let back = staging.round_trip(&g).unwrap().into_host().unwrap();
                 assert_eq!(bits(&back), bits(&v), "buckets of {bucket}");
             }
         }
