@@ -13,7 +13,7 @@ use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Result, Shape, Tenso
 
 /// The activation as the CUDA kernels spell it: `(kind, slope)` with kind 0 = none,
 /// 1 = (leaky) ReLU, 2 = erf-GELU.
-#[cfg(feature = "cuda")]
+#[cfg(any(feature = "cuda", test))]
 pub(crate) fn act_code(act: Option<MlpAct>) -> (i32, f32) {
     match act {
         None => (0, 0.0),

@@ -48,8 +48,8 @@ impl ConvGeom {
     }
 
     /// `[n, h, w, c, k, stride, pad, ho, wo]`, as the CUDA kernels take them.
-    #[cfg(feature = "cuda")]
-    fn sizes(&self) -> [usize; 9] {
+    #[cfg(any(feature = "cuda", test))]
+    pub(crate) fn sizes(&self) -> [usize; 9] {
         let g = self;
         [g.n, g.h, g.w, g.c, g.k, g.stride, g.pad, g.ho, g.wo]
     }

@@ -29,6 +29,9 @@ mod conv_node;
 #[cfg(feature = "cuda")]
 pub mod cuda;
 pub mod device_check;
+pub mod device_kernels;
+#[cfg(test)]
+mod emulated;
 pub mod fastmath;
 mod gemm;
 mod handover;
