@@ -310,10 +310,12 @@ fn gib(bytes: usize) -> f64 {
     bytes as f64 / (1u64 << 30) as f64
 }
 
-/// Seconds for an `n`-float buffer to go device → host → device the way the step moves
-/// its gradient (`to_vec1`, then `from_vec`), synchronised at the end.
+/// Seconds for an `n`-float gradient to go device → host → device the way two or more
+/// workers' steps move it (`Staging::round_trip`: bucket by bucket through page-locked
+/// memory), synchronised at the end; an error where it does not come back bit for bit.
 fn gradient_round_trip(staging: &mut Option<Staging>, n: usize, device: &Device) -> Result<f64> {
-    let g = Tensor::ones(n, DType::F32, device)?;
+    // Distinct values, so that a bucket copied to the wrong place shows.
+    let g = (Tensor::arange(0u32, n as u32, device)?.to_dtype(DType::F32)? * 1e-3)?;
     let staging = match staging {
         Some(s) => s,
         None => {
@@ -328,7 +330,15 @@ fn gradient_round_trip(staging: &mut Option<Staging>, n: usize, device: &Device)
     let back = staging.round_trip(&g)?;
     device.synchronize()?;
     let s = t0.elapsed().as_secs_f64();
-    drop(back);
+    // Weight 1 and one scene: the gradient must come back with its own bits.
+    let back = back.into_host()?;
+    let sent = g.to_vec1::<f32>()?;
+    if let Some(i) = (0..n).find(|&i| back[i].to_bits() != sent[i].to_bits()) {
+        return Err(crate::TrainError::Device(format!(
+            "the staged round trip of the gradient changed float {i} of {n}: {} came back as {}",
+            sent[i], back[i]
+        )));
+    }
     Ok(s)
 }
 
@@ -410,4 +420,22 @@ pub fn bench_render(
         median_frame_s: m,
         fps: 1.0 / m,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The timed round trip (a GPU's, run here through the CPU's staging) checks what
+    /// comes back, over several buckets, with the staging kept between calls.
+    #[test]
+    fn the_gradient_round_trip_comes_back_whole() {
+        let n = osrt_run::cluster::ClusterConfig::default().bucket_floats * 2 + 12_345;
+        let mut staging = None;
+        for _ in 0..2 {
+            let s = gradient_round_trip(&mut staging, n, &Device::Cpu).unwrap();
+            assert!(s > 0.0);
+        }
+        assert!(staging.is_some());
+    }
 }

@@ -93,7 +93,11 @@ fn open_cuda(ordinal: usize) -> Result<Device> {
     cuda_available(ordinal)?;
     let opening =
         |e: &dyn std::fmt::Display| TrainError::Device(format!("opening cuda:{ordinal}: {e}"));
-    let device = Device::new_cuda(ordinal).map_err(|e| opening(&e))?;
+    // One stream of its own for the whole process: candle's default is CUDA's per-thread
+    // stream, a different stream on each host thread, so work queued from two tokio
+    // threads (a step's backward pass and the optimiser, the staging's copies) would not
+    // be ordered. With one stream, the stream order alone orders every use of a buffer.
+    let device = Device::new_cuda_with_stream(ordinal).map_err(|e| opening(&e))?;
     pool::configure(&device).map_err(|e| opening(&e))?;
     Ok(device)
 }
@@ -126,13 +130,14 @@ mod pool {
     /// Keeps freed memory in the pool instead of handing it back to the driver: the
     /// default release threshold (0) returns every free block at each synchronisation,
     /// so every step allocates its activations from the driver again. And turns off
-    /// cudarc's per-allocation event pair: candle runs one stream per device, where the
+    /// cudarc's per-allocation event pair: osrt runs one stream per device (`open_cuda`), where the
     /// stream order alone keeps uses and frees in order (the events serve several streams).
     pub fn configure(device: &Device) -> Result<(), DriverError> {
         let Device::Cuda(d) = device else {
             return Ok(());
         };
-        // SAFETY: osrt uses the device's one stream only (no tensor crosses streams).
+        // SAFETY: osrt queues everything on the device's one stream (`open_cuda`), so no
+        // buffer crosses streams.
         unsafe { d.disable_event_tracking() };
         let Some(pool) = default_pool(device) else {
             return Ok(());

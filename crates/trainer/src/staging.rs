@@ -232,8 +232,11 @@ impl Staging {
         let mut t = self.begin(0, step, Signals::default())?;
         let mut buf = t.take_buffer();
         let failed = |e: String| TrainError::Device(format!("staging: {e}"));
+        // Every bucket down first: the copies run in the stream's order anyway, and
+        // joining the copying thread blocks no async runtime (this runs inside one in
+        // `osrt bench model`, where a blocking receive would panic).
+        t.arrive_all().map_err(failed)?;
         for b in 0..t.staging.buckets.len() {
-            t.staged_blocking(b).map_err(failed)?;
             let range = t.staging.buckets[b].clone();
             t.fill(b, &mut buf[range.clone()]).map_err(failed)?;
             t.reduced(b, &buf[range]).map_err(failed)?;
@@ -358,16 +361,27 @@ impl Transfer<'_> {
         Ok(())
     }
 
-    /// [`Transfer::staged`] for a caller outside an async runtime.
-    fn staged_blocking(&mut self, b: usize) -> Result<(), String> {
-        while self.staging.pieces[b].is_none() {
-            match self.arrived.blocking_recv() {
-                Some(Ok((i, piece))) => self.staging.pieces[i] = Some(piece),
-                Some(Err(e)) => return Err(e),
-                None => return Err("the copies to the host stopped".into()),
+    /// Waits for every bucket's copy to the host (by joining the copying thread, not by a
+    /// blocking receive, so that it may run on an async runtime's thread).
+    fn arrive_all(&mut self) -> Result<(), String> {
+        if let Some(t) = self.downloads.take() {
+            t.join()
+                .map_err(|_| "the thread copying to the host panicked")?;
+        }
+        let mut failure = None;
+        while let Ok(item) = self.arrived.try_recv() {
+            match item {
+                Ok((i, piece)) => self.staging.pieces[i] = Some(piece),
+                Err(e) => failure = Some(e),
             }
         }
-        Ok(())
+        match failure {
+            Some(e) => Err(e),
+            None if self.staging.pieces.iter().any(Option::is_none) => {
+                Err("the copies to the host stopped".into())
+            }
+            None => Ok(()),
+        }
     }
 
     /// Writes bucket `b` of this rank's contribution into `dst` (its range of the ring's
@@ -452,16 +466,33 @@ impl Drop for Transfer<'_> {
 #[allow(unsafe_code)]
 mod cuda {
     use crate::error::Result;
-    use candle_core::cuda_backend::cudarc::driver::{CudaSlice, PinnedHostSlice};
+    use candle_core::cuda_backend::cudarc::driver::{
+        CudaEvent, CudaSlice, CudaStream, PinnedHostSlice,
+    };
     use candle_core::op::BackpropOp;
     use candle_core::{CudaDevice, CudaStorage, Storage, Tensor};
     use std::ops::Range;
 
+    /// Page-locked floats and the event of the last copy queued into or out of them.
+    ///
+    /// cudarc's own event on a `PinnedHostSlice` is recorded only where it manages
+    /// several streams with event tracking on; osrt turns tracking off
+    /// (`device::pool::configure`), so the piece records its copies itself.
     pub struct Pinned {
         /// At least one float (an empty piece is allocated with one).
         host: PinnedHostSlice<f32>,
         len: usize,
         device: CudaDevice,
+        /// Completes with the last copy queued on the device's stream that reads or
+        /// writes `host` (none recorded: complete).
+        copied: CudaEvent,
+    }
+
+    impl Drop for Pinned {
+        fn drop(&mut self) {
+            // The memory is freed after this: no copy may still use it.
+            let _ = self.copied.synchronize();
+        }
     }
 
     impl Pinned {
@@ -475,21 +506,39 @@ mod cuda {
             host.as_mut_slice()
                 .map_err(candle_core::Error::wrap)?
                 .fill(0.0);
+            let copied = ctx.new_event(None).map_err(candle_core::Error::wrap)?;
             Ok(Self {
                 host,
                 len,
                 device: device.clone(),
+                copied,
             })
         }
 
+        /// The floats, once the last copy queued into or out of them has completed.
         pub fn floats(&self) -> Result<&[f32]> {
+            self.copied
+                .synchronize()
+                .map_err(candle_core::Error::wrap)?;
             let len = self.len;
             Ok(&self.host.as_slice().map_err(candle_core::Error::wrap)?[..len])
         }
 
+        /// As [`Pinned::floats`], to write.
         pub fn floats_mut(&mut self) -> Result<&mut [f32]> {
+            self.copied
+                .synchronize()
+                .map_err(candle_core::Error::wrap)?;
             let len = self.len;
             Ok(&mut self.host.as_mut_slice().map_err(candle_core::Error::wrap)?[..len])
+        }
+
+        /// Marks the copy just queued on `stream` as the one to wait for.
+        fn record(&self, stream: &CudaStream) -> Result<()> {
+            self.copied
+                .record(stream)
+                .map_err(candle_core::Error::wrap)?;
+            Ok(())
         }
     }
 
@@ -511,7 +560,7 @@ mod cuda {
         stream
             .memcpy_dtoh(&src, &mut piece.host)
             .map_err(candle_core::Error::wrap)?;
-        Ok(())
+        piece.record(&stream)
     }
 
     pub struct DeviceBuffer {
@@ -527,14 +576,16 @@ mod cuda {
             })
         }
 
-        /// Queues the copy of `piece` into `range` on the device's stream.
+        /// Queues the copy of `piece` into `range` on the device's stream (the one stream
+        /// every kernel runs on, so the optimiser's reads of the buffer follow it).
         pub fn upload(&mut self, range: Range<usize>, piece: &Pinned) -> Result<()> {
             let stream = self.device.cuda_stream();
             let mut dst = self.slice.slice_mut(range);
             stream
                 .memcpy_htod(&piece.host, &mut dst)
                 .map_err(candle_core::Error::wrap)?;
-            Ok(())
+            // The host must not write the piece again before this copy has read it.
+            piece.record(&stream)
         }
 
         pub fn into_tensor(self) -> Result<Tensor> {
