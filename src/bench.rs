@@ -376,6 +376,9 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
                     100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
                 );
             }
+            if let Some(e) = s["gradient_transfer_error"].as_str() {
+                println!("    GRADIENT ROUND TRIP FAILED: {e}");
+            }
         }
         let steps = v["steps"].as_array().expect("array");
         for p in &a.presets {

@@ -40,6 +40,9 @@ pub struct StepFigures {
     /// ring all-reduce (`crate::staging`, bucket by bucket through page-locked memory,
     /// without the ring), as each of two or more workers pays it (median; 0 on the CPU).
     pub median_gradient_transfer_s: f64,
+    /// Where that round trip failed or did not give back the gradient's bits: the first
+    /// such error (the step's own figures stand; a bench is not ended by it).
+    pub gradient_transfer_error: Option<String>,
     /// Median time of [`Trainer::apply`]: the optimiser step with its clipping and checks.
     pub median_optimizer_s: f64,
     pub scenes_per_s: f64,
@@ -144,7 +147,7 @@ pub fn bench_step(
     // A single worker's step: on a GPU the gradient stays there (the round trip that
     // several workers pay is timed apart, `median_gradient_transfer_s`).
     let keep = !device.is_cpu();
-    let mut staging = None;
+    let (mut staging, mut transfer_error) = (None, None);
     for i in 0..steps + warmup {
         let batch = build_batch(&refs, &cfg, &mut rng)?;
         if i == warmup {
@@ -174,9 +177,15 @@ pub fn bench_step(
             optimizer_s.push(t1.elapsed().as_secs_f64());
             peak_heap = crate::memory::peak_heap_bytes().max(peak_heap);
             peak_device = crate::device::device_peak_bytes(device).max(peak_device);
-            if !device.is_cpu() {
+            if !device.is_cpu() && transfer_error.is_none() {
                 let n = trainer.num_parameters();
-                transfer_s.push(gradient_round_trip(&mut staging, n, device)?);
+                match gradient_round_trip(&mut staging, n, device) {
+                    Ok(s) => transfer_s.push(s),
+                    Err(e) => {
+                        tracing::error!(error = %e, "the staged gradient round trip failed");
+                        transfer_error = Some(e.to_string());
+                    }
+                }
             }
         }
     }
@@ -199,6 +208,7 @@ pub fn bench_step(
         } else {
             median(transfer_s)
         },
+        gradient_transfer_error: transfer_error,
         median_optimizer_s: median(optimizer_s),
         scenes_per_s: b as f64 / m,
         peak_heap_gib: peak_heap.map(gib),
