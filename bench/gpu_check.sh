@@ -52,6 +52,8 @@ try:
     c = json.load(open(sys.argv[1]))
 except Exception as e:
     sys.exit(f"no check-device result: {e}")
+for p in c.get("plumbing", []):
+    print(f'plumbing {p["check"]:<30} pass {p["pass"]}: {p["detail"]}')
 for o in c["ops"]:
     print(f'op {o["op"]:<34} value {o["value_rel_max"]:.1e} grad {o["gradient_rel_max"]:.1e} finite {o["finite"]} pass {o["pass"]}')
 for s in c["steps"]:

@@ -1,11 +1,13 @@
 //! `osrt check-device`: whether a GPU computes the CPU's train step (gradients and one
-//! AdamW step on the same weights and batch), with the tolerances it is held to.
+//! AdamW step on the same weights and batch), with the tolerances it is held to, and
+//! whether its plumbing works (the gradient's staging, the memory pool, the context).
 
 use anyhow::{Result, bail};
 use clap::Args;
 use osrt_model::{Kernels, Precision};
 use osrt_trainer::device_check::{
     DeviceCheck, GRADIENT_TOLERANCE_BF16, GRADIENT_TOLERANCE_F32, STEP_TOLERANCE, compare_with_cpu,
+    plumbing,
 };
 use osrt_trainer::{DeviceSpec, JobConfig};
 
@@ -71,6 +73,15 @@ pub fn run(a: CheckDeviceArgs) -> Result<()> {
             );
         }
     }
+    // The staging, the memory pool and the context (cheap, and first: a broken one
+    // explains failures further on).
+    let pipes = plumbing(&device)?;
+    if !a.json {
+        for c in &pipes {
+            let verdict = if c.pass { "ok" } else { "FAILED" };
+            println!("plumbing {:<30} {}: {verdict}", c.check, c.detail);
+        }
+    }
     let mut all = Vec::new();
     for p in &a.presets {
         for &kernels in &a.kernels {
@@ -96,7 +107,7 @@ pub fn run(a: CheckDeviceArgs) -> Result<()> {
                 v
             })
             .collect();
-        let out = serde_json::json!({ "ops": ops, "steps": steps });
+        let out = serde_json::json!({ "ops": ops, "plumbing": pipes, "steps": steps });
         println!("{}", serde_json::to_string_pretty(&out)?);
     } else {
         println!(
@@ -107,6 +118,13 @@ pub fn run(a: CheckDeviceArgs) -> Result<()> {
     }
     if ops.iter().any(|c| !c.pass) || all.iter().any(|(_, c)| !c.pass) {
         bail!("the device's ops or step differ from the CPU's beyond the tolerances");
+    }
+    if let Some(c) = pipes.iter().find(|c| !c.pass) {
+        bail!(
+            "the device's plumbing failed a check: {}: {}",
+            c.check,
+            c.detail
+        );
     }
     Ok(())
 }

@@ -75,7 +75,7 @@ fn row_launch(rows: i32) -> LaunchConfig {
     config(geometry::rows(rows))
 }
 
-fn column_launch(width: i32, chunks: u32) -> LaunchConfig {
+fn column_launch(width: i32, chunks: usize) -> LaunchConfig {
     config(geometry::columns(width, chunks))
 }
 
@@ -97,6 +97,9 @@ pub fn layer_norm_fwd(
     let dev = device(x);
     let d = lg.shape().elem_count();
     let (rows, dd) = rows_cols(lx, d, "layer_norm")?;
+    if lb.shape().elem_count() != d {
+        candle_core::bail!("layer_norm: a bias of {:?} for a weight of {d}", lb.shape())
+    }
     let (xv, gv, bv) = (
         input(x, lx, "layer_norm x")?,
         input(g, lg, "layer_norm weight")?,
@@ -137,6 +140,13 @@ pub fn layer_norm_bwd(
     let dev = device(x);
     let d = lg.shape().elem_count();
     let (rows, dd) = rows_cols(lx, d, "layer_norm backward")?;
+    if ldy.shape().elem_count() != lx.shape().elem_count() {
+        candle_core::bail!(
+            "layer_norm backward: gradient {:?} for input {:?}",
+            ldy.shape(),
+            lx.shape()
+        )
+    }
     let (xv, gv, dyv) = (
         input(x, lx, "layer_norm backward x")?,
         input(g, lg, "layer_norm backward weight")?,
@@ -168,7 +178,7 @@ pub fn layer_norm_bwd(
         l.arg(&xv).arg(&dyv).arg(&stats).arg(&mut partial);
         l.arg(&rows).arg(&dd).arg(&chunk);
         // SAFETY: as above; `partial` holds 2·d floats per chunk.
-        unsafe { l.launch(column_launch(dd, chunks as u32)) }.w()?;
+        unsafe { l.launch(column_launch(dd, chunks)) }.w()?;
     }
     {
         let mut dgb = out.slice_mut(n..n + 2 * d);
@@ -346,7 +356,7 @@ pub fn column_sum(a: &CudaStorage, la: &Layout, d: usize) -> Result<(CudaStorage
             .arg(&cols)
             .arg(&chunk);
         // SAFETY: the arguments match the kernel's signature; `partial` holds d per chunk.
-        unsafe { l.launch(column_launch(cols, chunks as u32)) }.w()?;
+        unsafe { l.launch(column_launch(cols, chunks)) }.w()?;
     }
     {
         let f = dev.get_or_load_custom_func("osrt_sum_chunks", MODULE, ptx()?)?;

@@ -62,22 +62,30 @@ extern "C" __global__ void osrt_layer_norm_bwd(const float* x, const float* g, c
     if (lane == 0) { stats[2 * row] = mean; stats[2 * row + 1] = rstd; }
 }
 
-// Per chunk of `chunk` rows (blockIdx.y) and column: sums of dy * xhat and of dy.
+// The chunks of `chunk` rows a column sum splits `rows` into (one, empty, for no rows).
+__device__ __forceinline__ long row_chunks(int rows, int chunk) {
+    return rows > 0 ? ((long)rows + chunk - 1) / chunk : 1;
+}
+
+// Per chunk of `chunk` rows and column: sums of dy * xhat and of dy. The chunks are
+// blockIdx.y, then every gridDim.y-th after it (a grid's y is at most 65,535).
 extern "C" __global__ void osrt_layer_norm_bwd_params(const float* x, const float* dy,
                                                       const float* stats, float* partial,
                                                       int rows, int d, int chunk) {
     int col = blockIdx.x * blockDim.x + threadIdx.x;
     if (col >= d) return;
-    long r0 = (long)blockIdx.y * chunk;
-    long r1 = min((long)rows, r0 + chunk);
-    float ag = 0.f, ab = 0.f;
-    for (long r = r0; r < r1; ++r) {
-        float dyv = dy[r * d + col];
-        ag += dyv * ((x[r * d + col] - stats[2 * r]) * stats[2 * r + 1]);
-        ab += dyv;
+    for (long c = blockIdx.y; c < row_chunks(rows, chunk); c += gridDim.y) {
+        long r0 = c * chunk;
+        long r1 = min((long)rows, r0 + chunk);
+        float ag = 0.f, ab = 0.f;
+        for (long r = r0; r < r1; ++r) {
+            float dyv = dy[r * d + col];
+            ag += dyv * ((x[r * d + col] - stats[2 * r]) * stats[2 * r + 1]);
+            ab += dyv;
+        }
+        partial[c * 2 * d + col] = ag;
+        partial[c * 2 * d + d + col] = ab;
     }
-    partial[(long)blockIdx.y * 2 * d + col] = ag;
-    partial[(long)blockIdx.y * 2 * d + d + col] = ab;
 }
 
 // out[col] = sum over chunks, in chunk order.
@@ -126,16 +134,19 @@ extern "C" __global__ void osrt_bias_act_bwd(const float* x, const float* b, con
     }
 }
 
-// Per chunk of `chunk` rows (blockIdx.y) and column: the column's sum over the chunk.
+// Per chunk of `chunk` rows and column: the column's sum over the chunk (chunks as in
+// osrt_layer_norm_bwd_params).
 extern "C" __global__ void osrt_column_partials(const float* a, float* partial, int rows,
                                                 int cols, int chunk) {
     int col = blockIdx.x * blockDim.x + threadIdx.x;
     if (col >= cols) return;
-    long r0 = (long)blockIdx.y * chunk;
-    long r1 = min((long)rows, r0 + chunk);
-    float s = 0.f;
-    for (long r = r0; r < r1; ++r) s += a[r * cols + col];
-    partial[(long)blockIdx.y * cols + col] = s;
+    for (long c = blockIdx.y; c < row_chunks(rows, chunk); c += gridDim.y) {
+        long r0 = c * chunk;
+        long r1 = min((long)rows, r0 + chunk);
+        float s = 0.f;
+        for (long r = r0; r < r1; ++r) s += a[r * cols + col];
+        partial[c * cols + col] = s;
+    }
 }
 
 // Softmax of each row, shifted by the row's maximum (the largest term is exp(0) = 1).

@@ -15,6 +15,8 @@ pub const PARAM_CHUNK: usize = 64;
 const ELEMENTWISE_BLOCK: u32 = 256;
 /// Most blocks an element-wise launch takes; its kernels loop over the rest (grid stride).
 const MAX_ELEMENTWISE_BLOCKS: usize = 65_535 * 16;
+/// CUDA's limit on a grid's y and z sizes (x: 2³¹ − 1).
+pub const MAX_GRID_YZ: u32 = 65_535;
 
 /// A launch's grid and block sizes, `(x, y, z)`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -32,11 +34,16 @@ pub fn rows(rows: i32) -> Launch {
     }
 }
 
-/// A thread per column of `width`, `chunks` chunks of rows (`blockIdx.y`): the column
-/// sums (`osrt_column_partials`, `osrt_layer_norm_bwd_params`, `osrt_sum_chunks`).
-pub fn columns(width: i32, chunks: u32) -> Launch {
+/// A thread per column of `width`, a block row per chunk of rows (`blockIdx.y`), at most
+/// [`MAX_GRID_YZ`] of them (the kernels loop over the chunks past it): the column sums
+/// (`osrt_column_partials`, `osrt_layer_norm_bwd_params`, `osrt_sum_chunks`).
+pub fn columns(width: i32, chunks: usize) -> Launch {
     Launch {
-        grid: ((width.max(0) as u32).div_ceil(128).max(1), chunks, 1),
+        grid: (
+            (width.max(0) as u32).div_ceil(128).max(1),
+            chunks.clamp(1, MAX_GRID_YZ as usize) as u32,
+            1,
+        ),
         block: (128, 1, 1),
     }
 }
@@ -79,6 +86,8 @@ mod tests {
             assert!(l.grid.0 * l.block.1 >= r as u32 && l.grid.0 >= 1);
         }
         assert_eq!(columns(129, 3).grid, (2, 3, 1));
+        // 5 M rows: more chunks than a grid's y holds.
+        assert_eq!(columns(7, chunks(5_000_000)).grid, (1, MAX_GRID_YZ, 1));
         assert_eq!((chunks(0), chunks(64), chunks(65)), (1, 1, 2));
     }
 }

@@ -162,13 +162,15 @@ impl Emulator {
         y
     }
 
-    /// `cuda::layer_norm_bwd`: `(dx, dγ, dβ)`.
+    /// `cuda::layer_norm_bwd`: `(dx, dγ, dβ)`; the parameter sums over at most `y_cap`
+    /// block rows (`u32::MAX`: `cuda.rs`'s launch).
     pub(crate) fn layer_norm_bwd(
         &self,
         x: &[f32],
         g: &[f32],
         dy: &[f32],
         eps: f32,
+        y_cap: u32,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let d = g.len();
         assert!(dy.len() == x.len() && x.len().is_multiple_of(d));
@@ -203,7 +205,7 @@ impl Emulator {
                     eps,
                 )
             });
-            self.launch(geometry::columns(dd, chunks as u32), &|| {
+            self.launch(capped(geometry::columns(dd, chunks), y_cap), &|| {
                 params(
                     xp.get(),
                     dyp.get(),
@@ -295,8 +297,9 @@ impl Emulator {
         dz
     }
 
-    /// `cuda::column_sum`: the sums over the rows of `[rows, d]`.
-    pub(crate) fn column_sum(&self, a: &[f32], d: usize) -> Vec<f32> {
+    /// `cuda::column_sum`: the sums over the rows of `[rows, d]`, the partial sums over
+    /// at most `y_cap` block rows.
+    pub(crate) fn column_sum(&self, a: &[f32], d: usize, y_cap: u32) -> Vec<f32> {
         let rows = a.len() / d;
         let chunks = geometry::chunks(rows);
         let mut partial = vec![f32::NAN; chunks * d];
@@ -307,7 +310,7 @@ impl Emulator {
             let sum: SumChunks = self.kernel("osrt_sum_chunks");
             let (ap, pp, op) = (ptr(a), Ptr::of(&mut partial), Ptr::of(&mut out));
             let (r, dd) = (rows as i32, d as i32);
-            self.launch(geometry::columns(dd, chunks as u32), &|| {
+            self.launch(capped(geometry::columns(dd, chunks), y_cap), &|| {
                 part(ap.get(), pp.get(), r, dd, PARAM_CHUNK as i32)
             });
             self.launch(geometry::columns(dd, 1), &|| {
@@ -350,6 +353,13 @@ impl Emulator {
         });
         out
     }
+}
+
+/// `l` with at most `y` block rows: fewer than the work's chunks, as on a GPU past
+/// [`geometry::MAX_GRID_YZ`].
+fn capped(mut l: Launch, y: u32) -> Launch {
+    l.grid.1 = l.grid.1.min(y);
+    l
 }
 
 /// A read-only buffer as the kernels' pointer (they never write through it).

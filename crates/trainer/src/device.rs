@@ -122,7 +122,12 @@ mod pool {
     fn default_pool(device: &Device) -> Option<sys::CUmemoryPool> {
         let Device::Cuda(d) = device else { return None };
         let ctx = d.cuda_stream().context().clone();
-        ctx.bind_to_thread().ok()?;
+        // Binding first reports an error an earlier asynchronous call left behind: say
+        // what it was, or it is lost with the pool's figures.
+        if let Err(e) = ctx.bind_to_thread() {
+            tracing::error!(error = %e, "the CUDA context reports an earlier error");
+            return None;
+        }
         // SAFETY: the device handle comes from a live context.
         unsafe { result::device::get_default_mem_pool(ctx.cu_device()) }.ok()
     }
@@ -260,9 +265,11 @@ impl osrt_kernels::profile::MemoryMeter for Meter {
     }
 }
 
-/// Whether `e` is the device running out of memory.
+/// Whether `e` is the device running out of memory: the driver's allocation failing, or
+/// cuBLAS failing to allocate its workspace (outside the memory pool).
 pub fn is_out_of_memory(e: &candle_core::Error) -> bool {
-    e.to_string().contains("CUDA_ERROR_OUT_OF_MEMORY")
+    let text = e.to_string();
+    text.contains("CUDA_ERROR_OUT_OF_MEMORY") || text.contains("CUBLAS_STATUS_ALLOC_FAILED")
 }
 
 /// Hands the memory pool's free blocks back to the driver (after an allocation failed:

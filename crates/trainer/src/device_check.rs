@@ -141,3 +141,171 @@ pub fn compare_with_cpu(
             && g_dev.loss.is_finite(),
     })
 }
+
+/// One check of the device's plumbing beside the ops and steps: the staging of a
+/// gradient for the all-reduce, the memory pool's peak, the recognition of an
+/// out-of-memory error, and buffers freed on another thread.
+#[derive(Debug, Clone, Serialize)]
+pub struct PlumbingCheck {
+    pub check: &'static str,
+    pub pass: bool,
+    /// What was seen, in words.
+    pub detail: String,
+}
+
+/// Floats of the gradient the staging check sends through (three ring buckets and a part).
+const PLUMBING_FLOATS: usize = 3 * (1 << 22) + 12_345;
+
+/// The plumbing checks for `device`; on the CPU only the staging (the others concern a
+/// GPU's memory pool and context).
+pub fn plumbing(device: &Device) -> Result<Vec<PlumbingCheck>> {
+    let mut out = vec![staged_round_trip(device)?];
+    if device.is_cuda() {
+        out.push(peak_memory(device)?);
+        out.push(out_of_memory(device)?);
+        out.push(freed_on_another_thread(device)?);
+    }
+    Ok(out)
+}
+
+/// A gradient to the host and back through the all-reduce's staging (page-locked memory,
+/// bucket by bucket, the ring's cut) comes back with its bits, twice with the same staging.
+fn staged_round_trip(device: &Device) -> Result<PlumbingCheck> {
+    use crate::staging::{Staging, ring_buckets};
+    let n = PLUMBING_FLOATS;
+    let g = (candle_core::Tensor::arange(0u32, n as u32, device)?
+        .to_dtype(candle_core::DType::F32)?
+        * 1e-3)?;
+    let sent = g.to_vec1::<f32>()?;
+    let bucket = osrt_run::cluster::ClusterConfig::default().bucket_floats;
+    let mut staging = Staging::new(
+        device,
+        n,
+        ring_buckets(n + crate::step::CONTROL_FLOATS, bucket),
+    )?;
+    let mut detail = format!("{n} floats in buckets of {bucket}: ");
+    let mut pass = true;
+    for round in 1..=2 {
+        let back = staging.round_trip(&g)?.into_host()?;
+        match (0..n).find(|&i| back[i].to_bits() != sent[i].to_bits()) {
+            None => detail.push_str(&format!("round {round} exact; ")),
+            Some(i) => {
+                pass = false;
+                detail.push_str(&format!(
+                    "round {round}: float {i} sent {} came back {}; ",
+                    sent[i], back[i]
+                ));
+            }
+        }
+    }
+    Ok(PlumbingCheck {
+        check: "staged gradient round trip",
+        pass,
+        detail: detail.trim_end_matches("; ").to_string(),
+    })
+}
+
+/// The pool's high-water mark sees a 256 MiB buffer allocated after a reset.
+fn peak_memory(device: &Device) -> Result<PlumbingCheck> {
+    let bytes = 256u64 << 20;
+    let reset = crate::device::reset_device_peak(device);
+    let t = candle_core::Tensor::zeros((bytes / 4) as usize, candle_core::DType::F32, device)?;
+    device.synchronize()?;
+    let peak = crate::device::device_peak_bytes(device);
+    drop(t);
+    let pass = reset && peak.is_some_and(|p| p >= bytes);
+    Ok(PlumbingCheck {
+        check: "peak device memory",
+        pass,
+        detail: format!("reset {reset}; after a 256 MiB buffer the peak reads {peak:?} bytes"),
+    })
+}
+
+/// A request larger than the card fails as out of memory (what the step's retry and its
+/// final error recognise), the pool gives its free blocks back, and the device goes on.
+fn out_of_memory(device: &Device) -> Result<PlumbingCheck> {
+    let ordinal = match device.location() {
+        candle_core::DeviceLocation::Cuda { gpu_id } => gpu_id,
+        _ => 0,
+    };
+    let card = crate::device::gpu_memory(ordinal).unwrap_or(1e12);
+    let floats = (2.0 * card / 4.0) as usize;
+    let (recognised, text) =
+        match candle_core::Tensor::zeros(floats, candle_core::DType::F32, device) {
+            Ok(_) => (
+                false,
+                "a buffer twice the card's size was allocated".to_string(),
+            ),
+            Err(e) => (crate::device::is_out_of_memory(&e), e.to_string()),
+        };
+    let released = crate::device::release_cached(device);
+    // The device still works after the failed request.
+    let after = candle_core::Tensor::ones(1024, candle_core::DType::F32, device)
+        .and_then(|t| t.sum_all()?.to_scalar::<f32>());
+    let works = matches!(after, Ok(s) if s == 1024.0);
+    Ok(PlumbingCheck {
+        check: "out of memory recognised",
+        pass: recognised && released && works,
+        detail: format!(
+            "{floats} floats asked for: \"{text}\"; recognised {recognised}, pool released \
+             {released}, device works after {works}"
+        ),
+    })
+}
+
+/// A device buffer dropped on a thread that never touched the device is freed without
+/// an error left on the context (cudarc frees on the buffer's stream without binding the
+/// context when it does not track events).
+fn freed_on_another_thread(device: &Device) -> Result<PlumbingCheck> {
+    let t = candle_core::Tensor::ones(1 << 20, candle_core::DType::F32, device)?;
+    device.synchronize()?;
+    std::thread::spawn(move || drop(t))
+        .join()
+        .map_err(|_| crate::TrainError::Device("the thread dropping a buffer panicked".into()))?;
+    let state = context_error(device);
+    let again = candle_core::Tensor::ones(1 << 20, candle_core::DType::F32, device)
+        .and_then(|t| t.sum_all()?.to_scalar::<f32>())
+        .map_err(|e| e.to_string());
+    let pass = state.is_none() && again == Ok((1 << 20) as f32);
+    Ok(PlumbingCheck {
+        check: "buffer freed on another thread",
+        pass,
+        detail: format!(
+            "context error after the drop: {}; a sum after it: {again:?}",
+            state.as_deref().unwrap_or("none")
+        ),
+    })
+}
+
+/// The error an earlier asynchronous call left on the device's context, if any.
+fn context_error(device: &Device) -> Option<String> {
+    #[cfg(feature = "cuda")]
+    if let Device::Cuda(d) = device {
+        return d
+            .cuda_stream()
+            .context()
+            .check_err()
+            .err()
+            .map(|e| e.to_string());
+    }
+    let _ = device;
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// On the CPU the staging check runs (plain host pieces) and passes.
+    #[test]
+    fn the_cpu_runs_the_staging_check() {
+        let checks = plumbing(&Device::Cpu).unwrap();
+        assert_eq!(checks.len(), 1);
+        assert!(checks[0].pass, "{:?}", checks[0]);
+        assert!(
+            checks[0].detail.contains("round 2 exact"),
+            "{:?}",
+            checks[0]
+        );
+    }
+}

@@ -332,13 +332,7 @@ impl Trainer {
             1,
         )
         .map_or("no estimate for this decoder".to_string(), |m| m.describe());
-        let card = match self.device.location() {
-            candle_core::DeviceLocation::Cuda { gpu_id } => crate::device::gpu_memory(gpu_id)
-                .map_or("the device's total memory is unknown".into(), |b| {
-                    format!("the device has {:.1} GiB", b / (1u64 << 30) as f64)
-                }),
-            _ => "the device's total memory is unknown".into(),
-        };
+        let card = self.card_memory();
         TrainError::OutOfMemory(format!(
             "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
             self.device.location(),
@@ -463,6 +457,46 @@ impl Trainer {
     pub fn apply_summarized(
         &mut self,
         loss: f64,
+        grads: Gradient,
+        summary: Option<GradSummary>,
+    ) -> Result<ApplyOutcome> {
+        let out = self.apply_here(loss, grads, summary);
+        self.final_if_out_of_memory(out)
+    }
+
+    /// An optimiser step the device cannot hold ends the job, as a forward and backward
+    /// pass that cannot does (`gradients_kept`): a restart from the last checkpoint would
+    /// meet the same wall.
+    fn final_if_out_of_memory(&self, out: Result<ApplyOutcome>) -> Result<ApplyOutcome> {
+        let e = match out {
+            Err(TrainError::Model(e)) if crate::device::is_out_of_memory(&e) => e,
+            other => return other,
+        };
+        let n = self.num_parameters as f64;
+        // Weights, both moments and the gradient in f32.
+        let state_gib = 16.0 * n / (1u64 << 30) as f64;
+        Err(TrainError::OutOfMemory(format!(
+            "out of memory on {:?} ({e}) in the optimiser step: {} parameters, whose weights,              AdamW moments and gradient take {state_gib:.2} GiB before the update's              temporaries, did not leave room for it; {}. Lower train.batch_size or              train.rays_per_scene (the step's activations share the device), or train a              smaller model",
+            self.device.location(),
+            self.num_parameters,
+            self.card_memory(),
+        )))
+    }
+
+    /// The device's total memory, in words.
+    fn card_memory(&self) -> String {
+        match self.device.location() {
+            candle_core::DeviceLocation::Cuda { gpu_id } => crate::device::gpu_memory(gpu_id)
+                .map_or("the device's total memory is unknown".into(), |b| {
+                    format!("the device has {:.1} GiB", b / (1u64 << 30) as f64)
+                }),
+            _ => "the device's total memory is unknown".into(),
+        }
+    }
+
+    fn apply_here(
+        &mut self,
+        loss: f64,
         mut grads: Gradient,
         summary: Option<GradSummary>,
     ) -> Result<ApplyOutcome> {
@@ -555,4 +589,47 @@ fn extend_with(flat: &mut Vec<f32>, g: &Tensor) -> candle_core::Result<()> {
             .to_vec1::<f32>()?,
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A device out of memory in the optimiser step is final, with the parameter count,
+    /// the state's size and what to change; other errors and outcomes pass unchanged.
+    #[test]
+    fn an_optimiser_step_out_of_memory_ends_the_job() {
+        let trainer = Trainer::new(JobConfig::preset("tiny").unwrap(), Device::Cpu).unwrap();
+        let oom = |text: &str| Err(TrainError::Model(candle_core::Error::Msg(text.into())));
+        for text in [
+            "DriverError(CUDA_ERROR_OUT_OF_MEMORY, \"out of memory\")",
+            "CublasError(CUBLAS_STATUS_ALLOC_FAILED)",
+        ] {
+            match trainer.final_if_out_of_memory(oom(text)) {
+                Err(TrainError::OutOfMemory(m)) => {
+                    for part in [
+                        text,
+                        "in the optimiser step",
+                        &format!("{} parameters", trainer.num_parameters()),
+                        "Lower train.batch_size",
+                    ] {
+                        assert!(m.contains(part), "{part:?} not in {m}");
+                    }
+                }
+                other => panic!("{text}: {other:?}"),
+            }
+        }
+        assert!(matches!(
+            trainer.final_if_out_of_memory(oom("CUDA_ERROR_ILLEGAL_ADDRESS")),
+            Err(TrainError::Model(_))
+        ));
+        let applied = Ok(ApplyOutcome::Applied {
+            grad_norm: 1.0,
+            lr: 1e-4,
+        });
+        assert!(matches!(
+            trainer.final_if_out_of_memory(applied),
+            Ok(ApplyOutcome::Applied { .. })
+        ));
+    }
 }

@@ -65,8 +65,10 @@ inline void __syncthreads() { emu_block_barrier->arrive_and_wait(); }
 
 extern "C" int emu_launch(unsigned gx, unsigned gy, unsigned gz, unsigned bx, unsigned by,
                           unsigned bz, void (*body)(void*), void* ctx) {
+    // CUDA's limits on a launch: a kernel launched past them fails on a GPU.
     unsigned threads = bx * by * bz;
-    if (threads == 0 || threads > 1024) return 1;
+    if (threads == 0 || threads > 1024 || bz > 64) return 1;
+    if (gx == 0 || gy == 0 || gz == 0 || gx > 2147483647u || gy > 65535 || gz > 65535) return 3;
     // The grid's sizes and the block's index are globals: one launch at a time, as on
     // one stream (tests call from several threads).
     static std::mutex one_at_a_time;

@@ -81,7 +81,10 @@ fn layer_norm_matches_the_f64_reference() {
         let dy = seeded(rows * d, 1.0, s + 3);
         let (y, dx, dg, db) = layer_norm_reference(&x, &g, &b, &dy, 1e-5);
         let e = emu.layer_norm_fwd(&x, &g, &b, 1e-5);
-        let (edx, edg, edb) = emu.layer_norm_bwd(&x, &g, &dy, 1e-5);
+        let (edx, edg, edb) = emu.layer_norm_bwd(&x, &g, &dy, 1e-5, u32::MAX);
+        // Fewer block rows than chunks (past 65,535 chunks on a GPU): the same sums.
+        let (_, cdg, cdb) = emu.layer_norm_bwd(&x, &g, &dy, 1e-5, 2);
+        assert_eq!((bits(&cdg), bits(&cdb)), (bits(&edg), bits(&edb)));
         for (what, got, want) in [
             ("y", &e, &y),
             ("dx", &edx, &dx),
@@ -121,7 +124,7 @@ fn layer_norm_is_finite_and_close_on_extreme_rows() {
         (values(&out), values(grads.get(xv.as_tensor()).unwrap()))
     };
     let e = emu.layer_norm_fwd(&x, &g, &b, 1e-5);
-    let (edx, edg, edb) = emu.layer_norm_bwd(&x, &g, &dy, 1e-5);
+    let (edx, edg, edb) = emu.layer_norm_bwd(&x, &g, &dy, 1e-5, u32::MAX);
     // The CPU op's own error against f64 sets the bar (the offset row loses bits in f32).
     let bar = |cpu: &[f32], r: &[f64]| worst(cpu, r).max(1e-5) * 4.0;
     assert!(
@@ -251,7 +254,9 @@ fn column_sums_match_the_f64_reference() {
         let want: Vec<f64> = (0..d)
             .map(|c| (0..rows).map(|r| a[r * d + c] as f64).sum())
             .collect();
-        let got = emu.column_sum(&a, d);
+        let got = emu.column_sum(&a, d, u32::MAX);
+        let capped = emu.column_sum(&a, d, 2);
+        assert_eq!(bits(&capped), bits(&got), "{rows} × {d}, 2 block rows");
         assert!(
             worst(&got, &want) < 1e-5,
             "{rows} × {d}: {:e}",

@@ -99,6 +99,9 @@ impl DeviceAdamW {
             return Ok(false);
         }
         let t_checked = clock.lap()?;
+        // Until every bucket is written, no maxima describe the state (a failure part way
+        // leaves some buckets updated).
+        self.known = None;
         let mut after = Vec::with_capacity(buckets.len());
         for b in &buckets {
             let (p, m, v) = self.propose(vars, b, grads, &k)?;
