@@ -50,9 +50,16 @@ fn input<'a>(s: &'a CudaStorage, l: &Layout, what: &str) -> Result<CudaView<'a, 
     Ok(s.as_cuda_slice::<f32>()?.slice(a..b))
 }
 
-/// `(rows, d)` of a `[.., d]` layout, as the kernels' `int`s.
+/// `(rows, d)` of a `[.., d]` layout, as the kernels' `int`s; an empty tensor is no rows
+/// (the kernels then write nothing, as the CPU ops return empty tensors).
 fn rows_cols(l: &Layout, d: usize, what: &str) -> Result<(i32, i32)> {
     let n = l.shape().elem_count();
+    if n == 0 {
+        return match i32::try_from(d) {
+            Ok(d) => Ok((0, d)),
+            Err(_) => candle_core::bail!("{what}: rows of {d} are too wide for one launch"),
+        };
+    }
     if d == 0 || !n.is_multiple_of(d) {
         candle_core::bail!("{what}: {n} elements are not rows of {d}")
     }

@@ -102,6 +102,9 @@ mod tests {
     #[test]
     #[cfg(target_os = "linux")]
     fn peak_rss_grows_with_a_touched_allocation() {
+        // From the resident size now: other tests of this process may have raised the
+        // high-water mark above it (and freed their memory since).
+        super::reset_peak_rss();
         let before = super::peak_rss_mb().expect("linux reports VmHWM");
         let big = vec![1u8; 64 << 20];
         let after = super::peak_rss_mb().expect("linux reports VmHWM");

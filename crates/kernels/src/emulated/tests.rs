@@ -348,3 +348,18 @@ fn a_warp_sum_reaches_every_lane() {
     let y = emu.softmax_fwd(&[1.0; 32], 32);
     assert!(y.iter().all(|&v| v == 1.0 / 32.0), "{y:?}");
 }
+
+/// No rows: the kernels write nothing to rows and the column sums are zeros (`cuda.rs`
+/// launches them for empty tensors, as the CPU ops return empty tensors).
+#[test]
+fn empty_inputs_give_empty_rows_and_zero_sums() {
+    let emu = Emulator::get();
+    let g = seeded(6, 1.0, 90);
+    assert!(emu.layer_norm_fwd(&[], &g, &g, 1e-5).is_empty());
+    let (dx, dg, db) = emu.layer_norm_bwd(&[], &g, &[], 1e-5, u32::MAX);
+    assert!(dx.is_empty() && dg == [0.0; 6] && db == [0.0; 6]);
+    assert!(emu.softmax_fwd(&[], 6).is_empty());
+    assert_eq!(emu.column_sum(&[], 6, u32::MAX), [0.0; 6]);
+    let l = geometry::elementwise(0);
+    assert!(emu.bias_act_fwd(&[], &g, (2, 0.0), l).is_empty());
+}
