@@ -179,13 +179,7 @@ pub fn bench_step(
             peak_device = crate::device::device_peak_bytes(device).max(peak_device);
             if !device.is_cpu() && transfer_error.is_none() {
                 let n = trainer.num_parameters();
-                match gradient_round_trip(&mut staging, n, device) {
-                    Ok(s) => transfer_s.push(s),
-                    Err(e) => {
-                        tracing::error!(error = %e, "the staged gradient round trip failed");
-                        transfer_error = Some(e.to_string());
-                    }
-                }
+                transfer_error = time_round_trip(&mut staging, n, device, &mut transfer_s);
             }
         }
     }
@@ -318,6 +312,25 @@ pub fn profile_step(
 
 fn gib(bytes: usize) -> f64 {
     bytes as f64 / (1u64 << 30) as f64
+}
+
+/// Times one [`gradient_round_trip`] into `times`; its error, if it fails.
+fn time_round_trip(
+    staging: &mut Option<Staging>,
+    n: usize,
+    device: &Device,
+    times: &mut Vec<f64>,
+) -> Option<String> {
+    match gradient_round_trip(staging, n, device) {
+        Ok(s) => {
+            times.push(s);
+            None
+        }
+        Err(e) => {
+            tracing::error!(error = %e, "the staged gradient round trip failed");
+            Some(e.to_string())
+        }
+    }
 }
 
 /// Seconds for an `n`-float gradient to go device → host → device the way two or more
