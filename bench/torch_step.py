@@ -20,7 +20,9 @@ the sizes of `Config::cpu()` (preset `clevr-lite-cpu`) or `Config::paper()` (pre
 (1 on the CPU, 2 on CUDA), batch building excluded; and render speed (decoding one whole
 input view, image_size² rays, from the model's slots, no gradients; median of 5 after one
 warm-up). On the CPU each (case, thread count) runs in a fresh child process (thread pools
-are sized once per process), as in Rust; on CUDA every case runs in this one process, with
+are sized once per process), as in Rust, and counts its heap (`bench/heap_count.c`,
+preloaded: `heap GiB`, the most bytes live at once in a timed step, as `osrt bench model`'s
+`peak_heap_gib`); on CUDA every case runs in this one process, with
 `torch.cuda.synchronize()` before each timer is read.
 """
 
@@ -353,11 +355,14 @@ def run_case(torch, case):
     sync = torch.cuda.synchronize if cuda else (lambda: None)
     if cuda:
         torch.cuda.reset_peak_memory_stats(dev)
-    step_s, fb_s, opt_s, losses = [], [], [], []
+    heap = None if cuda else HeapCounter.attach(torch)
+    step_s, fb_s, opt_s, losses, peak_heap = [], [], [], [], None
     for i in range(case["warmup"] + case["steps"]):
         if i == case["warmup"]:
             # The timed steps' resident peak only, as `osrt bench model` measures it.
             reset_peak_rss()
+        if heap:
+            heap.reset_peak()  # each step's peak from what is live before it, as osrt's
         sync()
         t0 = time.perf_counter()
         with autocast():
@@ -372,6 +377,8 @@ def run_case(torch, case):
         t2 = time.perf_counter()
         losses.append(loss.item())
         if i >= case["warmup"]:
+            if heap:
+                peak_heap = max(peak_heap or 0, heap.peak())
             step_s.append(t2 - t0)
             fb_s.append(t1 - t0)
             opt_s.append(t2 - t1)
@@ -402,6 +409,7 @@ def run_case(torch, case):
         scenes_per_s=b / m,
         peak_memory_gib=peak, peak_memory_kind=peak_kind,
         peak_rss_gib=peak_rss_gib(),
+        peak_heap_gib=None if peak_heap is None else peak_heap / 2**30,
         losses=losses,
     )
     if cuda:
@@ -476,6 +484,67 @@ def print_profile(r):
     for o in p["ops"]:
         print(f"  {o['self_s'] * 1e3:>9.2f} {o['total_s'] * 1e3:>9.2f} "
               f"{o.get('self_memory_bytes', 0) / 2**20:>9.1f} {o['calls']:>6}  {o['name']}")
+
+
+class HeapCounter:
+    """The heap bytes live at once in this process, counted by `bench/heap_count.c` when
+    the parent preloaded it (CPU children): the counterpart of `osrt bench model`'s
+    `peak_heap_gib`."""
+
+    def __init__(self, lib):
+        self.lib = lib
+
+    @staticmethod
+    def attach(torch):
+        """The counter, or None where it is not loaded; raises if it is loaded but does not
+        see a tensor's allocation (PyTorch allocating around glibc would make its figure
+        meaningless)."""
+        import ctypes
+        try:
+            lib = ctypes.CDLL(None)
+            for name in ("heapcount_live", "heapcount_peak"):
+                getattr(lib, name).restype = ctypes.c_int64
+            lib.heapcount_reset_peak.restype = None
+        except AttributeError:
+            return None
+        h = HeapCounter(lib)
+        before = h.live()
+        probe = torch.ones(64 << 20)  # 256 MiB of f32
+        seen = h.live() - before
+        del probe
+        if seen < 256 << 20:
+            raise RuntimeError(f"bench/heap_count.c saw {seen:,} bytes of a 268,435,456-byte "
+                               "tensor: PyTorch allocates around glibc's malloc here")
+        return h
+
+    def live(self):
+        return self.lib.heapcount_live()
+
+    def peak(self):
+        return self.lib.heapcount_peak()
+
+    def reset_peak(self):
+        self.lib.heapcount_reset_peak()
+
+
+def heap_counter_library(out_dir):
+    """Compiles bench/heap_count.c into out_dir (once per run); the path, or None with a
+    note on stderr where no C compiler is at hand."""
+    import shutil
+    cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
+    if cc is None:
+        print("no C compiler: PyTorch's peak heap is not counted", file=sys.stderr)
+        return None
+    src = os.path.join(os.path.dirname(os.path.abspath(__file__)), "heap_count.c")
+    lib = os.path.abspath(os.path.join(out_dir, "libheapcount.so"))
+    os.makedirs(out_dir, exist_ok=True)
+    r = subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", lib, src],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        print(f"{cc} could not build {src}: PyTorch's peak heap is not counted\n{r.stderr}",
+              file=sys.stderr)
+        return None
+    return lib
 
 
 def reset_peak_rss():
@@ -619,6 +688,7 @@ def main():
 
     results = []
     if a.device == "cpu":
+        heap_lib = heap_counter_library(os.path.dirname(a.out) or ".")
         for case in cases:
             for t in ints(a.threads):
                 print(f"benchmarking {case['preset']} batch {case['batch_size']}, "
@@ -628,6 +698,9 @@ def main():
                 env = dict(os.environ, OMP_NUM_THREADS=str(t), MKL_NUM_THREADS=str(t))
                 if a.worker_allocator:
                     env.update(WORKER_MALLOC_ENV)
+                if heap_lib:
+                    env["LD_PRELOAD"] = " ".join(
+                        x for x in (heap_lib, env.get("LD_PRELOAD")) if x)
                 out = subprocess.run([sys.executable, os.path.abspath(__file__),
                                       "--child", str(t), "--child-case", json.dumps(case),
                                       "--steps", str(a.steps)],
@@ -672,8 +745,8 @@ def main():
               + (", TF32 allowed" if a.device == "cuda" and a.tf32 else ""))
     head = ("preset", "params", "threads" if a.device == "cpu" else "device", "batch", "views",
             "rays", "px", "dtype", "step ms", "fwd+bwd ms", "optim ms", "scenes/s", "peak GiB",
-            "render ms", "render fps")
-    widths = (14, 11, 7, 5, 5, 6, 4, 5, 9, 10, 8, 9, 8, 9, 10)
+            "heap GiB", "render ms", "render fps")
+    widths = (14, 11, 7, 5, 5, 6, 4, 5, 9, 10, 8, 9, 8, 8, 9, 10)
     print("  ".join(f"{h:>{w}}" for h, w in zip(head, widths)))
     for r in results:
         where = str(r.get("threads")) if a.device == "cpu" else "cuda"
@@ -688,6 +761,7 @@ def main():
                f"{r['median_optimizer_s'] * 1e3:.1f}",
                f"{r['scenes_per_s']:.{1 if r['scenes_per_s'] >= 10 else 3}f}",
                f"{r['peak_memory_gib']:.2f}",
+               "-" if r.get("peak_heap_gib") is None else f"{r['peak_heap_gib']:.2f}",
                f"{r['render']['median_frame_s'] * 1e3:.2f}" if "render" in r else "-",
                f"{r['render']['fps']:.1f}" if "render" in r else "-")
         print("  ".join(f"{x!s:>{w}}" for x, w in zip(row, widths)))
