@@ -211,9 +211,13 @@ impl CustomOp1 for Col2Im {
     }
 }
 
-/// Most values of one unfolded (im2col) buffer of candle's device convolution: 2²⁸ (1 GiB
-/// in f32), a sixteenth of what its 32-bit indexing can address.
-const MAX_UNFOLDED: usize = 1 << 28;
+/// Most values of one unfolded (im2col) buffer on a device (candle's convolution, and the
+/// convolution node's forward and backward passes): 2²⁵ (128 MiB in f32). candle's 32-bit
+/// indexing alone would allow 2³²; the cap is for memory: the kernel's gradient unfolds
+/// the input again at the end of the backward pass, when the step holds most of its
+/// gradients, so that buffer sits on the step's peak (the `paper` preset's first
+/// convolution unfolds 27 M values per 128×128 image).
+const MAX_UNFOLDED: usize = 1 << 25;
 
 /// 2-D convolution without bias on channels-last input, as im2col + one matmul.
 ///

@@ -161,6 +161,10 @@ impl CustomOp2 for ConvNode {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let g = self.geom;
+        let (want_dx, want_dk) = (x.track_op(), kernel.track_op());
+        // Detached: products of tracked operands would carry a graph (the unfolded
+        // columns) into candle's gradient store until the backward pass ends.
+        let (x, kernel) = (&x.detach(), &kernel.detach());
         let (n, _, _, ci) = x.dims4()?;
         let (_, _, kh, kw) = kernel.dims4()?;
         let k = g.low(kernel)?;
@@ -169,12 +173,12 @@ impl CustomOp2 for ConvNode {
         for (i, len) in g.groups(n) {
             // The group's output gradient as rows, in the products' precision.
             let dy = dy_rows(&g.low(&grad.narrow(0, i, len)?)?)?;
-            if x.track_op() {
+            if want_dx {
                 // The columns' gradient, one product with the kernel matrix (cuBLAS on a
                 // GPU), summed back onto the pixels they were read from (col2im, in f32).
                 dxs.push(col2im(&dy.matmul(&kmat)?, g.fold(len, x, kernel)?)?);
             }
-            if kernel.track_op() {
+            if want_dk {
                 // The output's gradient (transposed) times the input's unfolding again.
                 let xg = g.low(&x.narrow(0, i, len)?)?;
                 let cols = im2col(&xg, g.fold(len, x, kernel)?)?;

@@ -28,6 +28,7 @@ mod conv;
 mod conv_node;
 #[cfg(feature = "cuda")]
 pub mod cuda;
+pub mod cut;
 pub mod device_check;
 pub mod device_kernels;
 #[cfg(test)]
@@ -37,7 +38,8 @@ mod gemm;
 mod handover;
 mod layer_norm;
 mod linear;
-mod low_precision;
+mod links;
+mod matmul_node;
 mod mix;
 mod mlp;
 mod mlp_node;
@@ -51,6 +53,7 @@ pub use attention::{attention, attention_composed};
 pub use bias_act::bias_act;
 pub use block::{BlockParams, block};
 pub use conv::conv2d_nhwc;
+pub use cut::{Cuts, cut, with_cuts};
 pub use layer_norm::layer_norm;
 pub use linear::{bias_add, linear};
 pub use mix::slot_mix;
@@ -121,13 +124,15 @@ pub fn with_precision<T>(p: Precision, f: impl FnOnce() -> T) -> T {
     out
 }
 
-/// `a · b` (candle's batched matmul) in this thread's [`precision`]; in bf16 with the
-/// fused ops on, as one node that keeps no bf16 copies (`low_precision.rs`).
+/// `a · b` (candle's batched matmul) in this thread's [`precision`]; with the fused ops
+/// on, as one node that keeps no bf16 copies and whose gradients hold no graph
+/// (`matmul_node.rs`).
 pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
     profile::op("matmul", &[a, b], |t| {
         let f32s = t.iter().all(|t| t.dtype() == candle_core::DType::F32);
-        if precision() == Precision::Bf16 && enabled() && f32s {
-            return low_precision::matmul_bf16(&t[0], &t[1]);
+        if enabled() && f32s {
+            let bf16 = precision() == Precision::Bf16;
+            return matmul_node::matmul_node(&t[0], &t[1], bf16);
         }
         in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
     })

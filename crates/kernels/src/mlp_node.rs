@@ -5,13 +5,15 @@
 //! candle's graph, which holds every node's output until the end of the backward pass
 //! and gives each node's gradient a zero tensor and an add; in bf16 each product also
 //! casts its f32 input again. This node runs the same ops on detached tensors and keeps
-//! for the backward pass, per layer, the product's input and its output (the
-//! pre-activation) in the products' precision: in bf16 half the bytes of the f32 tensors
-//! the layer-by-layer graph holds, as PyTorch's autocast keeps them. Its backward pass
-//! takes them layer by layer, so each is freed once used. The values are the
-//! layer-by-layer ones: in bf16 the pre-activation is kept as the product returned it,
-//! before its exact widening to f32, and the next layer's input as the product would
-//! round it.
+//! for the backward pass one tensor per hidden layer: its product's output (the
+//! pre-activation before the bias) in the products' precision. A layer's input is not
+//! kept: the first is the node's own input, and each later one is made again in the
+//! backward pass from the layer before's kept output by the same bias-with-activation op
+//! (and, in bf16, the same rounding), so it has the forward pass's bits. That is one
+//! tensor per hidden layer where PyTorch keeps one (ReLU: its output) or two (GELU: its
+//! input and output), in f32 or, in bf16, half the bytes, as autocast keeps them; the
+//! price is one elementwise pass per hidden layer in the backward pass. The backward pass
+//! takes them layer by layer, so each is freed once used.
 
 use crate::bias_act::{BiasActBwd, BiasActOp};
 use crate::handover::Handover;
@@ -48,26 +50,25 @@ pub(crate) fn mlp_node(
             .iter()
             .any(|(w, b)| w.track_op() || b.is_some_and(|b| b.track_op()));
     let (y, saved) = plan.forward(&x2.detach(), keep)?;
-    let packed = Tensor::cat(
-        &layers
-            .iter()
-            .flat_map(|(w, b)| [w.flatten_all(), b.expect("checked").flatten_all()])
-            .collect::<Result<Vec<_>>>()?,
-        0,
-    )?;
+    let pairs: Vec<&Tensor> = layers
+        .iter()
+        .flat_map(|(w, b)| [*w, b.expect("checked")])
+        .collect();
+    let (chain, grads) = crate::links::link(&pairs)?;
     let node = MlpNode {
         out: Handover::new(y)?,
         saved: Kept::new(saved),
         plan,
+        grads,
     };
     let mut out = lead.to_vec();
     out.push(layers.last().expect("not empty").0.dim(0)?);
-    Ok(Some(x2.apply_op2(&packed, node)?.reshape(out)?))
+    Ok(Some(x2.apply_op2(&chain, node)?.reshape(out)?))
 }
 
-/// What one layer keeps for the backward pass: its product's input and output (the
-/// pre-activation, before the bias), in the products' precision.
-type Saved = Vec<(Tensor, Tensor)>;
+/// What the backward pass needs: each hidden layer's product output (the pre-activation
+/// before its bias), in the products' precision.
+type Saved = Vec<Tensor>;
 
 struct Plan {
     act: MlpAct,
@@ -93,45 +94,71 @@ impl Plan {
         }
     }
 
+    /// Layer `i`'s product output `z: [rows, out]` (products' precision) with its bias and,
+    /// on a hidden layer, the activation: `[rows, out]` in f32.
+    fn finish(&self, i: usize, z: &Tensor) -> Result<Tensor> {
+        let hidden = i + 1 < self.params.len();
+        self.high(z.clone())?.contiguous()?.apply_op2_no_bwd(
+            &self.params[i].1,
+            &BiasActOp {
+                act: hidden.then_some(self.act),
+            },
+        )
+    }
+
     /// `[rows, in] → [rows, out]`, and what the backward pass needs where `keep` is set.
     /// Each layer as `linear_act` composes it: the product with the weight's transpose
     /// (in bf16 a contiguous copy of it), then the bias with the activation in f32.
     fn forward(&self, x: &Tensor, keep: bool) -> Result<(Tensor, Option<Saved>)> {
         let mut saved = Vec::with_capacity(self.params.len());
         let mut h = x.clone();
-        for (i, (w, b)) in self.params.iter().enumerate() {
-            let hidden = i + 1 < self.params.len();
-            let input = self.low(&h)?;
-            let z = input.matmul(&self.low(&w.t()?)?)?;
-            let act = hidden.then_some(self.act);
-            h = self
-                .high(z.clone())?
-                .contiguous()?
-                .apply_op2_no_bwd(b, &BiasActOp { act })?;
-            if keep {
-                saved.push((input, z));
+        for (i, (w, _)) in self.params.iter().enumerate() {
+            let z = self.low(&h)?.matmul(&self.low(&w.t()?)?)?;
+            h = self.finish(i, &z)?;
+            if keep && i + 1 < self.params.len() {
+                saved.push(z);
             }
         }
         Ok((h, keep.then_some(saved)))
     }
 
-    /// The gradients of the input `[rows, in]` (where `want_dx`) and of the packed
-    /// parameters (each weight then its bias, flattened), from the output's `dy`: per
-    /// layer what candle's backward pass of `linear_act` computes, in the same products.
+    /// Layer `i`'s input in the products' precision, as the forward pass made it: the
+    /// node's input `x: [rows, in]`, or the layer before's output made again from its
+    /// kept product output.
+    fn input(&self, i: usize, x: &Tensor, saved: &Saved) -> Result<Tensor> {
+        match i {
+            0 => self.low(x),
+            _ => self.low(&self.finish(i - 1, &saved[i - 1])?),
+        }
+    }
+
+    /// The gradients of the input `x: [rows, in]` (where `want_dx`) and of the parameters
+    /// (each weight `[out, in]` then its bias `[out]`, first layer first), from the
+    /// output's `dy`: per layer what candle's backward pass of `linear_act` computes, in
+    /// the same products.
     fn backward(
         &self,
         mut saved: Saved,
+        x: &Tensor,
         dy: &Tensor,
         want_dx: bool,
-    ) -> Result<(Option<Tensor>, Tensor)> {
+    ) -> Result<(Option<Tensor>, Vec<Tensor>)> {
+        if saved.len() + 1 != self.params.len() {
+            candle_core::bail!(
+                "mlp node: {} kept tensors for {} layers",
+                saved.len(),
+                self.params.len()
+            );
+        }
         let mut g = dy.contiguous()?;
         let mut parts = Vec::with_capacity(2 * self.params.len());
         let mut dx = None;
         for (i, (w, b)) in self.params.iter().enumerate().rev() {
-            let (input, z) = saved.pop().expect("one entry per layer");
             let dz = match i + 1 < self.params.len() {
                 true => {
-                    let z = self.high(z)?.contiguous()?;
+                    // This layer's kept output is used for the last time here (the layer
+                    // after made its input from it already).
+                    let z = self.high(saved.pop().expect("checked"))?.contiguous()?;
                     z.apply_op3_no_bwd(b, &g, &BiasActBwd { act: self.act })?
                 }
                 false => g,
@@ -140,10 +167,11 @@ impl Plan {
             let dz_low = self.low(&dz)?;
             let wt = self.low(&w.t()?)?;
             // The product was `input · wt`: wt's gradient is inputᵀ · dz, the input's dz · wtᵀ.
+            let input = self.input(i, x, &saved)?;
             let dwt = self.high(input.t()?.matmul(&dz_low)?)?;
             drop(input);
-            parts.push(db.flatten_all()?);
-            parts.push(dwt.t()?.flatten_all()?);
+            parts.push(db.reshape(b.shape())?);
+            parts.push(dwt.t()?);
             g = match i > 0 || want_dx {
                 true => self.high(dz_low.matmul(&wt.t()?)?)?.contiguous()?,
                 false => dz,
@@ -153,7 +181,7 @@ impl Plan {
             }
         }
         parts.reverse();
-        Ok((dx, Tensor::cat(&parts, 0)?))
+        Ok((dx, parts))
     }
 }
 
@@ -161,6 +189,8 @@ struct MlpNode {
     out: Handover,
     saved: Kept<Saved>,
     plan: Plan,
+    /// Where the parameters' gradients go to their links (`links.rs`).
+    grads: crate::links::ParamGrads,
 }
 
 impl CustomOp2 for MlpNode {
@@ -194,7 +224,7 @@ impl CustomOp2 for MlpNode {
     fn bwd(
         &self,
         x: &Tensor,
-        packed: &Tensor,
+        chain: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
@@ -205,8 +235,13 @@ impl CustomOp2 for MlpNode {
                 None => candle_core::bail!("mlp node: nothing kept"),
             },
         };
-        let (dx, dp) = self.plan.backward(saved, grad, x.track_op())?;
-        Ok((dx, packed.track_op().then_some(dp)))
+        let (dx, dp) = self.plan.backward(saved, &x.detach(), grad, x.track_op())?;
+        self.grads.put(dp);
+        // The chain carries no value (see `links.rs`): a zero gradient sends candle down it.
+        Ok((
+            dx,
+            chain.track_op().then(|| chain.zeros_like()).transpose()?,
+        ))
     }
 }
 
@@ -293,6 +328,32 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// What the node keeps for the backward pass: each hidden layer's product output
+    /// (in the products' precision), nothing of the last layer, no layer's input.
+    #[test]
+    fn the_node_keeps_one_tensor_per_hidden_layer() {
+        let x = randn(&[6, 12], 1.0, 1);
+        let dims = [12, 20, 16, 5];
+        let params: Vec<(Tensor, Tensor)> = dims
+            .windows(2)
+            .map(|d| (randn(&[d[1], d[0]], 0.4, 2), randn(&[d[1]], 0.2, 3)))
+            .collect();
+        for (bf16, dtype) in [(false, DType::F32), (true, DType::BF16)] {
+            let plan = Plan {
+                act: MlpAct::Gelu,
+                bf16,
+                params: params.clone(),
+            };
+            let saved = plan.forward(&x, true).unwrap().1.unwrap();
+            let shapes: Vec<_> = saved
+                .iter()
+                .map(|t| (t.dims().to_vec(), t.dtype()))
+                .collect();
+            assert_eq!(shapes, [(vec![6, 20], dtype), (vec![6, 16], dtype)]);
+            assert!(plan.forward(&x, false).unwrap().1.is_none());
         }
     }
 

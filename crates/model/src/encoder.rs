@@ -218,9 +218,12 @@ impl Encoder {
         origins: &Tensor,
         directions: &Tensor,
     ) -> Result<Tensor> {
+        // The CNN and the transformer are segments of the backward pass
+        // (`osrt_kernels::cut`): the transformer's activations are freed before the CNN's
+        // backward pass, which ends the step's and so meets all its gradients.
         if let Some(e) = &self.unposed {
             let tokens = self.unposed_tokens(e, images)?;
-            return self.transformer.forward(&tokens, None);
+            return self.transformer.forward(&osrt_kernels::cut(&tokens)?, None);
         }
         let (b, v, h, w, _) = images.dims5()?;
         let enc = rays.forward(origins, directions)?; // [b, v, h, w, r]
@@ -250,7 +253,7 @@ impl Encoder {
         }
         let (_, h2, w2, d) = x.dims4()?;
         let tokens = x.reshape((b, v * h2 * w2, d))?;
-        self.transformer.forward(&tokens, None)
+        self.transformer.forward(&osrt_kernels::cut(&tokens)?, None)
     }
 
     /// Up-OSRT's tokens: the CNN over RGB, plus camera-ID and row/column embeddings.

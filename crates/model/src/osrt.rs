@@ -253,7 +253,15 @@ impl Osrt {
         let slsr = self
             .encoder
             .forward(&self.rays, images, origins, directions)?;
-        self.slot_attention.forward(&slsr, noise)
+        // Encoder, slot attention and decoder are segments of the backward pass
+        // (`osrt_kernels::cut`), freed one after the other as it goes.
+        let out = self
+            .slot_attention
+            .forward(&osrt_kernels::cut(&slsr)?, noise)?;
+        Ok(SlotOutput {
+            slots: osrt_kernels::cut(&out.slots)?,
+            ..out
+        })
     }
 
     /// Slots and target rays → colours (and slot weights); a volumetric decoder samples

@@ -377,59 +377,47 @@ impl Trainer {
         let offsets = self
             .model
             .ray_offsets(batch.batch_size, batch.rays_per_scene, rng)?;
-        let slots = self
-            .model
-            .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?;
-        let out = self.model.decode_with(
-            &slots.slots,
-            &t.target_origins,
-            &t.target_directions,
-            offsets.as_ref(),
-        )?;
-        let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
+        // The forward pass in segments (`osrt_kernels::cut`: encoder, slot attention,
+        // decoder), whose backward passes run one after the other, each segment's
+        // activations freed before the next: the step's peak is then not every activation
+        // beside every gradient at the end of the backward pass. The gradients are the
+        // uncut graph's, to the bit.
+        let (forward, cuts) = osrt_kernels::with_cuts(|| -> Result<_> {
+            let slots = self
+                .model
+                .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?;
+            let out = self.model.decode_with(
+                &slots.slots,
+                &t.target_origins,
+                &t.target_directions,
+                offsets.as_ref(),
+            )?;
+            let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
+            Ok((slots, out, loss))
+        });
+        let (slots, out, loss) = forward?;
         let forward_s = lap(&mut clock)?;
         let forward_kept_bytes = probe.held();
         let mut grads = loss.backward()?;
+        let loss_value = loss.to_scalar::<f32>()? as f64;
+        // The last segment's graph (the outputs hold it) goes before the earlier
+        // segments' backward passes; the batch goes with it.
+        drop((loss, out, slots, t));
+        cuts.backward(&mut grads)?;
+        // The parameters' gradients, in order, out of candle's store and detached; the rest
+        // of it goes: candle also writes gradients for constants (the data, a product's
+        // other factor), and a gradient computed from a tracked operand holds that
+        // operand's graph.
+        let param_grads: Vec<Option<Tensor>> = self
+            .params
+            .vars()
+            .into_iter()
+            .map(|(_, var)| grads.remove(var.as_tensor()).map(|g| g.detach()))
+            .collect();
+        drop(grads);
         let backward_s = lap(&mut clock)?;
         let peak_bytes = probe.peak();
-        let loss_value = loss.to_scalar::<f32>()? as f64;
-        // The outputs hold the whole forward graph (every activation): it goes before the
-        // flat gradient is built beside the parameters' gradients, or that buffer would
-        // raise the step's peak above the backward pass's.
-        drop((loss, out, slots, t));
-        let flat = if crate::device::is_cpu(&self.device) && !keep {
-            // Room for the all-reduce's control values, so that appending them does not
-            // move the buffer.
-            let cap = self.num_parameters() + CONTROL_FLOATS;
-            let mut flat = Vec::with_capacity(cap);
-            for (_, var) in self.params.vars() {
-                // Taken out of the store: each gradient is freed once copied.
-                match grads.remove(var.as_tensor()) {
-                    Some(g) => extend_with(&mut flat, &g)?,
-                    // A parameter the loss does not reach (e.g. unused init of another mode).
-                    None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
-                }
-            }
-            Gradient::Host(flat)
-        } else {
-            // One flat tensor on the device; copied to the host only for an all-reduce.
-            let mut parts = Vec::new();
-            for (_, var) in self.params.vars() {
-                // Taken out of the store, so each part is freed once concatenated.
-                parts.push(match grads.remove(var.as_tensor()) {
-                    Some(g) => g.to_dtype(candle_core::DType::F32)?.flatten_all()?,
-                    None => Tensor::zeros(var.elem_count(), candle_core::DType::F32, &self.device)?,
-                });
-            }
-            drop(grads);
-            let flat = Tensor::cat(&parts, 0)?;
-            drop(parts);
-            if keep {
-                Gradient::Device(flat)
-            } else {
-                Gradient::Host(flat.to_vec1::<f32>()?)
-            }
-        };
+        let flat = self.flatten(param_grads, keep)?;
         let flatten_s = lap(&mut clock)?;
         tracing::debug!(forward_s, backward_s, flatten_s, "train step gradients");
         Ok(StepGradients {
@@ -442,6 +430,43 @@ impl Trainer {
                 forward_kept_bytes,
                 peak_bytes,
             }),
+        })
+    }
+
+    /// The parameters' gradients (in [`Params::vars`] order, `None` where the loss does
+    /// not reach one) as one flat gradient: on the host for the CPU or an all-reduce, on
+    /// the device where `keep` is set.
+    fn flatten(&self, param_grads: Vec<Option<Tensor>>, keep: bool) -> Result<Gradient> {
+        Ok(if crate::device::is_cpu(&self.device) && !keep {
+            // Room for the all-reduce's control values, so that appending them does not
+            // move the buffer.
+            let cap = self.num_parameters() + CONTROL_FLOATS;
+            let mut flat = Vec::with_capacity(cap);
+            for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
+                // Each gradient is freed once copied.
+                match g {
+                    Some(g) => extend_with(&mut flat, &g)?,
+                    // A parameter the loss does not reach (e.g. unused init of another mode).
+                    None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
+                }
+            }
+            Gradient::Host(flat)
+        } else {
+            // One flat tensor on the device; copied to the host only for an all-reduce.
+            let mut parts = Vec::new();
+            for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
+                parts.push(match g {
+                    Some(g) => g.to_dtype(candle_core::DType::F32)?.flatten_all()?,
+                    None => Tensor::zeros(var.elem_count(), candle_core::DType::F32, &self.device)?,
+                });
+            }
+            let flat = Tensor::cat(&parts, 0)?;
+            drop(parts);
+            if keep {
+                Gradient::Device(flat)
+            } else {
+                Gradient::Host(flat.to_vec1::<f32>()?)
+            }
         })
     }
 

@@ -303,3 +303,56 @@ fn fused_ops_leave_the_loss_curve_unchanged() {
         }
     }
 }
+
+/// The step's backward pass runs in segments (encoder CNN, transformer, slot attention,
+/// decoder; `osrt_kernels::cut`) so that each segment's activations are freed before the
+/// next; its gradients are those of the whole graph's single backward pass, to the bit,
+/// with each kind of ops.
+#[test]
+fn the_segmented_backward_gives_the_whole_graphs_gradients() {
+    use osrt_kernels::Kernels;
+    use osrt_trainer::step::BatchTensors;
+    let data = scenes(2);
+    let b = batch(&data, 3);
+    for kernels in [Kernels::Fused, Kernels::Composed, Kernels::Device] {
+        let mut cfg = tiny();
+        cfg.train.kernels = kernels;
+        let t = Trainer::new(cfg, Device::Cpu).unwrap();
+        let cut = t.gradients(&b, &mut ChaCha8Rng::seed_from_u64(5)).unwrap();
+        let whole = osrt_kernels::with_kernels(kernels, || {
+            let mut rng = ChaCha8Rng::seed_from_u64(5);
+            let x = BatchTensors::new(&b, &Device::Cpu).unwrap();
+            let noise = t.slot_noise(b.batch_size, &mut rng).unwrap();
+            let offsets = t
+                .model
+                .ray_offsets(b.batch_size, b.rays_per_scene, &mut rng)
+                .unwrap();
+            let slots = t
+                .model
+                .encode(&x.images, &x.origins, &x.directions, noise.as_ref())
+                .unwrap();
+            let out = t
+                .model
+                .decode_with(
+                    &slots.slots,
+                    &x.target_origins,
+                    &x.target_directions,
+                    offsets.as_ref(),
+                )
+                .unwrap();
+            let loss = (&out.rgb - &x.target_rgb).unwrap().sqr().unwrap();
+            let grads = loss.mean_all().unwrap().backward().unwrap();
+            let mut flat = Vec::new();
+            for (_, var) in t.params.vars() {
+                match grads.get(var.as_tensor()) {
+                    Some(g) => flat.extend(g.flatten_all().unwrap().to_vec1::<f32>().unwrap()),
+                    None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
+                }
+            }
+            flat
+        });
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&cut.grads), bits(&whole), "{kernels:?}");
+        assert!(whole.iter().any(|g| *g != 0.0));
+    }
+}
