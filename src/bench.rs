@@ -79,6 +79,9 @@ fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
     t.rays_per_scene = a.rays_per_scene.unwrap_or(t.rays_per_scene);
     t.device = a.device;
     t.precision = a.precision;
+    if let Some(k) = a.kernels {
+        t.kernels = k;
+    }
     job.validate()?;
     Ok(job)
 }

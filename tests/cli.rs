@@ -401,6 +401,55 @@ fn train_then_eval_a_tiny_run() {
     assert_eq!(r["scenes"], 3);
 }
 
+/// The GPU's bf16 graph runs on the CPU for measuring it (`--kernels device --precision
+/// bf16`: bf16 products, the convolution node's bf16 unfolding); bf16 with the CPU's fused
+/// kernels is refused.
+#[test]
+fn bench_model_runs_the_gpus_bf16_graph_on_the_cpu() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_json = dir.path().join("model.json");
+    let args = |kernels: &'static str| {
+        [
+            "bench",
+            "model",
+            "--step-only",
+            "--presets",
+            "tiny",
+            "--kernels",
+            kernels,
+            "--precision",
+            "bf16",
+            "--steps",
+            "1",
+            "--threads",
+            "1",
+            "--out",
+        ]
+    };
+    let mut a = args("device").to_vec();
+    a.push(out_json.to_str().unwrap());
+    osrt(&a);
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+    let s = &v["1"]["steps"][0];
+    assert_eq!(
+        (s["precision"].as_str(), s["kernels"].as_str()),
+        (Some("bf16"), Some("device")),
+        "{s}"
+    );
+    assert!(s["median_step_s"].as_f64().unwrap() > 0.0, "{s}");
+    assert!(s["peak_heap_gib"].as_f64().unwrap() > 0.0, "{s}");
+    let mut a = args("fused").to_vec();
+    a.push(out_json.to_str().unwrap());
+    let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
+        .args(&a)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bf16 runs on a GPU only"), "{err}");
+}
+
 /// `osrt bench model --render-only` times the decoders' renders (the volumetric one with
 /// and without box culling) and no train step
 /// (the loop for render A/B runs); with `--step-only` as well it is refused.

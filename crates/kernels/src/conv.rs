@@ -138,6 +138,17 @@ impl CustomOp1 for Im2Col {
             }
             return Ok((CpuStorage::F64(out), shape));
         }
+        if let CpuStorage::BF16(v) = s {
+            // The GPU's bf16 graph on the CPU (`--kernels device`): the same copies.
+            let Some((a, b)) = l.contiguous_offsets() else {
+                candle_core::bail!("im2col: contiguous input expected")
+            };
+            let mut out = vec![half::bf16::ZERO; g.n * g.ho * g.wo * p];
+            out.par_chunks_mut(p * g.wo)
+                .enumerate()
+                .for_each(|(row, o)| g.unfold_row(&v[a..b], row, o));
+            return Ok((CpuStorage::BF16(out), shape));
+        }
         let x = f32_slice(s, l, "im2col")?;
         // Each task zeroes its chunk (the padding stays 0) before writing the patches.
         let out = buffer::par_filled(g.n * g.ho * g.wo * p, p * g.wo, |row, o| {
@@ -192,7 +203,19 @@ impl CustomOp1 for Col2Im {
             }
             return Ok((CpuStorage::F64(out), shape));
         }
-        let cols = f32_slice(s, l, "col2im")?;
+        let wide;
+        let cols = match s {
+            // bf16 columns (the GPU's bf16 graph on the CPU) sum in f32, as on a GPU: the
+            // widening is exact.
+            CpuStorage::BF16(v) => {
+                let Some((a, b)) = l.contiguous_offsets() else {
+                    candle_core::bail!("col2im: contiguous columns expected")
+                };
+                wide = v[a..b].iter().map(|x| x.to_f32()).collect::<Vec<_>>();
+                &wide[..]
+            }
+            _ => f32_slice(s, l, "col2im")?,
+        };
         let mut out = vec![0f32; g.n * img];
         // One task per image: every write of an image lands in its own slice.
         out.par_chunks_mut(img)
@@ -471,6 +494,33 @@ mod tests {
         for (a, b) in g1.iter().zip(&g5) {
             assert!(max_diff(a, b) < 1e-5 * max_abs(b).max(1.0));
         }
+    }
+
+    /// bf16 input (the GPU's bf16 graph on the CPU): the unfolding is the f32 unfolding
+    /// of the same values, and col2im of bf16 columns is col2im of their exact f32
+    /// widening, in f32.
+    #[test]
+    fn bf16_unfolding_and_col2im_are_the_f32_ones_of_the_same_values() {
+        use candle_core::DType;
+        let g = ConvGeom::new(2, (5, 7, 3), 3, 2, 1);
+        let x = randn(&[2, 5, 7, 3], 1.0, 9).to_dtype(DType::BF16).unwrap();
+        let wide = x.to_dtype(DType::F32).unwrap();
+        let cols = im2col(&x, g).unwrap();
+        assert_eq!(cols.dtype(), DType::BF16);
+        let f = |t: &Tensor| t.to_dtype(DType::F32).unwrap().flatten_all().unwrap();
+        let want = im2col(&wide, g).unwrap();
+        assert_eq!(
+            f(&cols).to_vec1::<f32>().unwrap(),
+            f(&want).to_vec1::<f32>().unwrap()
+        );
+        let dcols = randn(cols.dims(), 1.0, 10).to_dtype(DType::BF16).unwrap();
+        let back = col2im(&dcols, g).unwrap();
+        assert_eq!(back.dtype(), DType::F32);
+        let want = col2im(&dcols.to_dtype(DType::F32).unwrap(), g).unwrap();
+        assert_eq!(
+            f(&back).to_vec1::<f32>().unwrap(),
+            f(&want).to_vec1::<f32>().unwrap()
+        );
     }
 
     #[test]

@@ -53,7 +53,8 @@ pub struct TrainConfig {
     /// it; a local cluster gives worker k GPU k).
     #[serde(default)]
     pub device: DeviceSpec,
-    /// Matrix products in `f32` or `bf16` (GPU only); weights and optimiser in f32.
+    /// Matrix products in `f32` or `bf16` (on a GPU, or on the CPU with `kernels =
+    /// "device"`, the GPU's graph, to measure it); weights and optimiser in f32.
     #[serde(default)]
     pub precision: Precision,
     /// `fused` (the one-node CPU kernels of `osrt_kernels` where they apply) or
@@ -344,9 +345,11 @@ impl JobConfig {
                 "train.clip_norm must be positive and finite, got {c}"
             ));
         }
-        if t.precision == Precision::Bf16 && !t.device.is_cuda() {
+        // The GPU's graph runs on the CPU too (kernels = "device"), to measure it there.
+        if t.precision == Precision::Bf16 && !t.device.is_cuda() && t.kernels != Kernels::Device {
             return bad(
-                "precision bf16 runs on a GPU only (device = \"cuda\"): the CPU's fused \
+                "precision bf16 runs on a GPU only (device = \"cuda\"), or on the CPU with \
+                 kernels = \"device\" (the GPU's graph, for measuring it): the CPU's fused \
                  kernels are f32"
                     .into(),
             );
