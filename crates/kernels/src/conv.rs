@@ -144,7 +144,7 @@ impl CustomOp1 for Im2Col {
                 candle_core::bail!("im2col: contiguous input expected")
             };
             let mut out = vec![half::bf16::ZERO; g.n * g.ho * g.wo * p];
-            out.par_chunks_mut(p * g.wo)
+            out.par_chunks_mut((p * g.wo).max(1))
                 .enumerate()
                 .for_each(|(row, o)| g.unfold_row(&v[a..b], row, o));
             return Ok((CpuStorage::BF16(out), shape));
