@@ -430,6 +430,10 @@ fn attention_composed_here(
     let (b, n, inner) = q.dims3()?;
     let m = k.dim(1)?;
     let dh = inner / heads;
+    if usable_with_cuda(&[q, k, v]) && crate::device_graph(q) && n > 0 && m > 0 {
+        // A GPU: one node that keeps only the weights (`attention_node.rs`).
+        return super::attention_node::attention(q, k, v, heads, scale);
+    }
     let split = |t: &Tensor, len: usize| -> Result<Tensor> {
         // [b, len, h·dh] → [b·h, len, dh]
         t.reshape((b, len, heads, dh))?
@@ -437,13 +441,6 @@ fn attention_composed_here(
             .reshape((b * heads, len, dh))
     };
     let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
-    if usable_with_cuda(&[&q, &k, &v]) && crate::device_graph(&q) && n > 0 && m > 0 {
-        // A GPU: one node that keeps only the weights (`attention_node.rs`).
-        return super::attention_node::attention_heads(&q, &k, &v, scale)?
-            .reshape((b, heads, n, dh))?
-            .transpose(1, 2)?
-            .reshape((b, n, inner));
-    }
     let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b·h, n, m]
     let attn = super::softmax(&logits, D::Minus1)?;
     super::matmul(&attn, &v)? // [b·h, n, dh]

@@ -564,6 +564,13 @@ fn mlp_cat_here(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Res
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
     if !(fits && lead_fits && usable(&all)) {
+        // On a GPU, the whole MLP as one node of tensor ops that concatenates inside.
+        if crate::enabled() && crate::usable_with_cuda_any(&all) && crate::device_graph(a) {
+            let bf16 = crate::precision() == crate::Precision::Bf16;
+            if let Some(y) = crate::mlp_node::mlp_cat_node(a, b, layers, act, bf16)? {
+                return Ok(y);
+            }
+        }
         return cat();
     }
     let (dims, packed) = pack(a.dim(D::Minus1)? + b.dim(D::Minus1)?, layers)?;

@@ -20,7 +20,7 @@ use crate::handover::Handover;
 use crate::linear::ColumnSum;
 use crate::mlp::{MlpAct, MlpLayer};
 use crate::*;
-use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Result, Shape, Tensor};
 
 /// `x: [.., in]` through biased `layers` with `act` between them → `[.., out]` (f32), the
 /// products in bf16 where `bf16` is set. `None` where a layer has no bias or an operand
@@ -31,25 +31,61 @@ pub(crate) fn mlp_node(
     act: MlpAct,
     bf16: bool,
 ) -> Result<Option<Tensor>> {
-    let f32s = x.dtype() == DType::F32
+    mlp_node_of(&[x], layers, act, bf16)
+}
+
+/// [`mlp_node`] of the concatenation `a ⊕ b` (`[.., in_a]`, `[.., in_b]`, the same leading
+/// dims): the node concatenates detached copies, in the forward pass and again in the
+/// backward pass, so the graph keeps `a` and `b` (which it holds anyway when another op
+/// reads them) and no concatenated copy (the Slot Mixer's render MLP at 8,192 rays and
+/// batch 2: 112 MB). The values and gradients are those of the MLP of `Tensor::cat`.
+pub(crate) fn mlp_cat_node(
+    a: &Tensor,
+    b: &Tensor,
+    layers: &[MlpLayer],
+    act: MlpAct,
+    bf16: bool,
+) -> Result<Option<Tensor>> {
+    let r = a.rank();
+    if r == 0 || b.rank() != r || a.dims()[..r - 1] != b.dims()[..r - 1] {
+        return Ok(None);
+    }
+    mlp_node_of(&[a, b], layers, act, bf16)
+}
+
+/// The node over the concatenation of one or two `parts` (see [`mlp_cat_node`]).
+fn mlp_node_of(
+    parts: &[&Tensor],
+    layers: &[MlpLayer],
+    act: MlpAct,
+    bf16: bool,
+) -> Result<Option<Tensor>> {
+    let f32s = parts
+        .iter()
+        .all(|x| x.dtype() == DType::F32 && x.rank() > 0)
         && layers.iter().all(|(w, b)| {
             w.dtype() == DType::F32 && w.rank() == 2 && b.is_some_and(|b| b.dtype() == DType::F32)
         });
-    if !f32s || layers.is_empty() || x.rank() == 0 {
+    if !f32s || layers.is_empty() {
         return Ok(None);
     }
     let params: Vec<(Tensor, Tensor)> = layers
         .iter()
         .filter_map(|(w, b)| Some((w.detach(), (*b)?.detach())))
         .collect();
-    let (&d_in, lead) = x.dims().split_last().expect("rank ≥ 1");
-    let x2 = x.reshape(((), d_in))?;
+    let lead = parts[0].dims().split_last().expect("rank ≥ 1").1.to_vec();
+    // Each part as rows `[rows, width]`.
+    let rows: Vec<Tensor> = parts
+        .iter()
+        .map(|x| x.reshape(((), x.dim(candle_core::D::Minus1)?)))
+        .collect::<Result<_>>()?;
+    let widths: Vec<usize> = rows.iter().map(|x| x.dim(1)).collect::<Result<_>>()?;
     let plan = Plan { act, bf16, params };
-    let keep = x.track_op()
+    let keep = parts.iter().any(|x| x.track_op())
         || layers
             .iter()
             .any(|(w, b)| w.track_op() || b.is_some_and(|b| b.track_op()));
-    let (y, saved) = plan.forward(&x2.detach(), keep)?;
+    let (y, saved) = plan.forward(&joined(&rows)?, keep)?;
     let pairs: Vec<&Tensor> = layers
         .iter()
         .flat_map(|(w, b)| [*w, b.expect("checked")])
@@ -60,10 +96,27 @@ pub(crate) fn mlp_node(
         saved: Kept::new(saved),
         plan,
         grads,
+        widths,
     };
-    let mut out = lead.to_vec();
+    let mut out = lead;
     out.push(layers.last().expect("not empty").0.dim(0)?);
-    Ok(Some(x2.apply_op2(&chain, node)?.reshape(out)?))
+    let y = match &rows[..] {
+        [x] => x.apply_op2(&chain, node)?,
+        [a, b] => a.apply_op3(b, &chain, node)?,
+        _ => candle_core::bail!("mlp node: one or two inputs"),
+    };
+    Ok(Some(y.reshape(out)?))
+}
+
+/// The node's input: the part's rows, or the parts' rows side by side, detached.
+fn joined(rows: &[Tensor]) -> Result<Tensor> {
+    match rows {
+        [x] => Ok(x.detach()),
+        _ => {
+            let parts: Vec<Tensor> = rows.iter().map(|t| t.detach()).collect();
+            Tensor::cat(&parts, 1)
+        }
+    }
 }
 
 /// What the backward pass needs: each hidden layer's product output (the pre-activation
@@ -191,6 +244,46 @@ struct MlpNode {
     plan: Plan,
     /// Where the parameters' gradients go to their links (`links.rs`).
     grads: crate::links::ParamGrads,
+    /// The widths of the input's parts (one, or two side by side).
+    widths: Vec<usize>,
+}
+
+impl MlpNode {
+    /// The layers backward, last first (see [`Plan::backward`]), from the input's parts
+    /// `rows` (`[rows, width]` each): the gradient of each part that carries one. A second
+    /// backward pass through the same graph finds the kept tensors gone and runs the
+    /// forward pass again.
+    fn backward(&self, rows: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
+        let owned: Vec<Tensor> = rows.iter().map(|t| (*t).clone()).collect();
+        let x = joined(&owned)?;
+        let saved = match self.saved.take() {
+            Some(s) => s,
+            None => match self.plan.forward(&x, true)?.1 {
+                Some(s) => s,
+                None => candle_core::bail!("mlp node: nothing kept"),
+            },
+        };
+        let want = rows.iter().any(|t| t.track_op());
+        let (dx, dp) = self.plan.backward(saved, &x, grad, want)?;
+        drop(x);
+        self.grads.put(dp);
+        let mut start = 0;
+        let mut out = Vec::with_capacity(rows.len());
+        for (t, &w) in rows.iter().zip(&self.widths) {
+            out.push(match (&dx, t.track_op()) {
+                (Some(dx), true) if rows.len() == 1 => Some(dx.clone()),
+                (Some(dx), true) => Some(dx.narrow(1, start, w)?),
+                _ => None,
+            });
+            start += w;
+        }
+        Ok(out)
+    }
+}
+
+/// The chain carries no value (see `links.rs`): a zero gradient sends candle down it.
+fn chain_grad(chain: &Tensor) -> Result<Option<Tensor>> {
+    chain.track_op().then(|| chain.zeros_like()).transpose()
 }
 
 impl CustomOp2 for MlpNode {
@@ -219,8 +312,7 @@ impl CustomOp2 for MlpNode {
         self.out.cuda("mlp node")
     }
 
-    /// The layers backward, last first (see [`Plan::backward`]); a second backward pass
-    /// through the same graph finds the kept tensors gone and runs the forward pass again.
+    /// See [`MlpNode::backward`].
     fn bwd(
         &self,
         x: &Tensor,
@@ -228,20 +320,53 @@ impl CustomOp2 for MlpNode {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let saved = match self.saved.take() {
-            Some(s) => s,
-            None => match self.plan.forward(&x.detach(), true)?.1 {
-                Some(s) => s,
-                None => candle_core::bail!("mlp node: nothing kept"),
-            },
-        };
-        let (dx, dp) = self.plan.backward(saved, &x.detach(), grad, x.track_op())?;
-        self.grads.put(dp);
-        // The chain carries no value (see `links.rs`): a zero gradient sends candle down it.
-        Ok((
-            dx,
-            chain.track_op().then(|| chain.zeros_like()).transpose()?,
-        ))
+        let mut d = self.backward(&[x], grad)?.into_iter();
+        Ok((d.next().flatten(), chain_grad(chain)?))
+    }
+}
+
+/// The node over two inputs side by side ([`mlp_cat_node`]).
+impl CustomOp3 for MlpNode {
+    fn name(&self) -> &'static str {
+        "osrt-mlp-cat-node"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        self.out.cpu("mlp node")
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        self.out.cuda("mlp node")
+    }
+
+    /// See [`MlpNode::backward`].
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        chain: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let mut d = self.backward(&[a, b], grad)?.into_iter();
+        Ok((d.next().flatten(), d.next().flatten(), chain_grad(chain)?))
     }
 }
 
@@ -329,6 +454,94 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The node over two inputs side by side gives the values and gradients of the node
+    /// over their concatenation (`Tensor::cat`) bit for bit, in f32 and bf16, where either
+    /// part or both carry a gradient; it matches finite differences.
+    #[test]
+    fn the_two_input_node_is_the_node_of_the_concatenation() {
+        let dims = [12, 20, 5];
+        let params: Vec<(Var, Var)> = dims
+            .windows(2)
+            .enumerate()
+            .map(|(i, d)| {
+                let w = randn(&[d[1], d[0]], 0.4, 30 + i as u64);
+                let b = randn(&[d[1]], 0.2, 40 + i as u64);
+                (Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap())
+            })
+            .collect();
+        let layers: Vec<MlpLayer> = params
+            .iter()
+            .map(|(w, b)| (w.as_tensor(), Some(b.as_tensor())))
+            .collect();
+        for (p, tracked) in [
+            (Precision::F32, [true, true]),
+            (Precision::Bf16, [true, true]),
+            (Precision::F32, [false, true]),
+            (Precision::Bf16, [true, false]),
+        ] {
+            let a = randn(&[2, 3, 7], 1.0, 50);
+            let b = randn(&[2, 3, 5], 1.0, 51);
+            let (va, vb) = (Var::from_tensor(&a).unwrap(), Var::from_tensor(&b).unwrap());
+            let ta = if tracked[0] {
+                va.as_tensor().clone()
+            } else {
+                a.clone()
+            };
+            let tb = if tracked[1] {
+                vb.as_tensor().clone()
+            } else {
+                b.clone()
+            };
+            let bf16 = p == Precision::Bf16;
+            let [(y1, g1), (y0, g0)] = [true, false].map(|two| {
+                let y = match two {
+                    true => mlp_cat_node(&ta, &tb, &layers, MlpAct::Gelu, bf16),
+                    false => mlp_node(
+                        &Tensor::cat(&[&ta, &tb], 2).unwrap(),
+                        &layers,
+                        MlpAct::Gelu,
+                        bf16,
+                    ),
+                };
+                let y = y.unwrap().unwrap();
+                let w = randn(y.dims(), 1.0, 52);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let mut grads: Vec<Option<Vec<f32>>> = [&va, &vb]
+                    .iter()
+                    .map(|v| g.get(v.as_tensor()).map(values))
+                    .collect();
+                for (w, b) in &params {
+                    grads.push(Some(values(g.get(w.as_tensor()).unwrap())));
+                    grads.push(Some(values(g.get(b.as_tensor()).unwrap())));
+                }
+                (values(&y), grads)
+            });
+            assert_eq!(y1, y0, "{p} {tracked:?}");
+            assert_eq!(g1, g0, "{p} {tracked:?}");
+            assert_eq!(g1[0].is_some(), tracked[0]);
+            assert_eq!(g1[1].is_some(), tracked[1]);
+        }
+        let args = [
+            randn(&[3, 4], 1.0, 60),
+            randn(&[3, 2], 1.0, 61),
+            randn(&[5, 6], 0.5, 62),
+            randn(&[5], 0.2, 63),
+        ];
+        finite_difference_check(&args, |t| {
+            let layers = [(&t[2], Some(&t[3]))];
+            match crate::enabled() && t[0].dtype() == DType::F32 {
+                true => {
+                    Ok(mlp_cat_node(&t[0], &t[1], &layers, MlpAct::Gelu, false)?.expect("fits"))
+                }
+                false => crate::mlp_layer_by_layer(
+                    &Tensor::cat(&[&t[0], &t[1]], 1)?,
+                    &layers,
+                    MlpAct::Gelu,
+                ),
+            }
+        });
     }
 
     /// What the node keeps for the backward pass: each hidden layer's product output
