@@ -430,7 +430,8 @@ fn attention_composed_here(
     let (b, n, inner) = q.dims3()?;
     let m = k.dim(1)?;
     let dh = inner / heads;
-    if usable_with_cuda(&[q, k, v]) && crate::device_graph(q) && n > 0 && m > 0 {
+    let takes = usable_with_cuda(&[q, k, v]) || crate::stores_low(&[q, k, v]);
+    if takes && crate::device_graph(q) && n > 0 && m > 0 {
         // A GPU: one node that keeps only the weights (`attention_node.rs`).
         return super::attention_node::attention(q, k, v, heads, scale);
     }

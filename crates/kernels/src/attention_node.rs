@@ -16,10 +16,16 @@
 //! of `q`, `k`, `v` and of the output would be a node's input, kept beside the tensor it
 //! was copied from until the backward pass (the `paper` decoder's queries at 8,192 rays:
 //! two extra `[b, 8192, 1536]` tensors per attention layer, 23 % of its activations).
+//!
+//! `q`, `k`, `v` may be stored in bf16 (projections stored as the bf16 product returns
+//! them, `crate::linear_low`): the node computes in f32 from them, as it would from
+//! their exact f32 values, returns its output in `q`'s type (in bf16 for the output
+//! projection's bf16 product, which rounds it the same way) and each gradient in its
+//! operand's type.
 
 use crate::handover::Handover;
 use crate::*;
-use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 
 /// The finished forward pass, handed over once to [`AttentionNode`]'s forward.
 struct AttentionNode {
@@ -28,6 +34,16 @@ struct AttentionNode {
     weights: Kept<Tensor>,
     heads: Heads,
     scale: f64,
+    /// The types of `q` and `k` (their gradients' types).
+    dtypes: [DType; 2],
+}
+
+/// `t` detached, a bf16 tensor widened to f32 (other types as they are).
+fn f32_of(t: &Tensor) -> Result<Tensor> {
+    match t.dtype() {
+        DType::BF16 => t.detach().to_dtype(DType::F32),
+        _ => Ok(t.detach()),
+    }
 }
 
 /// How `[b, len, h·dh]` splits into heads.
@@ -100,19 +116,19 @@ impl CustomOp3 for AttentionNode {
         // (a profile recording the step must not count them apart).
         crate::profile::nested(|| {
             let hs = self.heads;
-            let (q, k) = (hs.split(&q.detach())?, hs.split(&k.detach())?);
+            let (q, k) = (hs.split(&f32_of(q)?)?, hs.split(&f32_of(k)?)?);
             let a = match self.weights.take() {
                 Some(a) => a,
                 None => scores(&q, &k, self.scale)?,
             };
-            let g = hs.split(&grad.detach())?;
-            let dv = hs.merge(&matmul(&a.t()?, &g)?)?;
-            let da = matmul(&g, &hs.split(&v.detach())?.t()?)?.contiguous()?;
+            let g = hs.split(&f32_of(grad)?)?;
+            let dv = hs.merge(&matmul(&a.t()?, &g)?)?.to_dtype(v.dtype())?;
+            let da = matmul(&g, &hs.split(&f32_of(v)?)?.t()?)?.contiguous()?;
             drop(g);
             let dl = (softmax::softmax_grad(&a, &da)? * self.scale)?;
             drop((a, da));
-            let dq = hs.merge(&matmul(&dl, &k)?)?;
-            let dk = hs.merge(&matmul(&dl.t()?, &q)?)?;
+            let dq = hs.merge(&matmul(&dl, &k)?)?.to_dtype(self.dtypes[0])?;
+            let dk = hs.merge(&matmul(&dl.t()?, &q)?)?.to_dtype(self.dtypes[1])?;
             Ok((Some(dq), Some(dk), Some(dv)))
         })
     }
@@ -146,16 +162,19 @@ pub(crate) fn attention(
         h: heads,
         dh: inner / heads,
     };
-    let (qd, kd) = (hs.split(&q.detach())?, hs.split(&k.detach())?);
+    let (qd, kd) = (hs.split(&f32_of(q)?)?, hs.split(&f32_of(k)?)?);
     let a = scores(&qd, &kd, scale)?;
     drop((qd, kd));
-    let out = hs.merge(&matmul(&a, &hs.split(&v.detach())?)?)?;
+    let out = hs
+        .merge(&matmul(&a, &hs.split(&f32_of(v)?)?)?)?
+        .to_dtype(q.dtype())?;
     let keep = q.track_op() || k.track_op() || v.track_op();
     let node = AttentionNode {
         out: Handover::new(out)?,
         weights: Kept::new(keep.then_some(a)),
         heads: hs,
         scale,
+        dtypes: [q.dtype(), k.dtype()],
     };
     q.apply_op3(k, v, node)
 }

@@ -55,7 +55,7 @@ pub use block::{BlockParams, block};
 pub use conv::conv2d_nhwc;
 pub use cut::{Cuts, cut, with_cuts};
 pub use layer_norm::layer_norm;
-pub use linear::{bias_add, linear};
+pub use linear::{bias_add, linear, linear_low};
 pub use mix::slot_mix;
 pub use mlp::{MlpAct, MlpLayer, mlp, mlp_cat, mlp_layer_by_layer};
 pub use softmax::softmax;
@@ -130,12 +130,40 @@ pub fn with_precision<T>(p: Precision, f: impl FnOnce() -> T) -> T {
 pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
     profile::op("matmul", &[a, b], |t| {
         let f32s = t.iter().all(|t| t.dtype() == candle_core::DType::F32);
-        if enabled() && f32s {
+        if enabled() && (f32s || stores_low(&[&t[0], &t[1]])) {
             let bf16 = precision() == Precision::Bf16;
             return matmul_node::matmul_node(&t[0], &t[1], bf16);
         }
         in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
     })
+}
+
+/// [`matmul`], the product stored as the bf16 product returns it where the products run
+/// in bf16 on the device graph (else as [`matmul`]): for a product whose one reader is
+/// another bf16 product or an op that reads it in f32, where storing it in f32 would
+/// only double the bytes the graph keeps (autocast stores a product in bf16 too). The
+/// values and gradients are [`matmul`]'s (`matmul_node.rs`).
+pub fn matmul_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    profile::op("matmul", &[a, b], |t| {
+        if stores_low(&[&t[0], &t[1]]) {
+            return matmul_node::matmul_node_low(&t[0], &t[1]);
+        }
+        matmul(&t[0], &t[1])
+    })
+}
+
+/// Whether products of `ts` run on bf16 operands with the device graph's nodes, which
+/// also take (and may store) bf16 tensors ([`matmul_low`]).
+pub(crate) fn stores_low(ts: &[&Tensor]) -> bool {
+    use candle_core::DType;
+    enabled()
+        && precision() == Precision::Bf16
+        && ts.iter().all(|t| {
+            matches!(t.dtype(), DType::F32 | DType::BF16)
+                && t.rank() >= 1
+                && device_graph(t)
+                && (t.device().is_cpu() || (cfg!(feature = "cuda") && t.device().is_cuda()))
+        })
 }
 
 /// Runs a product-like op on its f32 operands rounded to bf16 when the thread's precision
@@ -364,6 +392,95 @@ mod tests {
             });
             assert_eq!(seen.0, on);
             assert_ne!(seen.1, std::thread::current().id(), "ran on a pool thread");
+        }
+    }
+
+    /// On the device graph in bf16, attention with its projections stored in bf16
+    /// (`linear_low`), and a mixed slot stored in bf16 (`matmul_low`) read by an MLP of a
+    /// concatenation, give the bits (values and every gradient) of the same graph stored in
+    /// f32, and store half the bytes; elsewhere the `_low` ops are the plain ones.
+    #[test]
+    fn products_stored_in_bf16_change_no_bits() {
+        let x = Var::from_tensor(&randn(&[2, 5, 6], 1.0, 1)).unwrap();
+        let ctx = Var::from_tensor(&randn(&[2, 3, 4], 1.0, 2)).unwrap();
+        let w: Vec<Var> = [[8, 6], [8, 4], [8, 4], [6, 8], [8, 6], [4, 10], [3, 4]]
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Var::from_tensor(&randn(s, 0.4, 10 + i as u64)).unwrap())
+            .collect();
+        let b: Vec<Var> = [6, 4, 3]
+            .iter()
+            .enumerate()
+            .map(|(i, &n)| Var::from_tensor(&randn(&[n], 0.2, 20 + i as u64)).unwrap())
+            .collect();
+        let run = |k: Kernels, p: Precision, stored_low: bool| {
+            with_kernels(k, || {
+                with_precision(p, || {
+                    let proj = |t: &Tensor, w: &Var| match stored_low {
+                        true => linear_low(t, w.as_tensor()),
+                        false => linear(t, w.as_tensor(), None),
+                    };
+                    let (xt, ct) = (x.as_tensor(), ctx.as_tensor());
+                    let (q, kk, v) = (
+                        proj(xt, &w[0]).unwrap(),
+                        proj(ct, &w[1]).unwrap(),
+                        proj(ct, &w[2]).unwrap(),
+                    );
+                    let o = attention(&q, &kk, &v, 2, 0.5).unwrap();
+                    let h = linear(&o, w[3].as_tensor(), Some(b[0].as_tensor())).unwrap();
+                    let logits = linear(&h, w[4].as_tensor(), None).unwrap();
+                    let wts = softmax(&logits.narrow(2, 0, 3).unwrap(), 2).unwrap();
+                    let slots = ct.to_dtype(candle_core::DType::F32).unwrap();
+                    let mixed = match stored_low {
+                        true => matmul_low(&wts, &slots).unwrap(),
+                        false => matmul(&wts, &slots).unwrap(),
+                    };
+                    let layers: Vec<MlpLayer> = vec![
+                        (w[5].as_tensor(), Some(b[1].as_tensor())),
+                        (w[6].as_tensor(), Some(b[2].as_tensor())),
+                    ];
+                    let y = mlp_cat(&mixed, &h, &layers, MlpAct::Relu).unwrap();
+                    let low = [&q, &kk, &v, &o, &mixed]
+                        .iter()
+                        .filter(|t| t.dtype() == candle_core::DType::BF16)
+                        .count();
+                    let g = (&y * randn(y.dims(), 1.0, 30))
+                        .unwrap()
+                        .sum_all()
+                        .unwrap()
+                        .backward()
+                        .unwrap();
+                    let mut out = vec![y.flatten_all().unwrap().to_vec1::<f32>().unwrap()];
+                    for v in [&x, &ctx].into_iter().chain(&w).chain(&b) {
+                        out.push(
+                            g.get(v.as_tensor())
+                                .unwrap()
+                                .flatten_all()
+                                .unwrap()
+                                .to_vec1()
+                                .unwrap(),
+                        );
+                    }
+                    (out, low)
+                })
+            })
+        };
+        let bits = |v: Vec<Vec<f32>>| -> Vec<Vec<u32>> {
+            v.iter()
+                .map(|x| x.iter().map(|f| f.to_bits()).collect())
+                .collect()
+        };
+        for k in [Kernels::Device, Kernels::Composed, Kernels::Fused] {
+            for p in [Precision::F32, Precision::Bf16] {
+                if k == Kernels::Fused && p == Precision::Bf16 {
+                    continue;
+                }
+                let (low, n_low) = run(k, p, true);
+                let (plain, n_plain) = run(k, p, false);
+                assert_eq!(bits(low), bits(plain), "{k} {p}");
+                let stored = k == Kernels::Device && p == Precision::Bf16;
+                assert_eq!((n_low, n_plain), (if stored { 5 } else { 0 }, 0), "{k} {p}");
+            }
         }
     }
 }

@@ -347,6 +347,28 @@ fn linear_here(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Ten
     linear_act(x, weight, bias, None)
 }
 
+/// [`linear`] without a bias, the output stored as the bf16 product returns it where the
+/// products run in bf16 on the device graph ([`crate::matmul_low`]: for an output whose
+/// one reader is another product or an op that reads it in f32, such as attention's
+/// projections); elsewhere [`linear`].
+///
+/// # Shapes
+/// `x: [.., in]`, `weight: [out, in]` → `[.., out]`
+pub fn linear_low(x: &Tensor, weight: &Tensor) -> Result<Tensor> {
+    crate::profile::op("linear", &[x, weight], |t| {
+        let (x, w) = (&t[0], &t[1]);
+        if !(w.rank() == 2 && crate::stores_low(&[x, w])) {
+            return linear_here(x, w, None);
+        }
+        let Some((&k, lead)) = x.dims().split_last() else {
+            candle_core::bail!("linear: a scalar input")
+        };
+        let mut out = lead.to_vec();
+        out.push(w.dim(0)?);
+        crate::matmul_low(&x.reshape(((), k))?, &w.t()?)?.reshape(out)
+    })
+}
+
 /// [`linear`] followed by `act`, from candle's matrix product, with the bias and the
 /// activation as one node where [`crate::bias_act`] applies (f32 on a GPU): the path of
 /// every linear layer on a GPU.

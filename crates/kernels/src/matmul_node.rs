@@ -17,6 +17,12 @@
 //!
 //! The values and gradients are candle's (f32) or the composed version's (bf16) bit for
 //! bit.
+//!
+//! In bf16 the product can also be stored as it comes out of the bf16 product (see
+//! [`crate::matmul_low`]), and either operand may be such a stored bf16 tensor: the casts
+//! of a bf16 operand are no-ops and its gradient is returned in bf16 (the bf16 product's
+//! result, which the f32 version would cast up exactly), so the values and gradients
+//! are the f32-stored version's, while the graph holds half the bytes.
 
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
@@ -25,11 +31,24 @@ use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 /// where `bf16` is set (see the module docs). `a: [.., m, k]`, `b: [.., k, n]` (the same
 /// leading dims) → `[.., m, n]`.
 pub(crate) fn matmul_node(a: &Tensor, b: &Tensor, bf16: bool) -> Result<Tensor> {
-    a.apply_op2(b, MatmulNode { bf16 })
+    a.apply_op2(b, MatmulNode { bf16, low: false })
+}
+
+/// [`matmul_node`] in bf16, the product stored in bf16 (as the bf16 product returns it).
+pub(crate) fn matmul_node_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    a.apply_op2(
+        b,
+        MatmulNode {
+            bf16: true,
+            low: true,
+        },
+    )
 }
 
 struct MatmulNode {
     bf16: bool,
+    /// The product stays in bf16 (only with `bf16`).
+    low: bool,
 }
 
 /// `(batch, m, n, k)` and the product's shape, as `Tensor::matmul` checks them.
@@ -51,13 +70,14 @@ fn forward<S: BackendStorage>(
     la: &Layout,
     b: &S,
     lb: &Layout,
-    bf16: bool,
+    node: &MatmulNode,
 ) -> Result<(S, Shape)> {
-    if a.dtype() != DType::F32 || b.dtype() != DType::F32 {
-        candle_core::bail!("matmul node: takes f32 operands");
+    let takes = |d: DType| d == DType::F32 || (node.bf16 && d == DType::BF16);
+    if !takes(a.dtype()) || !takes(b.dtype()) {
+        candle_core::bail!("matmul node: takes f32 operands (or bf16 ones in bf16)");
     }
     let (bmnk, shape) = dims(la, lb)?;
-    if !bf16 {
+    if !node.bf16 {
         return Ok((a.matmul(b, bmnk, la, lb)?, shape));
     }
     let a16 = a.to_dtype(la, DType::BF16)?;
@@ -68,6 +88,9 @@ fn forward<S: BackendStorage>(
         Layout::contiguous(lb.shape()),
     );
     let y16 = a16.matmul(&b16, bmnk, &ca, &cb)?;
+    if node.low {
+        return Ok((y16, shape));
+    }
     let y = y16.to_dtype(&Layout::contiguous(&shape), DType::F32)?;
     Ok((y, shape))
 }
@@ -84,7 +107,7 @@ impl CustomOp2 for MatmulNode {
         b: &CpuStorage,
         lb: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        forward(a, la, b, lb, self.bf16)
+        forward(a, la, b, lb, self)
     }
 
     #[cfg(feature = "cuda")]
@@ -95,12 +118,13 @@ impl CustomOp2 for MatmulNode {
         b: &candle_core::CudaStorage,
         lb: &Layout,
     ) -> Result<(candle_core::CudaStorage, Shape)> {
-        forward(a, la, b, lb, self.bf16)
+        forward(a, la, b, lb, self)
     }
 
     /// What candle's backward pass of the composed version computes (in bf16: the
     /// gradient cast to bf16, multiplied with the other operand's bf16 copy, cast back to
-    /// f32), on detached operands (see the module docs).
+    /// f32, or left in bf16 for a bf16 operand), on detached operands (see the module
+    /// docs).
     fn bwd(
         &self,
         a: &Tensor,
@@ -109,21 +133,22 @@ impl CustomOp2 for MatmulNode {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (ad, bd) = (a.detach(), b.detach());
-        let low = |t: &Tensor| match self.bf16 {
+        let low = |t: &Tensor| match self.bf16 && t.dtype() != DType::BF16 {
             true => t.to_dtype(DType::BF16),
             false => Ok(t.clone()),
         };
-        let high = |t: Tensor| match self.bf16 {
+        // A gradient in its operand's type.
+        let high = |t: Tensor, like: &Tensor| match self.bf16 && like.dtype() == DType::F32 {
             true => t.to_dtype(DType::F32),
             false => Ok(t),
         };
         let g = low(&grad.detach())?;
         let da = match a.track_op() {
-            true => Some(high(g.matmul(&low(&bd)?.t()?)?)?),
+            true => Some(high(g.matmul(&low(&bd)?.t()?)?, a)?),
             false => None,
         };
         let db = match b.track_op() {
-            true => Some(high(low(&ad)?.t()?.matmul(&g)?)?),
+            true => Some(high(low(&ad)?.t()?.matmul(&g)?, b)?),
             false => None,
         };
         Ok((da, db))
@@ -207,5 +232,38 @@ mod tests {
             .unwrap();
         assert!(grads.get(&a).is_none() && grads.get(b.as_tensor()).is_some());
         assert!(matmul_node(&a, &randn(&[2, 2], 1.0, 7), true).is_err());
+    }
+
+    /// A product stored in bf16 and read by the next bf16 product gives the values and
+    /// gradients of the same chain stored in f32, bit for bit, in half the bytes.
+    #[test]
+    fn a_product_stored_in_bf16_gives_the_f32_stored_bits() {
+        for scale in [1.0f32, 1e-30, 1e18] {
+            let x = Var::from_tensor(&randn(&[2, 5, 6], scale, 11)).unwrap();
+            let w1 = Var::from_tensor(&randn(&[2, 6, 4], 1.0, 12)).unwrap();
+            let w2 = Var::from_tensor(&randn(&[2, 4, 3], 1.0, 13)).unwrap();
+            let run = |stored_low: bool| {
+                let h = match stored_low {
+                    true => matmul_node_low(x.as_tensor(), w1.as_tensor()).unwrap(),
+                    false => matmul_node(x.as_tensor(), w1.as_tensor(), true).unwrap(),
+                };
+                let want = if stored_low { DType::BF16 } else { DType::F32 };
+                assert_eq!(h.dtype(), want);
+                let y = matmul_node(&h, w2.as_tensor(), true).unwrap();
+                let w = randn(y.dims(), 1.0, 14);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let mut out = vec![bits(&y), bits(&h.to_dtype(DType::F32).unwrap())];
+                for v in [&x, &w1, &w2] {
+                    let gv = g.get(v.as_tensor()).unwrap();
+                    assert_eq!(gv.dtype(), DType::F32);
+                    out.push(bits(gv));
+                }
+                out
+            };
+            assert_eq!(run(true), run(false), "scale {scale:e}");
+        }
+        // Without bf16 products, a bf16 operand is refused.
+        let h = randn(&[3, 4], 1.0, 15).to_dtype(DType::BF16).unwrap();
+        assert!(matmul_node(&h, &randn(&[4, 2], 1.0, 16), false).is_err());
     }
 }

@@ -551,7 +551,12 @@ pub fn mlp_cat(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Resu
 }
 
 fn mlp_cat_here(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Result<Tensor> {
-    let cat = || mlp(&Tensor::cat(&[a, b], D::Minus1)?, layers, act);
+    // (A part stored in bf16, `crate::matmul_low`, joins the other in f32.)
+    let f32 = |t: &Tensor| match t.dtype() {
+        candle_core::DType::BF16 => t.to_dtype(candle_core::DType::F32),
+        _ => Ok(t.clone()),
+    };
+    let cat = || mlp(&Tensor::cat(&[f32(a)?, f32(b)?], D::Minus1)?, layers, act);
     let bias = layers.first().is_some_and(|(_, b)| b.is_some());
     let mut all = vec![a, b];
     for (w, b) in layers {
@@ -564,8 +569,10 @@ fn mlp_cat_here(a: &Tensor, b: &Tensor, layers: &[MlpLayer], act: MlpAct) -> Res
             .iter()
             .all(|(w, b)| w.rank() == 2 && b.is_some() == bias);
     if !(fits && lead_fits && usable(&all)) {
-        // On a GPU, the whole MLP as one node of tensor ops that concatenates inside.
-        if crate::enabled() && crate::usable_with_cuda_any(&all) && crate::device_graph(a) {
+        // On a GPU, the whole MLP as one node of tensor ops that concatenates inside (its
+        // inputs may be stored in bf16: `crate::matmul_low`).
+        let takes = crate::usable_with_cuda_any(&all) || crate::stores_low(&all);
+        if crate::enabled() && takes && crate::device_graph(a) {
             let bf16 = crate::precision() == crate::Precision::Bf16;
             if let Some(y) = crate::mlp_node::mlp_cat_node(a, b, layers, act, bf16)? {
                 return Ok(y);

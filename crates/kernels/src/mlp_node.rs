@@ -39,6 +39,8 @@ pub(crate) fn mlp_node(
 /// backward pass, so the graph keeps `a` and `b` (which it holds anyway when another op
 /// reads them) and no concatenated copy (the Slot Mixer's render MLP at 8,192 rays and
 /// batch 2: 112 MB). The values and gradients are those of the MLP of `Tensor::cat`.
+/// With `bf16`, a part may be stored in bf16 (`crate::matmul_low`): the node reads its
+/// exact f32 values and returns its gradient in bf16.
 pub(crate) fn mlp_cat_node(
     a: &Tensor,
     b: &Tensor,
@@ -108,12 +110,15 @@ fn mlp_node_of(
     Ok(Some(y.reshape(out)?))
 }
 
-/// The node's input: the part's rows, or the parts' rows side by side, detached.
+/// The node's input: the part's rows, or the parts' rows side by side, detached, in f32.
 fn joined(rows: &[Tensor]) -> Result<Tensor> {
     match rows {
-        [x] => Ok(x.detach()),
+        [x] => x.detach().to_dtype(DType::F32),
         _ => {
-            let parts: Vec<Tensor> = rows.iter().map(|t| t.detach()).collect();
+            let parts = rows
+                .iter()
+                .map(|t| t.detach().to_dtype(DType::F32))
+                .collect::<Result<Vec<_>>>()?;
             Tensor::cat(&parts, 1)
         }
     }
@@ -271,8 +276,8 @@ impl MlpNode {
         let mut out = Vec::with_capacity(rows.len());
         for (t, &w) in rows.iter().zip(&self.widths) {
             out.push(match (&dx, t.track_op()) {
-                (Some(dx), true) if rows.len() == 1 => Some(dx.clone()),
-                (Some(dx), true) => Some(dx.narrow(1, start, w)?),
+                (Some(dx), true) if rows.len() == 1 => Some(dx.to_dtype(t.dtype())?),
+                (Some(dx), true) => Some(dx.narrow(1, start, w)?.to_dtype(t.dtype())?),
                 _ => None,
             });
             start += w;

@@ -39,6 +39,16 @@ impl Linear {
     pub fn weight(&self) -> &Tensor {
         &self.weight
     }
+
+    /// [`Module::forward`], the output stored in bf16 where the products run in bf16 on
+    /// the device graph and the layer has no bias (`osrt_kernels::linear_low`: for an
+    /// output whose one reader is another product or attention).
+    pub fn forward_low(&self, x: &Tensor) -> Result<Tensor> {
+        match &self.bias {
+            None => osrt_kernels::linear_low(x, &self.weight),
+            Some(_) => self.forward(x),
+        }
+    }
 }
 
 impl Module for Linear {
@@ -182,10 +192,12 @@ impl Attention {
     /// `x: [b, n, q_dim]`, `ctx: [b, m, kv_dim]` → `[b, n, q_dim]`
     pub fn forward(&self, x: &Tensor, ctx: &Tensor) -> Result<Tensor> {
         let scale = 1.0 / (self.head_dim as f64).sqrt();
+        // The projections and the attention's output are read only by the attention and by
+        // the output projection's product: in bf16 they are stored in bf16.
         let o = osrt_kernels::attention(
-            &self.q.forward(x)?,
-            &self.k.forward(ctx)?,
-            &self.v.forward(ctx)?,
+            &self.q.forward_low(x)?,
+            &self.k.forward_low(ctx)?,
+            &self.v.forward_low(ctx)?,
             self.heads,
             scale,
         )?; // [b, n, h·dh]

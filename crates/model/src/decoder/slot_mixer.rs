@@ -124,9 +124,11 @@ fn mix(
     if let Some(out) = osrt_kernels::slot_mix(x, slots, w_q, w_k, scale)? {
         return Ok(out);
     }
-    let q = osrt_kernels::linear(x, w_q, None)?; // [b, r, ds]
+    // `q` and the mixed slot are read only by products (the logits', the render MLP's):
+    // in bf16 they are stored in bf16 (`osrt_kernels::matmul_low`).
+    let q = osrt_kernels::linear_low(x, w_q)?; // [b, r, ds]
     let k = osrt_kernels::linear(slots, w_k, None)?; // [b, k, ds]
     let logits = (osrt_kernels::matmul(&q, &k.t()?)? * scale)?; // [b, r, k]
     let weights = osrt_kernels::softmax(&logits, D::Minus1)?;
-    Ok((osrt_kernels::matmul(&weights, slots)?, weights))
+    Ok((osrt_kernels::matmul_low(&weights, slots)?, weights))
 }
