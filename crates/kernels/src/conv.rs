@@ -252,11 +252,39 @@ const MAX_UNFOLDED: usize = 1 << 25;
 /// `x: [n, h, w, c_in]`, `kernel: [c_out, c_in, k, k]` → `[n, h_out, w_out, c_out]`
 pub fn conv2d_nhwc(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
     crate::profile::op("conv2d", &[x, kernel], move |t| {
-        conv2d_nhwc_here(&t[0], &t[1], stride, padding)
+        conv2d_nhwc_here(&t[0], &t[1], stride, padding, false)
     })
 }
 
-fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) -> Result<Tensor> {
+/// `relu(conv2d_nhwc(x, kernel, stride, padding))`; on the device graph one node that keeps
+/// a one-byte mask where the graph of the two ops would keep the convolution's f32
+/// output (`conv_node.rs`). The same values and gradients.
+///
+/// # Shapes
+/// `x: [n, h, w, c_in]`, `kernel: [c_out, c_in, k, k]` → `[n, h_out, w_out, c_out]`
+pub fn conv2d_relu_nhwc(
+    x: &Tensor,
+    kernel: &Tensor,
+    stride: usize,
+    padding: usize,
+) -> Result<Tensor> {
+    crate::profile::op("conv2d_relu", &[x, kernel], move |t| {
+        conv2d_nhwc_here(&t[0], &t[1], stride, padding, true)
+    })
+}
+
+fn conv2d_nhwc_here(
+    x: &Tensor,
+    kernel: &Tensor,
+    stride: usize,
+    padding: usize,
+    relu: bool,
+) -> Result<Tensor> {
+    // Elsewhere than the device graph's node, ReLU is its own op after the convolution.
+    let then_relu = |y: Tensor| match relu {
+        true => crate::relu(&y),
+        false => Ok(y),
+    };
     let (n, h, w, c) = x.dims4()?;
     let (co, ci, k, k2) = kernel.dims4()?;
     if ci != c || k != k2 {
@@ -291,12 +319,12 @@ fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) 
             // One node over all groups, keeping no per-group copies (`conv_node.rs`).
             let f32s = x.dtype() == candle_core::DType::F32 && kernel.dtype() == x.dtype();
             let bf16 = precision() == Precision::Bf16 && f32s;
-            return crate::conv_node::conv2d_node(x, kernel, stride, padding, group, bf16);
+            return crate::conv_node::conv2d_node(x, kernel, stride, padding, group, bf16, relu);
         }
         if x.device().is_cpu() {
-            return conv(x);
+            return then_relu(conv(x)?);
         }
-        return in_groups(x, group, conv);
+        return then_relu(in_groups(x, group, conv)?);
     }
     let geom = ConvGeom {
         n,
@@ -315,7 +343,7 @@ fn conv2d_nhwc_here(x: &Tensor, kernel: &Tensor, stride: usize, padding: usize) 
         keep: x.track_op() || kernel.track_op(),
         saved: Kept::new(None),
     };
-    x.contiguous()?.apply_op2(&kernel.contiguous()?, op)
+    then_relu(x.contiguous()?.apply_op2(&kernel.contiguous()?, op)?)
 }
 
 /// `f` over groups of at most `group` leading entries of `x`, concatenated.
@@ -621,5 +649,39 @@ mod tests {
             1,
         );
         assert!(bad.unwrap_err().to_string().contains("3 channels"));
+    }
+
+    /// `conv2d_relu_nhwc` is `relu(conv2d_nhwc(..))` to the bit, values and gradients,
+    /// with every kernel set and precision the step runs.
+    #[test]
+    fn conv_relu_is_relu_of_the_convolution() {
+        use crate::{Kernels, Precision, with_kernels, with_precision};
+        let x = Var::from_tensor(&randn(&[2, 7, 7, 3], 1.0, 50)).unwrap();
+        let k = Var::from_tensor(&randn(&[4, 3, 3, 3], 0.5, 51)).unwrap();
+        for (kern, p) in [
+            (Kernels::Fused, Precision::F32),
+            (Kernels::Composed, Precision::F32),
+            (Kernels::Device, Precision::F32),
+            (Kernels::Device, Precision::Bf16),
+        ] {
+            let run = |one: bool| {
+                with_kernels(kern, || {
+                    with_precision(p, || {
+                        let (xt, kt) = (x.as_tensor(), k.as_tensor());
+                        let y = match one {
+                            true => conv2d_relu_nhwc(xt, kt, 2, 1).unwrap(),
+                            false => crate::relu(&conv2d_nhwc(xt, kt, 2, 1).unwrap()).unwrap(),
+                        };
+                        let w = randn(y.dims(), 1.0, 52);
+                        let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                        [&y, g.get(xt).unwrap(), g.get(kt).unwrap()].map(|t| {
+                            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+                            v.iter().map(|f| f.to_bits()).collect::<Vec<u32>>()
+                        })
+                    })
+                })
+            };
+            assert_eq!(run(true), run(false), "{kern} {p}");
+        }
     }
 }

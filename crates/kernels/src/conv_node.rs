@@ -20,6 +20,16 @@
 //! again. The result is handed to the graph through the node's forward pass, which
 //! returns a copy of it (the size of the output).
 
+//!
+//! With `relu`, the node is the convolution followed by ReLU (`conv.rs`'s
+//! `conv2d_relu_nhwc`, the encoder's CNN). Composed, the graph keeps both the
+//! convolution's output (ReLU's input, for its gradient) and ReLU's output (the next
+//! convolution's input), as PyTorch's eager graph does; this node keeps only where the
+//! convolution's output was ≥ 0, one byte per value (a quarter of the f32 output), and
+//! its backward pass masks the output's gradient as candle's ReLU does, so the values and
+//! gradients are those of the convolution node followed by candle's `relu`, bit for bit.
+
+use crate::Kept;
 use crate::conv::{ConvGeom, col2im, im2col};
 use crate::handover::Handover;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
@@ -33,6 +43,7 @@ pub(crate) fn conv2d_node(
     padding: usize,
     group: usize,
     bf16: bool,
+    relu: bool,
 ) -> Result<Tensor> {
     let geom = Geom {
         stride,
@@ -40,12 +51,25 @@ pub(crate) fn conv2d_node(
         group: group.max(1),
         bf16,
     };
-    let y = geom.forward(&x.detach(), &kernel.detach())?;
+    let c = geom.forward(&x.detach(), &kernel.detach())?;
+    let keep = x.track_op() || kernel.track_op();
+    let (y, mask) = match relu {
+        true => (c.relu()?, keep.then(|| relu_mask(&c)).transpose()?),
+        false => (c, None),
+    };
     let node = ConvNode {
         out: Handover::new(y)?,
         geom,
+        relu,
+        mask: Kept::new(mask),
     };
     x.apply_op2(kernel, node)
+}
+
+/// Where ReLU passes the gradient: the convolution's output `c` ≥ 0 (candle's `relu`
+/// passes it at 0 too), as `u8`.
+fn relu_mask(c: &Tensor) -> Result<Tensor> {
+    c.ge(&c.zeros_like()?)
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -122,6 +146,10 @@ fn dy_rows(dy: &Tensor) -> Result<Tensor> {
 struct ConvNode {
     out: Handover,
     geom: Geom,
+    /// ReLU follows the convolution.
+    relu: bool,
+    /// With `relu`, where the convolution's output was ≥ 0 (`u8`), for the backward pass.
+    mask: Kept<Tensor>,
 }
 
 impl CustomOp2 for ConvNode {
@@ -152,7 +180,7 @@ impl CustomOp2 for ConvNode {
 
     /// Per group (see the module docs): the input's gradient by product and col2im, the
     /// kernel's by product with the unfolding; the kernel's gradient is the groups' sum,
-    /// in group order.
+    /// in group order. With `relu`, the output's gradient masked first.
     fn bwd(
         &self,
         x: &Tensor,
@@ -165,6 +193,21 @@ impl CustomOp2 for ConvNode {
         // Detached: products of tracked operands would carry a graph (the unfolded
         // columns) into candle's gradient store until the backward pass ends.
         let (x, kernel) = (&x.detach(), &kernel.detach());
+        let masked;
+        let grad = match self.relu {
+            false => grad,
+            true => {
+                let mask = match self.mask.take() {
+                    Some(m) => m,
+                    // A second backward pass: the convolution again.
+                    None => relu_mask(&g.forward(x, kernel)?)?,
+                };
+                // candle's ReLU backward: the gradient times the mask, added to the zero
+                // its gradient starts from (`+ 0` turns a -0 into +0, as that add does).
+                masked = (grad.detach() * mask.to_dtype(grad.dtype())?)?.affine(1.0, 0.0)?;
+                &masked
+            }
+        };
         let (n, _, _, ci) = x.dims4()?;
         let (_, _, kh, kw) = kernel.dims4()?;
         let k = g.low(kernel)?;
@@ -256,7 +299,7 @@ mod tests {
                     with_precision(p, || {
                         let (xt, kt) = (x.as_tensor(), k.as_tensor());
                         let y = match node {
-                            true => conv2d_node(xt, kt, stride, pad, group, bf16).unwrap(),
+                            true => conv2d_node(xt, kt, stride, pad, group, bf16, false).unwrap(),
                             false => composed(xt, kt, stride, pad, group),
                         };
                         let w = randn(y.dims(), 1.0, 3);
@@ -288,7 +331,7 @@ mod tests {
     fn the_f32_node_matches_finite_differences() {
         let args = [randn(&[3, 6, 6, 2], 1.0, 4), randn(&[3, 2, 3, 3], 0.5, 5)];
         let f = |t: &[Tensor]| match enabled() {
-            true => conv2d_node(&t[0], &t[1], 2, 1, 2, false),
+            true => conv2d_node(&t[0], &t[1], 2, 1, 2, false, false),
             false => t[0]
                 .permute((0, 3, 1, 2))?
                 .conv2d(&t[1], 1, 2, 1, 1)?
@@ -299,7 +342,7 @@ mod tests {
         // Inputs that carry no gradient get none.
         let k = Var::from_tensor(&args[1]).unwrap();
         let g = with_fused(true, || {
-            let y = conv2d_node(&args[0], k.as_tensor(), 1, 1, 2, false).unwrap();
+            let y = conv2d_node(&args[0], k.as_tensor(), 1, 1, 2, false, false).unwrap();
             y.sum_all().unwrap().backward().unwrap()
         });
         assert!(g.get(&args[0]).is_none() && g.get(k.as_tensor()).is_some());
@@ -307,6 +350,69 @@ mod tests {
         // 2 (candle's transposed convolution takes one output padding for both, so the
         // node's gradient could not use it): col2im shapes it.
         let args = [randn(&[2, 6, 5, 2], 1.0, 6), args[1].clone()];
-        finite_difference_check(&args, |t| conv2d_node(&t[0], &t[1], 2, 1, 2, false));
+        finite_difference_check(&args, |t| conv2d_node(&t[0], &t[1], 2, 1, 2, false, false));
+    }
+
+    /// The node with ReLU gives the bits of the node followed by candle's `relu` (values
+    /// and both gradients, signs of zeros included), in f32 and bf16, over several groups,
+    /// with an input whose zero regions make outputs exactly 0 (where ReLU's gradient is
+    /// 1); it keeps a one-byte mask; it matches finite differences, and a second backward
+    /// pass (the mask taken by the first) gives the same gradients.
+    #[test]
+    fn the_relu_node_is_the_node_followed_by_relu() {
+        // Half of the images all zero: their outputs are exactly 0.
+        let x = randn(&[4, 6, 5, 3], 1.0, 40);
+        let zero = Tensor::zeros((2, 6, 5, 3), DType::F32, x.device()).unwrap();
+        let x = Tensor::cat(&[&x.narrow(0, 0, 2).unwrap(), &zero], 0).unwrap();
+        let k = randn(&[4, 3, 3, 3], 0.5, 41);
+        for bf16 in [false, true] {
+            let (xv, kv) = (Var::from_tensor(&x).unwrap(), Var::from_tensor(&k).unwrap());
+            let run = |fused: bool| {
+                let (xt, kt) = (xv.as_tensor(), kv.as_tensor());
+                let y = match fused {
+                    true => conv2d_node(xt, kt, 2, 1, 3, bf16, true).unwrap(),
+                    false => conv2d_node(xt, kt, 2, 1, 3, bf16, false)
+                        .unwrap()
+                        .relu()
+                        .unwrap(),
+                };
+                let w = randn(y.dims(), 1.0, 42);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let bits =
+                    |t: &Tensor| -> Vec<u32> { values(t).iter().map(|v| v.to_bits()).collect() };
+                [bits(&y), bits(g.get(xt).unwrap()), bits(g.get(kt).unwrap())]
+            };
+            assert_eq!(run(true), run(false), "bf16 {bf16}");
+        }
+        let c = Tensor::new(&[[-1f32, 0.0, -0.0, 2.0]], &candle_core::Device::Cpu).unwrap();
+        let mask = relu_mask(&c).unwrap();
+        assert_eq!(mask.dtype(), DType::U8);
+        assert_eq!(mask.to_vec2::<u8>().unwrap(), [[0, 1, 1, 1]]);
+        let args = [randn(&[2, 5, 4, 3], 1.0, 43), randn(&[2, 3, 3, 3], 0.5, 44)];
+        let f = |t: &[Tensor]| match enabled() && t[0].dtype() == DType::F32 {
+            true => conv2d_node(&t[0], &t[1], 1, 1, 1, false, true),
+            false => conv2d_node(&t[0], &t[1], 1, 1, 1, false, false)?.relu(),
+        };
+        finite_difference_check(&args, f);
+        let (xv, kv) = (
+            Var::from_tensor(&args[0]).unwrap(),
+            Var::from_tensor(&args[1]).unwrap(),
+        );
+        let loss = with_fused(true, || {
+            f(&[xv.as_tensor().clone(), kv.as_tensor().clone()])
+        })
+        .unwrap()
+        .sqr()
+        .unwrap()
+        .sum_all()
+        .unwrap();
+        let (g1, g2) = (loss.backward().unwrap(), loss.backward().unwrap());
+        for v in [&xv, &kv] {
+            let (a, b) = (
+                g1.get(v.as_tensor()).unwrap(),
+                g2.get(v.as_tensor()).unwrap(),
+            );
+            assert_eq!(values(a), values(b));
+        }
     }
 }

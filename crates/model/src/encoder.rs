@@ -15,7 +15,7 @@ use crate::nn::{Transformer, TransformerConfig};
 use crate::ray_encoding::RayEncoding;
 use candle_core::{D, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
-use osrt_kernels::{conv2d_nhwc, relu};
+use osrt_kernels::{conv2d_nhwc, conv2d_relu_nhwc};
 use serde::{Deserialize, Serialize};
 
 /// How the ray encoding enters the encoder.
@@ -243,8 +243,8 @@ impl Encoder {
             Some(_) => images.reshape((b * v, h, w, 3))?,
         };
         for (a, s2) in &self.convs {
-            x = relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
-            x = relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
+            x = conv2d_relu_nhwc(&x, a.weight(), 1, 1)?;
+            x = conv2d_relu_nhwc(&x, s2.weight(), 2, 1)?;
         }
         let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {
@@ -264,8 +264,8 @@ impl Encoder {
         let (b, v, h, w, _) = images.dims5()?;
         let mut x = images.reshape((b * v, h, w, 3))?;
         for (a, s2) in &self.convs {
-            x = relu(&conv2d_nhwc(&x, a.weight(), 1, 1)?)?;
-            x = relu(&conv2d_nhwc(&x, s2.weight(), 2, 1)?)?;
+            x = conv2d_relu_nhwc(&x, a.weight(), 1, 1)?;
+            x = conv2d_relu_nhwc(&x, s2.weight(), 2, 1)?;
         }
         let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         let (_, h2, w2, d) = x.dims4()?;
