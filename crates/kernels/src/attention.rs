@@ -429,25 +429,20 @@ fn attention_composed_here(
 ) -> Result<Tensor> {
     let (b, n, inner) = q.dims3()?;
     let m = k.dim(1)?;
-    let dh = inner / heads;
     let takes = usable_with_cuda(&[q, k, v]) || crate::stores_low(&[q, k, v]);
     if takes && crate::device_graph(q) && n > 0 && m > 0 {
         // A GPU: one node that keeps only the weights (`attention_node.rs`).
         return super::attention_node::attention(q, k, v, heads, scale);
     }
-    let split = |t: &Tensor, len: usize| -> Result<Tensor> {
-        // [b, len, h·dh] → [b·h, len, dh]
-        t.reshape((b, len, heads, dh))?
-            .transpose(1, 2)?
-            .reshape((b * heads, len, dh))
+    let hs = super::attention_node::Heads {
+        b,
+        h: heads,
+        dh: inner / heads,
     };
-    let (q, k, v) = (split(q, n)?, split(k, m)?, split(v, m)?);
+    let (q, k, v) = (hs.split(q)?, hs.split(k)?, hs.split(v)?);
     let logits = (super::matmul(&q, &k.t()?)? * scale)?; // [b·h, n, m]
     let attn = super::softmax(&logits, D::Minus1)?;
-    super::matmul(&attn, &v)? // [b·h, n, dh]
-        .reshape((b, heads, n, dh))?
-        .transpose(1, 2)?
-        .reshape((b, n, inner))
+    hs.merge(&super::matmul(&attn, &v)?) // [b·h, n, dh] → [b, n, h·dh]
 }
 
 #[cfg(test)]

@@ -48,15 +48,15 @@ fn f32_of(t: &Tensor) -> Result<Tensor> {
 
 /// How `[b, len, h·dh]` splits into heads.
 #[derive(Clone, Copy)]
-struct Heads {
-    b: usize,
-    h: usize,
-    dh: usize,
+pub(crate) struct Heads {
+    pub(crate) b: usize,
+    pub(crate) h: usize,
+    pub(crate) dh: usize,
 }
 
 impl Heads {
     /// `[b, len, h·dh]` → `[b·h, len, dh]` (a copy).
-    fn split(&self, t: &Tensor) -> Result<Tensor> {
+    pub(crate) fn split(&self, t: &Tensor) -> Result<Tensor> {
         let len = t.dim(1)?;
         t.reshape((self.b, len, self.h, self.dh))?
             .transpose(1, 2)?
@@ -64,7 +64,7 @@ impl Heads {
     }
 
     /// `[b·h, len, dh]` → `[b, len, h·dh]` (a copy).
-    fn merge(&self, t: &Tensor) -> Result<Tensor> {
+    pub(crate) fn merge(&self, t: &Tensor) -> Result<Tensor> {
         let len = t.dim(1)?;
         t.reshape((self.b, self.h, len, self.dh))?
             .transpose(1, 2)?
