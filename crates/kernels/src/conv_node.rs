@@ -19,13 +19,12 @@
 //! gradient is the output's gradient (transposed) times the input's unfolding, made
 //! again. The result is handed to the graph through the node's forward pass, which
 //! returns a copy of it (the size of the output).
-
 //!
 //! With `relu`, the node is the convolution followed by ReLU (`conv.rs`'s
-//! `conv2d_relu_nhwc`, the encoder's CNN). Composed, the graph keeps both the
+//! `conv2d_relu_nhwc`, the encoder's CNN). As two ops, candle's graph keeps both the
 //! convolution's output (ReLU's input, for its gradient) and ReLU's output (the next
-//! convolution's input), as PyTorch's eager graph does; this node keeps only where the
-//! convolution's output was ≥ 0, one byte per value (a quarter of the f32 output), and
+//! convolution's input; PyTorch's ReLU keeps only that one); this node keeps only where
+//! the convolution's output was ≥ 0, one byte per value (a quarter of the f32 output), and
 //! its backward pass masks the output's gradient as candle's ReLU does, so the values and
 //! gradients are those of the convolution node followed by candle's `relu`, bit for bit.
 
