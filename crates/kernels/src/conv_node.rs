@@ -244,7 +244,9 @@ impl CustomOp2 for ConvNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::{assert_matches_composed, finite_difference_check, randn};
+    use crate::testing::{
+        assert_matches_composed, assert_second_backward_agrees, finite_difference_check, randn,
+    };
     use crate::{Precision, enabled, with_fused, with_precision};
     use candle_core::Var;
 
@@ -393,25 +395,6 @@ mod tests {
             false => conv2d_node(&t[0], &t[1], 1, 1, 1, false, false)?.relu(),
         };
         finite_difference_check(&args, f);
-        let (xv, kv) = (
-            Var::from_tensor(&args[0]).unwrap(),
-            Var::from_tensor(&args[1]).unwrap(),
-        );
-        let loss = with_fused(true, || {
-            f(&[xv.as_tensor().clone(), kv.as_tensor().clone()])
-        })
-        .unwrap()
-        .sqr()
-        .unwrap()
-        .sum_all()
-        .unwrap();
-        let (g1, g2) = (loss.backward().unwrap(), loss.backward().unwrap());
-        for v in [&xv, &kv] {
-            let (a, b) = (
-                g1.get(v.as_tensor()).unwrap(),
-                g2.get(v.as_tensor()).unwrap(),
-            );
-            assert_eq!(values(a), values(b));
-        }
+        assert_second_backward_agrees(&args, f);
     }
 }

@@ -378,7 +378,7 @@ impl CustomOp3 for MlpNode {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::{finite_difference_check, randn};
+    use crate::testing::{assert_second_backward_agrees, finite_difference_check, randn};
     use crate::{Precision, with_fused, with_precision};
     use candle_core::Var;
 
@@ -596,22 +596,7 @@ mod tests {
             }
         };
         finite_difference_check(&args, f);
-        let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
-        let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
-        let loss = with_fused(true, || f(&ts))
-            .unwrap()
-            .sqr()
-            .unwrap()
-            .sum_all()
-            .unwrap();
-        let (g1, g2) = (loss.backward().unwrap(), loss.backward().unwrap());
-        for v in &vars {
-            let (a, b) = (
-                g1.get(v.as_tensor()).unwrap(),
-                g2.get(v.as_tensor()).unwrap(),
-            );
-            assert_eq!(values(a), values(b));
-        }
+        assert_second_backward_agrees(&args, f);
         // A layer without a bias is not the node's: the caller goes layer by layer.
         let no_bias = [(&args[1], None)];
         assert!(

@@ -1,5 +1,5 @@
 //! Helpers of the kernels' tests: seeded inputs, fused-vs-composed comparisons, f64
-//! finite differences.
+//! finite differences, a second backward pass.
 
 use crate::*;
 use candle_core::{Device, Result, Tensor, Var};
@@ -123,5 +123,30 @@ pub(crate) fn finite_difference_check(args: &[Tensor], f: impl Fn(&[Tensor]) -> 
                 g[i]
             );
         }
+    }
+}
+
+/// A second backward pass through the same graph of `Σ f(args)²` (built with the fused
+/// ops, every argument a variable) gives the first one's gradients: a node whose first
+/// backward pass took what it kept recomputes it.
+pub(crate) fn assert_second_backward_agrees(
+    args: &[Tensor],
+    f: impl Fn(&[Tensor]) -> Result<Tensor>,
+) {
+    let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
+    let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+    let loss = with_fused(true, || f(&ts))
+        .unwrap()
+        .sqr()
+        .unwrap()
+        .sum_all()
+        .unwrap();
+    let (g1, g2) = (loss.backward().unwrap(), loss.backward().unwrap());
+    for (i, v) in vars.iter().enumerate() {
+        let flat = |g: &candle_core::backprop::GradStore| -> Vec<f32> {
+            let t = g.get(v.as_tensor()).unwrap();
+            t.flatten_all().unwrap().to_vec1().unwrap()
+        };
+        assert_eq!(flat(&g1), flat(&g2), "argument {i}");
     }
 }
