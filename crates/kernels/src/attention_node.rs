@@ -70,6 +70,20 @@ impl Heads {
             .transpose(1, 2)?
             .reshape((self.b, len, self.h * self.dh))
     }
+
+    /// [`Heads::split`] of `t` detached, then widened to f32 where it is bf16: the values
+    /// of widening first, with the copy made in the narrower type.
+    fn split_f32(&self, t: &Tensor) -> Result<Tensor> {
+        f32_of(&self.split(&t.detach())?)
+    }
+
+    /// [`Heads::merge`] of `t` in `dtype`: narrowed first (the values of narrowing after
+    /// the merge), so that `t` goes before the copy is made.
+    fn merge_to(&self, t: Tensor, dtype: DType) -> Result<Tensor> {
+        let low = t.to_dtype(dtype)?;
+        drop(t);
+        self.merge(&low)
+    }
 }
 
 impl CustomOp3 for AttentionNode {
@@ -116,19 +130,20 @@ impl CustomOp3 for AttentionNode {
         // (a profile recording the step must not count them apart).
         crate::profile::nested(|| {
             let hs = self.heads;
-            let (q, k) = (hs.split(&f32_of(q)?)?, hs.split(&f32_of(k)?)?);
             let a = match self.weights.take() {
                 Some(a) => a,
-                None => scores(&q, &k, self.scale)?,
+                None => scores(&hs.split_f32(q)?, &hs.split_f32(k)?, self.scale)?,
             };
-            let g = hs.split(&f32_of(grad)?)?;
-            let dv = hs.merge(&matmul(&a.t()?, &g)?)?.to_dtype(v.dtype())?;
-            let da = matmul(&g, &hs.split(&f32_of(v)?)?.t()?)?.contiguous()?;
+            let g = hs.split_f32(grad)?;
+            let dv = hs.merge_to(matmul(&a.t()?, &g)?, v.dtype())?;
+            let da = matmul(&g, &hs.split_f32(v)?.t()?)?.contiguous()?;
             drop(g);
             let dl = (softmax::softmax_grad(&a, &da)? * self.scale)?;
             drop((a, da));
-            let dq = hs.merge(&matmul(&dl, &k)?)?.to_dtype(self.dtypes[0])?;
-            let dk = hs.merge(&matmul(&dl.t()?, &q)?)?.to_dtype(self.dtypes[1])?;
+            // k and q widened one at a time, each where its product reads it: with many
+            // queries (the decoder's rays) q and its gradient are the largest tensors here.
+            let dq = hs.merge_to(matmul(&dl, &hs.split_f32(k)?)?, self.dtypes[0])?;
+            let dk = hs.merge_to(matmul(&dl.t()?, &hs.split_f32(q)?)?, self.dtypes[1])?;
             Ok((Some(dq), Some(dk), Some(dv)))
         })
     }
@@ -162,12 +177,8 @@ pub(crate) fn attention(
         h: heads,
         dh: inner / heads,
     };
-    let (qd, kd) = (hs.split(&f32_of(q)?)?, hs.split(&f32_of(k)?)?);
-    let a = scores(&qd, &kd, scale)?;
-    drop((qd, kd));
-    let out = hs
-        .merge(&matmul(&a, &hs.split(&f32_of(v)?)?)?)?
-        .to_dtype(q.dtype())?;
+    let a = scores(&hs.split_f32(q)?, &hs.split_f32(k)?, scale)?;
+    let out = hs.merge_to(matmul(&a, &hs.split_f32(v)?)?, q.dtype())?;
     let keep = q.track_op() || k.track_op() || v.track_op();
     let node = AttentionNode {
         out: Handover::new(out)?,
