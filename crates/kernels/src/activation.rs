@@ -1,5 +1,6 @@
 use crate::*;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
 
 /// 1/√2
 const FRAC_1_SQRT_2: f32 = std::f32::consts::FRAC_1_SQRT_2;
@@ -38,6 +39,29 @@ pub(crate) fn par_elementwise_grad(
         let at = i * E..i * E + o.len();
         kernel(o, &x[at.clone()], &dy[at])
     })
+}
+
+/// [`par_elementwise`] written over `x`, in the same chunks (each copied once, so that
+/// the kernel reads and writes distinct slices): the same bits, no second buffer.
+pub(crate) fn par_elementwise_in_place(x: &mut [f32], kernel: impl Fn(&mut [f32], &[f32]) + Sync) {
+    x.par_chunks_mut(ELEMENTS_PER_TASK).for_each(|o| {
+        let x = o.to_vec();
+        kernel(o, &x)
+    });
+}
+
+/// [`par_elementwise_grad`] written over `x`, in the same chunks.
+pub(crate) fn par_elementwise_grad_in_place(
+    x: &mut [f32],
+    dy: &[f32],
+    kernel: impl Fn(&mut [f32], &[f32], &[f32]) + Sync,
+) {
+    x.par_chunks_mut(ELEMENTS_PER_TASK)
+        .zip(dy.par_chunks(ELEMENTS_PER_TASK))
+        .for_each(|(o, dy)| {
+            let x = o.to_vec();
+            kernel(o, &x, dy)
+        });
 }
 
 fastmath::kernel! {

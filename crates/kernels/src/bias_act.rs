@@ -9,7 +9,9 @@
 
 use crate::mlp::MlpAct;
 use crate::*;
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
+use candle_core::{
+    CpuStorage, CustomOp2, CustomOp3, InplaceOp2, InplaceOp3, Layout, Result, Shape, Tensor,
+};
 
 /// The activation as the CUDA kernels spell it: `(kind, slope)` with kind 0 = none,
 /// 1 = (leaky) ReLU, 2 = erf-GELU.
@@ -126,6 +128,139 @@ impl CustomOp3 for BiasActBwd {
     }
 }
 
+/// The contiguous f32 elements of `s` under `l`, writable.
+fn f32_slice_mut<'a>(s: &'a mut CpuStorage, l: &Layout, what: &str) -> Result<&'a mut [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("{what}: in-place ops take f32");
+    };
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&mut v[a..b]),
+        None => candle_core::bail!("{what}: in-place ops take contiguous tensors"),
+    }
+}
+
+/// [`BiasActOp`] written over `x`: the same values, no second buffer of `x`'s size.
+impl InplaceOp2 for BiasActOp {
+    fn name(&self) -> &'static str {
+        "osrt-bias-act-in-place"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &mut CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<()> {
+        let b = f32_slice(s2, l2, "bias+activation in place bias")?;
+        let x = f32_slice_mut(s1, l1, "bias+activation in place x")?;
+        if x.len() % b.len().max(1) != 0 {
+            candle_core::bail!(
+                "bias+activation in place: {} elements for a bias of {}",
+                x.len(),
+                b.len()
+            )
+        }
+        add_bias_rows(x, b);
+        if let Some(a) = self.act {
+            a.forward_in_place(x);
+        }
+        Ok(())
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &mut candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> Result<()> {
+        crate::cuda::bias_act_fwd_in_place(s1, l1, s2, l2, act_code(self.act))
+    }
+}
+
+/// [`BiasActBwd`] written over `x`.
+impl InplaceOp3 for BiasActBwd {
+    fn name(&self) -> &'static str {
+        "osrt-bias-act-bwd-in-place"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &mut CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<()> {
+        let b = f32_slice(s2, l2, "bias+activation backward in place bias")?;
+        let dy = f32_slice(s3, l3, "bias+activation backward in place gradient")?;
+        let x = f32_slice_mut(s1, l1, "bias+activation backward in place x")?;
+        if x.len() != dy.len() || x.len() % b.len().max(1) != 0 {
+            candle_core::bail!(
+                "bias+activation backward in place: {} elements, a gradient of {}, a bias of {}",
+                x.len(),
+                dy.len(),
+                b.len()
+            )
+        }
+        add_bias_rows(x, b);
+        self.act.backward_in_place(x, dy);
+        Ok(())
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &mut candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> Result<()> {
+        crate::cuda::bias_act_bwd_in_place(s1, l1, s2, l2, s3, l3, act_code(Some(self.act)))
+    }
+}
+
+/// `x ← act(x + b)` for `x: [.., d]` (f32, contiguous), `b: [d]`, outside the graph. `x`
+/// must be the caller's own: every tensor sharing its storage sees the change.
+pub(crate) fn bias_act_in_place(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<()> {
+    check_rows(x, b, None)?;
+    x.inplace_op2(b, &BiasActOp { act })
+}
+
+/// `x: [.., d]` with `b: [d]` (and `dy` of `x`'s shape), or an error naming them.
+fn check_rows(x: &Tensor, b: &Tensor, dy: Option<&Tensor>) -> Result<()> {
+    let fits = b.rank() == 1
+        && x.rank() > 0
+        && x.dim(candle_core::D::Minus1)? == b.elem_count()
+        && dy.is_none_or(|dy| dy.shape() == x.shape());
+    match fits {
+        true => Ok(()),
+        false => candle_core::bail!(
+            "bias+activation in place: x {:?}, bias {:?}, gradient {:?}",
+            x.shape(),
+            b.shape(),
+            dy.map(Tensor::shape)
+        ),
+    }
+}
+
+/// `x ← dy · act'(x + b)` (the input gradient of [`bias_act`] at `x`), outside the graph,
+/// over the caller's own `x`.
+pub(crate) fn bias_act_bwd_in_place(
+    x: &Tensor,
+    b: &Tensor,
+    dy: &Tensor,
+    act: MlpAct,
+) -> Result<()> {
+    check_rows(x, b, Some(dy))?;
+    x.inplace_op3(b, dy, &BiasActBwd { act })
+}
+
 /// `act(x + b)` for `x: [.., d]`, `b: [d]`, `act` none (a bias add) or an MLP activation.
 /// One node where the one-node ops apply (f32 on the CPU or a CUDA device); the composed
 /// ops otherwise.
@@ -172,6 +307,46 @@ mod tests {
             let small = [randn(&[2, 3, 5], 1.0, 63), randn(&[5], 1.0, 64)];
             finite_difference_check(&small, |t| bias_act(&t[0], &t[1], act));
         }
+    }
+
+    /// The in-place forward and backward ops give the node's bits, over sizes that end
+    /// mid-chunk of the parallel loops, with extreme values and exact zeros of `x + b`.
+    #[test]
+    fn the_in_place_ops_give_the_node_bits() {
+        let (rows, d) = (700, 37);
+        let mut x = randn(&[rows * d], 2.0, 90).to_vec1::<f32>().unwrap();
+        for (j, v) in [1e30f32, -1e30, 1e-30, -1e-30, 0.0, -0.0, 3e38, -3e38]
+            .into_iter()
+            .enumerate()
+        {
+            x[j * 1001] = v;
+        }
+        let b = randn(&[d], 0.5, 91);
+        let bv = b.to_vec1::<f32>().unwrap();
+        x[9 * d + 3] = -bv[3];
+        let x = Tensor::from_vec(x, (rows, d), &Device::Cpu).unwrap();
+        let dy = randn(&[rows, d], 1.0, 92);
+        let bits = |t: &Tensor| -> Vec<u32> {
+            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            v.iter().map(|x| x.to_bits()).collect()
+        };
+        for act in ACTS {
+            let y = x.apply_op2_no_bwd(&b, &BiasActOp { act }).unwrap();
+            let h = x.copy().unwrap();
+            bias_act_in_place(&h, &b, act).unwrap();
+            assert_eq!(bits(&h), bits(&y), "{act:?}");
+            if let Some(a) = act {
+                let dz = x.apply_op3_no_bwd(&b, &dy, &BiasActBwd { act: a }).unwrap();
+                let g = x.copy().unwrap();
+                bias_act_bwd_in_place(&g, &b, &dy, a).unwrap();
+                assert_eq!(bits(&g), bits(&dz), "{a:?} gradient");
+            }
+        }
+        // A bias that does not divide the rows, a gradient of another size: errors.
+        let odd = randn(&[5], 1.0, 93);
+        assert!(bias_act_in_place(&x.copy().unwrap(), &odd, None).is_err());
+        let short = randn(&[rows - 1, d], 1.0, 94);
+        assert!(bias_act_bwd_in_place(&x.copy().unwrap(), &b, &short, MlpAct::Gelu).is_err());
     }
 
     #[test]

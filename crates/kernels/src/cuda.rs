@@ -300,6 +300,84 @@ pub fn bias_act_fwd(
     ))
 }
 
+/// The contiguous f32 elements of `s` under `l`, writable: the buffer an in-place kernel
+/// overwrites.
+fn output<'a>(
+    s: &'a mut CudaStorage,
+    l: &Layout,
+    what: &str,
+) -> Result<candle_core::cuda_backend::cudarc::driver::CudaViewMut<'a, f32>> {
+    let Some((a, b)) = l.contiguous_offsets() else {
+        candle_core::bail!("{what}: the CUDA kernel needs a contiguous tensor")
+    };
+    Ok(s.as_cuda_slice_mut::<f32>()?.slice_mut(a..b))
+}
+
+/// [`bias_act_fwd`] written over `x` (a buffer its caller owns).
+pub fn bias_act_fwd_in_place(
+    x: &mut CudaStorage,
+    lx: &Layout,
+    b: &CudaStorage,
+    lb: &Layout,
+    (kind, slope): (i32, f32),
+) -> Result<()> {
+    let dev = device(b).clone();
+    let d = lb.shape().elem_count();
+    let (_, cols) = rows_cols(lx, d, "bias+activation in place")?;
+    let n = lx.shape().elem_count();
+    let bv = input(b, lb, "bias+activation in place bias")?;
+    let mut xv = output(x, lx, "bias+activation in place x")?;
+    let n64 = n as i64;
+    let f = dev.get_or_load_custom_func("osrt_bias_act_fwd_inplace", MODULE, ptx()?)?;
+    let mut l = f.builder();
+    l.arg(&mut xv)
+        .arg(&bv)
+        .arg(&n64)
+        .arg(&cols)
+        .arg(&kind)
+        .arg(&slope);
+    // SAFETY: the arguments match the kernel's signature; sizes were checked above.
+    unsafe { l.launch(elementwise_launch(n)) }.w()?;
+    Ok(())
+}
+
+/// [`bias_act_bwd`] written over `x` (a buffer its caller owns).
+#[allow(clippy::too_many_arguments)]
+pub fn bias_act_bwd_in_place(
+    x: &mut CudaStorage,
+    lx: &Layout,
+    b: &CudaStorage,
+    lb: &Layout,
+    dy: &CudaStorage,
+    ldy: &Layout,
+    (kind, slope): (i32, f32),
+) -> Result<()> {
+    let dev = device(b).clone();
+    let d = lb.shape().elem_count();
+    let (_, cols) = rows_cols(lx, d, "bias+activation backward in place")?;
+    let n = lx.shape().elem_count();
+    if ldy.shape().elem_count() != n {
+        candle_core::bail!(
+            "bias+activation backward in place: gradient {:?} for {:?}",
+            ldy.shape(),
+            lx.shape()
+        )
+    }
+    let (bv, dyv) = (
+        input(b, lb, "bias+activation backward in place bias")?,
+        input(dy, ldy, "bias+activation backward in place gradient")?,
+    );
+    let mut xv = output(x, lx, "bias+activation backward in place x")?;
+    let n64 = n as i64;
+    let f = dev.get_or_load_custom_func("osrt_bias_act_bwd_inplace", MODULE, ptx()?)?;
+    let mut l = f.builder();
+    l.arg(&mut xv).arg(&bv).arg(&dyv);
+    l.arg(&n64).arg(&cols).arg(&kind).arg(&slope);
+    // SAFETY: the arguments match the kernel's signature; sizes were checked above.
+    unsafe { l.launch(elementwise_launch(n)) }.w()?;
+    Ok(())
+}
+
 /// `dy · act'(x + b)`.
 #[allow(clippy::too_many_arguments)]
 pub fn bias_act_bwd(

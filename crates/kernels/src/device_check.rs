@@ -166,6 +166,31 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             vec![(extreme(8, 64)? * 1e3)?, normal(&[64], 1.0, 8)?],
             Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
         ));
+        // Written over a copy of x (the bf16 MLP node's way): values only.
+        out.push((
+            format!("{name} in place [500, 96]"),
+            vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
+            Box::new(move |t| {
+                let h = t[0].detach().copy()?;
+                crate::bias_act::bias_act_in_place(&h, &t[1].detach(), act)?;
+                Ok(h)
+            }),
+        ));
+        if let Some(a) = act {
+            out.push((
+                format!("{name} backward in place [500, 96]"),
+                vec![
+                    normal(&[500, 96], 2.0, 6)?,
+                    normal(&[96], 1.0, 7)?,
+                    normal(&[500, 96], 1.0, 21)?,
+                ],
+                Box::new(move |t| {
+                    let h = t[0].detach().copy()?;
+                    crate::bias_act::bias_act_bwd_in_place(&h, &t[1].detach(), &t[2].detach(), a)?;
+                    Ok(h)
+                }),
+            ));
+        }
     }
     Ok(out)
 }

@@ -134,6 +134,24 @@ extern "C" __global__ void osrt_bias_act_bwd(const float* x, const float* b, con
     }
 }
 
+// In place on a buffer the caller owns: x = act(x + b[col]) (osrt_bias_act_fwd with y = x).
+extern "C" __global__ void osrt_bias_act_fwd_inplace(float* x, const float* b, long n, int cols,
+                                                     int kind, float slope) {
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < n;
+         i += (long)gridDim.x * blockDim.x)
+        x[i] = act_f(x[i] + b[i % cols], kind, slope);
+}
+
+// In place: x = dy * act'(x + b[col]) (osrt_bias_act_bwd with dz = x).
+extern "C" __global__ void osrt_bias_act_bwd_inplace(float* x, const float* b, const float* dy,
+                                                     long n, int cols, int kind, float slope) {
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < n;
+         i += (long)gridDim.x * blockDim.x) {
+        float z = x[i] + b[i % cols];
+        x[i] = dy[i] * act_grad(z, kind, slope);
+    }
+}
+
 // Per chunk of `chunk` rows and column: the column's sum over the chunk (chunks as in
 // osrt_layer_norm_bwd_params).
 extern "C" __global__ void osrt_column_partials(const float* a, float* partial, int rows,

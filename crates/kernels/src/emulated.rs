@@ -142,6 +142,8 @@ type SoftmaxBwd = unsafe extern "C" fn(*const f32, *const f32, *mut f32, i32, i3
 type BiasActFwd = unsafe extern "C" fn(*const f32, *const f32, *mut f32, i64, i32, i32, f32);
 type BiasActBwd =
     unsafe extern "C" fn(*const f32, *const f32, *const f32, *mut f32, i64, i32, i32, f32);
+type BiasActFwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, i64, i32, i32, f32);
+type BiasActBwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, *const f32, i64, i32, i32, f32);
 type Fold<I, O> =
     unsafe extern "C" fn(*const I, *mut O, i64, i32, i32, i32, i32, i32, i32, i32, i32);
 
@@ -295,6 +297,42 @@ impl Emulator {
             )
         });
         dz
+    }
+
+    /// `cuda::bias_act_fwd_in_place` over `launch`.
+    pub(crate) fn bias_act_fwd_in_place(
+        &self,
+        x: &mut [f32],
+        b: &[f32],
+        act: (i32, f32),
+        l: Launch,
+    ) {
+        // SAFETY: the signature of `osrt_bias_act_fwd_inplace`.
+        let k: BiasActFwdInPlace = unsafe { self.kernel("osrt_bias_act_fwd_inplace") };
+        let (n, cols) = (x.len() as i64, b.len() as i32);
+        let (xp, bp) = (Ptr::of(x), ptr(b));
+        self.launch(l, &|| unsafe {
+            k(xp.get(), bp.get(), n, cols, act.0, act.1)
+        });
+    }
+
+    /// `cuda::bias_act_bwd_in_place` over `launch`.
+    pub(crate) fn bias_act_bwd_in_place(
+        &self,
+        x: &mut [f32],
+        b: &[f32],
+        dy: &[f32],
+        act: (i32, f32),
+        l: Launch,
+    ) {
+        assert_eq!(x.len(), dy.len());
+        // SAFETY: the signature of `osrt_bias_act_bwd_inplace`.
+        let k: BiasActBwdInPlace = unsafe { self.kernel("osrt_bias_act_bwd_inplace") };
+        let (n, cols) = (x.len() as i64, b.len() as i32);
+        let (xp, bp, dyp) = (Ptr::of(x), ptr(b), ptr(dy));
+        self.launch(l, &|| unsafe {
+            k(xp.get(), bp.get(), dyp.get(), n, cols, act.0, act.1)
+        });
     }
 
     /// `cuda::column_sum`: the sums over the rows of `[rows, d]`, the partial sums over

@@ -18,7 +18,8 @@ use super::gemm::{self, MatRef, Threads};
 use super::{
     ColumnSum, Kept, add_bias_rows, cpu_storage as cpu, f32_slice, gelu_grad_slice, gelu_slice,
     leaky_relu_grad_slice, leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad,
-    rows_layout, usable, usable_with_cuda, weight_grad, with_last_dim,
+    par_elementwise_grad_in_place, par_elementwise_in_place, rows_layout, usable, usable_with_cuda,
+    weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -55,6 +56,28 @@ impl MlpAct {
                 par_elementwise_grad(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
             }
             MlpAct::Gelu => par_elementwise_grad(z, dy, gelu_grad_slice),
+        }
+    }
+
+    /// [`MlpAct::forward`] written over `z`.
+    pub(crate) fn forward_in_place(self, z: &mut [f32]) {
+        match self {
+            MlpAct::Relu => par_elementwise_in_place(z, |o, x| leaky_relu_slice(o, x, 0.0)),
+            MlpAct::LeakyRelu(s) => par_elementwise_in_place(z, |o, x| leaky_relu_slice(o, x, s)),
+            MlpAct::Gelu => par_elementwise_in_place(z, gelu_slice),
+        }
+    }
+
+    /// [`MlpAct::backward`] written over `z`.
+    pub(crate) fn backward_in_place(self, z: &mut [f32], dy: &[f32]) {
+        match self {
+            MlpAct::Relu => {
+                par_elementwise_grad_in_place(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, 0.0))
+            }
+            MlpAct::LeakyRelu(s) => {
+                par_elementwise_grad_in_place(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
+            }
+            MlpAct::Gelu => par_elementwise_grad_in_place(z, dy, gelu_grad_slice),
         }
     }
 

@@ -15,7 +15,7 @@
 //! price is one elementwise pass per hidden layer in the backward pass. The backward pass
 //! takes them layer by layer, so each is freed once used.
 
-use crate::bias_act::{BiasActBwd, BiasActOp};
+use crate::bias_act::{BiasActOp, bias_act_bwd_in_place, bias_act_in_place};
 use crate::handover::Handover;
 use crate::linear::ColumnSum;
 use crate::mlp::{MlpAct, MlpLayer};
@@ -155,15 +155,20 @@ impl Plan {
     }
 
     /// Layer `i`'s product output `z: [rows, out]` (products' precision) with its bias and,
-    /// on a hidden layer, the activation: `[rows, out]` in f32.
+    /// on a hidden layer, the activation: `[rows, out]` in f32. In bf16 the widened copy of
+    /// `z` is this node's own and is overwritten (one f32 buffer where there were two).
     fn finish(&self, i: usize, z: &Tensor) -> Result<Tensor> {
         let hidden = i + 1 < self.params.len();
-        self.high(z.clone())?.contiguous()?.apply_op2_no_bwd(
-            &self.params[i].1,
-            &BiasActOp {
-                act: hidden.then_some(self.act),
-            },
-        )
+        let act = hidden.then_some(self.act);
+        let b = &self.params[i].1;
+        match self.bf16 {
+            true => {
+                let h = z.to_dtype(DType::F32)?.contiguous()?;
+                bias_act_in_place(&h, b, act)?;
+                Ok(h)
+            }
+            false => z.contiguous()?.apply_op2_no_bwd(b, &BiasActOp { act }),
+        }
     }
 
     /// `[rows, in] → [rows, out]`, and what the backward pass needs where `keep` is set.
@@ -223,11 +228,13 @@ impl Plan {
             let dz = match i + 1 < self.params.len() {
                 true => {
                     // This layer's kept output is used for the last time here (the layer
-                    // after made its input from it already).
+                    // after made its input from it already), and it is this node's own (the
+                    // product it made, or in bf16 that product widened): its gradient is
+                    // written over it.
                     let z = self.high(saved.pop().expect("checked"))?.contiguous()?;
-                    let dz = z.apply_op3_no_bwd(b, &g, &BiasActBwd { act: self.act })?;
-                    drop((z, g));
-                    dz
+                    bias_act_bwd_in_place(&z, b, &g.contiguous()?, self.act)?;
+                    drop(g);
+                    z
                 }
                 false => g,
             };

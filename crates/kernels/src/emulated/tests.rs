@@ -246,6 +246,44 @@ fn bias_act_matches_the_cpu_op() {
     }
 }
 
+/// The in-place kernels (`osrt_bias_act_*_inplace`, over the bf16 MLP node's own f32
+/// copies) write the out-of-place kernels' bits, over both launches.
+#[test]
+fn bias_act_in_place_gives_the_out_of_place_bits() {
+    let emu = Emulator::get();
+    let (rows, d) = (41, 23);
+    let mut x = seeded(rows * d, 2.0, 70);
+    for (j, v) in [1e30f32, -1e30, 1e-30, -1e-30, 0.0, -0.0, 3e37]
+        .into_iter()
+        .enumerate()
+    {
+        x[j * 13] = v;
+    }
+    let b = seeded(d, 0.5, 71);
+    x[5 * d + 2] = -b[2];
+    let dy = seeded(rows * d, 1.0, 72);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let small = Launch {
+        grid: (3, 1, 1),
+        block: (64, 1, 1),
+    };
+    for act in ACTS {
+        let code = act_code(act);
+        for l in [geometry::elementwise(x.len()), small] {
+            let y = emu.bias_act_fwd(&x, &b, code, l);
+            let mut h = x.clone();
+            emu.bias_act_fwd_in_place(&mut h, &b, code, l);
+            assert_eq!(bits(&h), bits(&y), "{act:?} over {l:?}");
+            if let Some(a) = act {
+                let dz = emu.bias_act_bwd(&x, &b, &dy, act_code(Some(a)));
+                let mut g = x.clone();
+                emu.bias_act_bwd_in_place(&mut g, &b, &dy, act_code(Some(a)), l);
+                assert_eq!(bits(&g), bits(&dz), "{a:?} gradient over {l:?}");
+            }
+        }
+    }
+}
+
 #[test]
 fn column_sums_match_the_f64_reference() {
     let emu = Emulator::get();
