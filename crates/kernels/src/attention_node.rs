@@ -138,8 +138,9 @@ impl CustomOp3 for AttentionNode {
             let dv = hs.merge_to(matmul(&a.t()?, &g)?, v.dtype())?;
             let da = matmul(&g, &hs.split_f32(v)?.t()?)?.contiguous()?;
             drop(g);
-            let dl = (softmax::softmax_grad(&a, &da)? * self.scale)?;
-            drop((a, da));
+            // The logits' gradient written over the weights' (the product's own tensor).
+            let dl = softmax::softmax_grad_scaled(&a, da, self.scale)?;
+            drop(a);
             // k and q widened one at a time, each where its product reads it: with many
             // queries (the decoder's rays) q and its gradient are the largest tensors here.
             let dq = hs.merge_to(matmul(&dl, &hs.split_f32(k)?)?, self.dtypes[0])?;

@@ -258,6 +258,35 @@ pub fn softmax_bwd(
     ))
 }
 
+/// [`softmax_bwd`] times `scale` (candle's affine), written over `dy` (a buffer its
+/// caller owns).
+pub fn softmax_bwd_scaled_in_place(
+    y: &CudaStorage,
+    ly: &Layout,
+    dy: &mut CudaStorage,
+    ldy: &Layout,
+    scale: f32,
+) -> Result<()> {
+    let dev = device(y).clone();
+    let d = ly.dims().last().copied().unwrap_or(1);
+    let (rows, dd) = rows_cols(ly, d, "softmax backward in place")?;
+    if ldy.shape() != ly.shape() {
+        candle_core::bail!(
+            "softmax backward in place: gradient {:?} for output {:?}",
+            ldy.shape(),
+            ly.shape()
+        )
+    }
+    let yv = input(y, ly, "softmax backward in place output")?;
+    let mut dyv = output(dy, ldy, "softmax backward in place gradient")?;
+    let f = dev.get_or_load_custom_func("osrt_softmax_bwd_scaled_inplace", MODULE, ptx()?)?;
+    let mut l = f.builder();
+    l.arg(&yv).arg(&mut dyv).arg(&rows).arg(&dd).arg(&scale);
+    // SAFETY: the arguments match the kernel's signature; sizes were checked above.
+    unsafe { l.launch(row_launch(rows)) }.w()?;
+    Ok(())
+}
+
 fn elementwise_launch(n: usize) -> LaunchConfig {
     config(geometry::elementwise(n))
 }

@@ -149,6 +149,16 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             }),
         ));
     }
+    // The attention node's scaled softmax backward, written over a copy of the gradient:
+    // values only.
+    out.push((
+        "softmax backward scaled in place [64, 40]".into(),
+        vec![normal(&[64, 40], 3.0, 22)?, normal(&[64, 40], 1.0, 23)?],
+        Box::new(|t| {
+            let y = crate::softmax::softmax_no_grad(&t[0].detach())?;
+            crate::softmax::softmax_grad_scaled(&y, t[1].detach().copy()?, 0.125)
+        }),
+    ));
     node_cases(&mut out)?;
     for (name, act) in [
         ("bias", None),

@@ -198,6 +198,26 @@ extern "C" __global__ void osrt_softmax_bwd(const float* y, const float* dy, flo
     for (int i = lane; i < d; i += 32) dxr[i] = yr[i] * (dyr[i] - dot);
 }
 
+// In place over dy: dy = (y * (dy - dot)) * scale + 0 per row, the softmax backward of
+// osrt_softmax_bwd followed by candle's affine (scale, 0): the attention's scaled-logit
+// gradient written over the weights' gradient. Each lane writes only the elements it read
+// for the dot, and all reads precede the warp's reduction.
+extern "C" __global__ void osrt_softmax_bwd_scaled_inplace(const float* y, float* dy, int rows,
+                                                           int d, float scale) {
+    long row = (long)blockIdx.x * blockDim.y + threadIdx.y;
+    if (row >= rows) return;
+    int lane = threadIdx.x;
+    const float* yr = y + row * d;
+    float* dyr = dy + row * d;
+    float dot = 0.f;
+    for (int i = lane; i < d; i += 32) dot += yr[i] * dyr[i];
+    dot = warp_sum(dot);
+    for (int i = lane; i < d; i += 32) {
+        float g = yr[i] * (dyr[i] - dot);
+        dyr[i] = g * scale + 0.f;
+    }
+}
+
 // The gradient of an unfolding (col2im): dx[b, y, x, c] (NHWC) is the sum of the entries
 // of `cols` ([b·ho·wo, c·k·k], each row's entries ordered (channel, ky, kx)) that the
 // unfolding read from that pixel. A thread per pixel gathers them; the taps are visited

@@ -139,6 +139,7 @@ type SumChunks = unsafe extern "C" fn(*const f32, *mut f32, i32, i32);
 type ColumnPartials = unsafe extern "C" fn(*const f32, *mut f32, i32, i32, i32);
 type SoftmaxFwd = unsafe extern "C" fn(*const f32, *mut f32, i32, i32);
 type SoftmaxBwd = unsafe extern "C" fn(*const f32, *const f32, *mut f32, i32, i32);
+type SoftmaxBwdScaled = unsafe extern "C" fn(*const f32, *mut f32, i32, i32, f32);
 type BiasActFwd = unsafe extern "C" fn(*const f32, *const f32, *mut f32, i64, i32, i32, f32);
 type BiasActBwd =
     unsafe extern "C" fn(*const f32, *const f32, *const f32, *mut f32, i64, i32, i32, f32);
@@ -250,6 +251,24 @@ impl Emulator {
             k(yp.get(), dyp.get(), dxp.get(), rows, d as i32)
         });
         dx
+    }
+
+    /// `cuda::softmax_bwd_scaled_in_place`: `dy` overwritten.
+    pub(crate) fn softmax_bwd_scaled_in_place(
+        &self,
+        y: &[f32],
+        dy: &mut [f32],
+        d: usize,
+        scale: f32,
+    ) {
+        assert_eq!(y.len(), dy.len());
+        let rows = (y.len() / d) as i32;
+        // SAFETY: the signature of `osrt_softmax_bwd_scaled_inplace`.
+        let k: SoftmaxBwdScaled = unsafe { self.kernel("osrt_softmax_bwd_scaled_inplace") };
+        let (yp, dyp) = (ptr(y), Ptr::of(dy));
+        self.launch(geometry::rows(rows), &|| unsafe {
+            k(yp.get(), dyp.get(), rows, d as i32, scale)
+        });
     }
 
     /// `cuda::bias_act_fwd` with `(kind, slope)` of `bias_act::act_code`, over `launch`.

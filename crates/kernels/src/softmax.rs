@@ -1,5 +1,5 @@
 use crate::*;
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, InplaceOp2, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 /// `o = softmax(x)` of one row.
@@ -125,6 +125,89 @@ pub(crate) fn softmax_grad(y: &Tensor, dy: &Tensor) -> Result<Tensor> {
     y * dy.broadcast_sub(&dot)?
 }
 
+/// `scale · softmax_grad(y, dy)` (candle's affine: `x · scale + 0`), written over `dy`
+/// where the one-node ops apply: the caller gives up `dy`, which must be its own (no
+/// other tensor sharing its storage), and gets it back as the result. Elsewhere the two
+/// ops. The attention node's backward pass: the logits' gradient without a buffer of the
+/// weights' size beside the weights' gradient.
+pub(crate) fn softmax_grad_scaled(y: &Tensor, dy: Tensor, scale: f64) -> Result<Tensor> {
+    let y = y.detach();
+    let dy = dy.detach();
+    if usable_with_cuda_any(&[&y, &dy]) && y.shape() == dy.shape() {
+        let (y, dy) = (y.contiguous()?, dy.contiguous()?);
+        dy.inplace_op2(
+            &y,
+            &SoftmaxBwdScaled {
+                scale: scale as f32,
+            },
+        )?;
+        return Ok(dy);
+    }
+    let g = softmax_grad(&y, &dy)?;
+    drop(dy);
+    g * scale
+}
+
+/// [`SoftmaxBwd`] times a scale, in place over the gradient (the first operand).
+struct SoftmaxBwdScaled {
+    scale: f32,
+}
+
+impl InplaceOp2 for SoftmaxBwdScaled {
+    fn name(&self) -> &'static str {
+        "osrt-softmax-last-dim-bwd-scaled-in-place"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &mut CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<()> {
+        let y = f32_slice(s2, l2, "softmax backward in place output")?;
+        let CpuStorage::F32(v) = s1 else {
+            candle_core::bail!("softmax backward in place: f32 only");
+        };
+        let Some((a, b)) = l1.contiguous_offsets() else {
+            candle_core::bail!("softmax backward in place: a contiguous gradient only");
+        };
+        let dy = &mut v[a..b];
+        let d = l2.dims().last().copied().unwrap_or(1).max(1);
+        if dy.len() != y.len() {
+            candle_core::bail!(
+                "softmax backward in place: {} gradients for {} outputs",
+                dy.len(),
+                y.len()
+            );
+        }
+        let scale = self.scale;
+        dy.par_chunks_mut(d * ROWS_PER_TASK)
+            .zip(y.par_chunks(d * ROWS_PER_TASK))
+            .for_each(|(o, y)| {
+                for (o, y) in o.chunks_mut(d).zip(y.chunks(d)) {
+                    // `softmax_row_grad`'s sum and products, then the affine's.
+                    let dot: f32 = y.iter().zip(o.iter()).map(|(a, b)| a * b).sum();
+                    for (o, y) in o.iter_mut().zip(y) {
+                        *o = y * (*o - dot) * scale + 0.0;
+                    }
+                }
+            });
+        Ok(())
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &mut candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> Result<()> {
+        crate::cuda::softmax_bwd_scaled_in_place(s2, l2, s1, l1, self.scale)
+    }
+}
+
 /// Softmax over dimension `dim` (any; other than the last it goes through a transpose).
 pub fn softmax<Dim: candle_core::shape::Dim>(x: &Tensor, dim: Dim) -> Result<Tensor> {
     let dim = dim.to_index(x.shape(), "softmax")?;
@@ -151,6 +234,58 @@ mod tests {
     use super::*;
     use crate::testing::*;
     use candle_core::Device;
+
+    /// The scaled backward written over the gradient gives the bits of the backward op
+    /// followed by candle's affine, on rows of one, ragged row counts, extreme logits and
+    /// a non-power-of-two scale; it returns the tensor it was given.
+    #[test]
+    fn the_scaled_backward_in_place_gives_the_two_ops_bits() {
+        let bits = |t: &Tensor| -> Vec<u32> {
+            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            v.iter().map(|x| x.to_bits()).collect()
+        };
+        for (i, dims) in [[3usize, 1], [37, 5], [301, 33], [6, 300]]
+            .iter()
+            .enumerate()
+        {
+            let mut x = randn(dims, 2.0, 70 + i as u64)
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
+            if dims[1] > 1 {
+                x[0] = 1e30;
+                x[1] = -3e38;
+            }
+            let x = Tensor::from_vec(x, &dims[..], &Device::Cpu).unwrap();
+            let y = softmax_no_grad(&x).unwrap();
+            let dy = randn(dims, 1.0, 80 + i as u64);
+            for scale in [0.125, 1.0 / 128f64.sqrt()] {
+                let want = (softmax_grad(&y, &dy).unwrap() * scale).unwrap();
+                let mine = dy.copy().unwrap();
+                let got = softmax_grad_scaled(&y, mine, scale).unwrap();
+                assert_eq!(bits(&got), bits(&want), "{dims:?} scale {scale}");
+            }
+            // Where the one-node ops do not apply (bf16): the two ops.
+            let (y16, dy16) = (
+                y.to_dtype(candle_core::DType::BF16).unwrap(),
+                dy.to_dtype(candle_core::DType::BF16).unwrap(),
+            );
+            let want = (softmax_grad(&y16, &dy16).unwrap() * 0.5).unwrap();
+            let got = softmax_grad_scaled(&y16, dy16.copy().unwrap(), 0.5).unwrap();
+            assert_eq!(
+                bits(&got.to_dtype(candle_core::DType::F32).unwrap()),
+                bits(&want.to_dtype(candle_core::DType::F32).unwrap())
+            );
+        }
+        // The result is the gradient's own buffer: nothing of its size is allocated.
+        let y = softmax_no_grad(&randn(&[4, 9], 1.0, 1)).unwrap();
+        let dy = randn(&[4, 9], 1.0, 2);
+        let mine = dy.copy().unwrap();
+        let id = mine.id();
+        let got = softmax_grad_scaled(&y, mine, 2.0).unwrap();
+        assert_eq!(got.id(), id);
+    }
 
     #[test]
     fn softmax_matches_the_composed_version_and_finite_differences() {

@@ -184,6 +184,39 @@ fn softmax_matches_the_f64_reference_on_ordinary_and_extreme_rows() {
     }
 }
 
+/// The scaled in-place softmax backward (the attention node's) writes the bits of the
+/// softmax backward kernel followed by `x · scale + 0` (candle's affine), on ordinary and
+/// extreme rows, rows of one, wider than a warp and not a multiple of it.
+#[test]
+fn the_scaled_softmax_backward_in_place_gives_the_two_ops_bits() {
+    let emu = Emulator::get();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for (i, (rows, d)) in [(3, 1), (17, 5), (40, 33), (6, 300)]
+        .into_iter()
+        .enumerate()
+    {
+        let mut x = seeded(rows * d, 2.0, 80 + i as u64);
+        if d > 1 {
+            x[..d]
+                .iter_mut()
+                .enumerate()
+                .for_each(|(j, v)| *v = if j % 2 == 0 { 1e30 } else { -3e38 });
+        }
+        let y = emu.softmax_fwd(&x, d);
+        let dy = seeded(rows * d, 1.0, 90 + i as u64);
+        for scale in [0.125f32, 0.0883883476] {
+            let want: Vec<f32> = emu
+                .softmax_bwd(&y, &dy, d)
+                .iter()
+                .map(|g| g * scale + 0.0)
+                .collect();
+            let mut got = dy.clone();
+            emu.softmax_bwd_scaled_in_place(&y, &mut got, d, scale);
+            assert_eq!(bits(&got), bits(&want), "rows {rows} × {d}, scale {scale}");
+        }
+    }
+}
+
 const ACTS: [Option<MlpAct>; 4] = [
     None,
     Some(MlpAct::Relu),
