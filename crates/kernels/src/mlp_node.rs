@@ -89,7 +89,7 @@ fn mlp_node_of(
         || layers
             .iter()
             .any(|(w, b)| w.track_op() || b.is_some_and(|b| b.track_op()));
-    let (y, saved) = plan.forward(joined(&rows)?, keep)?;
+    let (y, saved) = plan.forward(plan.joined(&rows)?, keep)?;
     let pairs: Vec<&Tensor> = layers
         .iter()
         .flat_map(|(w, b)| [*w, b.expect("checked")])
@@ -112,20 +112,6 @@ fn mlp_node_of(
     Ok(Some(y.reshape(out)?))
 }
 
-/// The node's input: the part's rows, or the parts' rows side by side, detached, in f32.
-fn joined(rows: &[Tensor]) -> Result<Tensor> {
-    match rows {
-        [x] => x.detach().to_dtype(DType::F32),
-        _ => {
-            let parts = rows
-                .iter()
-                .map(|t| t.detach().to_dtype(DType::F32))
-                .collect::<Result<Vec<_>>>()?;
-            Tensor::cat(&parts, 1)
-        }
-    }
-}
-
 /// What the backward pass needs: each hidden layer's product output (the pre-activation
 /// before its bias), in the products' precision.
 type Saved = Vec<Tensor>;
@@ -138,6 +124,27 @@ struct Plan {
 }
 
 impl Plan {
+    /// The node's input as the first product reads it: the part's rows, or the parts' rows
+    /// side by side, detached, in the products' precision. In bf16 each part is rounded
+    /// before the concatenation (the values of rounding after it), so that no f32 copy
+    /// of the whole input is made.
+    fn joined(&self, rows: &[Tensor]) -> Result<Tensor> {
+        let dtype = match self.bf16 {
+            true => DType::BF16,
+            false => DType::F32,
+        };
+        match rows {
+            [x] => x.detach().to_dtype(dtype),
+            _ => {
+                let parts = rows
+                    .iter()
+                    .map(|t| t.detach().to_dtype(dtype))
+                    .collect::<Result<Vec<_>>>()?;
+                Tensor::cat(&parts, 1)
+            }
+        }
+    }
+
     /// An operand in the products' precision.
     fn low(&self, t: &Tensor) -> Result<Tensor> {
         match self.bf16 {
@@ -282,13 +289,15 @@ impl MlpNode {
         let owned: Vec<Tensor> = rows.iter().map(|t| (*t).clone()).collect();
         let saved = match self.saved.take() {
             Some(s) => s,
-            None => match self.plan.forward(joined(&owned)?, true)?.1 {
+            None => match self.plan.forward(self.plan.joined(&owned)?, true)?.1 {
                 Some(s) => s,
                 None => candle_core::bail!("mlp node: nothing kept"),
             },
         };
         let want = rows.iter().any(|t| t.track_op());
-        let (dx, dp) = self.plan.backward(saved, &|| joined(&owned), grad, want)?;
+        let (dx, dp) = self
+            .plan
+            .backward(saved, &|| self.plan.joined(&owned), grad, want)?;
         self.grads.put(dp);
         let mut start = 0;
         let mut out = Vec::with_capacity(rows.len());
