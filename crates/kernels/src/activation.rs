@@ -41,6 +41,26 @@ pub(crate) fn par_elementwise_grad(
     })
 }
 
+/// `kernel` in [`par_elementwise`]'s chunks where the input or the output is not f32:
+/// each chunk's input made by `load` (from the chunk's first index), its output handed
+/// to `store`.
+pub(crate) fn par_elementwise_with<T: Send>(
+    out: &mut [T],
+    load: impl Fn(usize, &mut [f32]) + Sync,
+    kernel: impl Fn(&mut [f32], &[f32]) + Sync,
+    store: impl Fn(&[f32], &mut [T]) + Sync,
+) {
+    out.par_chunks_mut(ELEMENTS_PER_TASK)
+        .enumerate()
+        .for_each(|(i, o)| {
+            let mut x = vec![0f32; o.len()];
+            load(i * ELEMENTS_PER_TASK, &mut x);
+            let mut y = vec![0f32; o.len()];
+            kernel(&mut y, &x);
+            store(&y, o);
+        });
+}
+
 /// [`par_elementwise`] written over `x`, in the same chunks (each copied once, so that
 /// the kernel reads and writes distinct slices): the same bits, no second buffer.
 pub(crate) fn par_elementwise_in_place(x: &mut [f32], kernel: impl Fn(&mut [f32], &[f32]) + Sync) {

@@ -225,6 +225,79 @@ impl InplaceOp3 for BiasActBwd {
     }
 }
 
+/// `bf16(act(f32(z) + b))`: a bf16 product's bias and activation rounded back to bf16 for
+/// the next product, without the f32 tensor of the layer's size that widening,
+/// [`BiasActOp`] and rounding make (the bits of those three ops).
+struct BiasActLow {
+    act: Option<MlpAct>,
+}
+
+impl CustomOp2 for BiasActLow {
+    fn name(&self) -> &'static str {
+        "osrt-bias-act-low"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let CpuStorage::BF16(z) = s1 else {
+            candle_core::bail!("bias+activation to bf16: a bf16 input only");
+        };
+        let Some((a, e)) = l1.contiguous_offsets() else {
+            candle_core::bail!("bias+activation to bf16: a contiguous input only");
+        };
+        let z = &z[a..e];
+        let b = f32_slice(s2, l2, "bias+activation to bf16 bias")?;
+        let d = b.len().max(1);
+        let mut out = vec![half::bf16::ZERO; z.len()];
+        MlpAct::forward_with(
+            self.act,
+            &mut out,
+            |start, x| {
+                for (j, v) in x.iter_mut().enumerate() {
+                    // `add_bias_rows`'s sum on the widened value.
+                    *v = z[start + j].to_f32() + b[(start + j) % d];
+                }
+            },
+            |y, o| {
+                for (o, y) in o.iter_mut().zip(y) {
+                    *o = half::bf16::from_f32(*y);
+                }
+            },
+        );
+        Ok((CpuStorage::BF16(out), l1.shape().clone()))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        crate::cuda::bias_act_low(s1, l1, s2, l2, act_code(self.act))
+    }
+}
+
+/// `bf16(act(f32(z) + b))` for a bf16 `z: [.., d]` and an f32 `b: [d]`, outside the graph.
+pub(crate) fn bias_act_low(z: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> {
+    check_rows(z, b, None)?;
+    if z.dtype() != candle_core::DType::BF16 || b.dtype() != candle_core::DType::F32 {
+        candle_core::bail!(
+            "bias+activation to bf16: z {:?}, bias {:?}; expected bf16 and f32",
+            z.dtype(),
+            b.dtype()
+        )
+    }
+    z.contiguous()?
+        .apply_op2_no_bwd(&b.contiguous()?, &BiasActLow { act })
+}
+
 /// `x ← act(x + b)` for `x: [.., d]` (f32, contiguous), `b: [d]`, outside the graph. `x`
 /// must be the caller's own: every tensor sharing its storage sees the change.
 pub(crate) fn bias_act_in_place(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<()> {
@@ -347,6 +420,52 @@ mod tests {
         assert!(bias_act_in_place(&x.copy().unwrap(), &odd, None).is_err());
         let short = randn(&[rows - 1, d], 1.0, 94);
         assert!(bias_act_bwd_in_place(&x.copy().unwrap(), &b, &short, MlpAct::Gelu).is_err());
+    }
+
+    /// The bf16-to-bf16 op gives the bits of widening, [`BiasActOp`] and rounding, over
+    /// sizes that end mid-chunk, with values whose sums overflow bf16, tiny values and
+    /// exact zeros of `z + b`; it refuses an f32 input.
+    #[test]
+    fn the_bf16_op_gives_the_three_ops_bits() {
+        use candle_core::DType;
+        let (rows, d) = (700, 37);
+        let mut x = randn(&[rows * d], 2.0, 95).to_vec1::<f32>().unwrap();
+        for (j, v) in [
+            3.3e38f32,
+            -3.3e38,
+            1e-30,
+            -1e-30,
+            0.0,
+            -0.0,
+            1.0 + 1.0 / 256.0,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            x[j * 1001] = v;
+        }
+        let b = randn(&[d], 0.5, 96);
+        let z = Tensor::from_vec(x, (rows, d), &Device::Cpu)
+            .unwrap()
+            .to_dtype(DType::BF16)
+            .unwrap();
+        let bits = |t: &Tensor| -> Vec<u16> {
+            let v: Vec<half::bf16> = t.flatten_all().unwrap().to_vec1().unwrap();
+            v.iter().map(|x| x.to_bits()).collect()
+        };
+        for act in ACTS {
+            let want = z
+                .to_dtype(DType::F32)
+                .unwrap()
+                .apply_op2_no_bwd(&b, &BiasActOp { act })
+                .unwrap()
+                .to_dtype(DType::BF16)
+                .unwrap();
+            let got = bias_act_low(&z, &b, act).unwrap();
+            assert_eq!(got.dtype(), DType::BF16);
+            assert_eq!(bits(&got), bits(&want), "{act:?}");
+        }
+        assert!(bias_act_low(&z.to_dtype(DType::F32).unwrap(), &b, None).is_err());
     }
 
     #[test]

@@ -342,6 +342,42 @@ fn output<'a>(
     Ok(s.as_cuda_slice_mut::<f32>()?.slice_mut(a..b))
 }
 
+/// `bf16(act(z + b))` for a bf16 `z: [.., d]` and an f32 `b: [d]`, in bf16.
+pub fn bias_act_low(
+    z: &CudaStorage,
+    lz: &Layout,
+    b: &CudaStorage,
+    lb: &Layout,
+    (kind, slope): (i32, f32),
+) -> Result<(CudaStorage, Shape)> {
+    let dev = device(b).clone();
+    let d = lb.shape().elem_count();
+    let (_, cols) = rows_cols(lz, d, "bias+activation to bf16")?;
+    let n = lz.shape().elem_count();
+    let Some((a, e)) = lz.contiguous_offsets() else {
+        candle_core::bail!("bias+activation to bf16: the CUDA kernel needs a contiguous input")
+    };
+    let zv = z.as_cuda_slice::<half::bf16>()?.slice(a..e);
+    let bv = input(b, lb, "bias+activation to bf16 bias")?;
+    let n64 = n as i64;
+    // SAFETY: every element is written by the kernel below.
+    let mut y = unsafe { dev.alloc::<half::bf16>(n.max(1))? };
+    {
+        let f = dev.get_or_load_custom_func("osrt_bias_act_low", MODULE, ptx()?)?;
+        let mut l = f.builder();
+        l.arg(&zv)
+            .arg(&bv)
+            .arg(&mut y)
+            .arg(&n64)
+            .arg(&cols)
+            .arg(&kind)
+            .arg(&slope);
+        // SAFETY: the arguments match the kernel's signature; sizes were checked above.
+        unsafe { l.launch(elementwise_launch(n)) }.w()?;
+    }
+    Ok((CudaStorage::wrap_cuda_slice(y, dev), lz.shape().clone()))
+}
+
 /// [`bias_act_fwd`] written over `x` (a buffer its caller owns).
 pub fn bias_act_fwd_in_place(
     x: &mut CudaStorage,

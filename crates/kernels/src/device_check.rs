@@ -186,6 +186,17 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
                 Ok(h)
             }),
         ));
+        // From a bf16 product to the bf16 input of the next (the bf16 MLP node's way):
+        // values only, compared in f32.
+        out.push((
+            format!("{name} bf16 to bf16 [500, 96]"),
+            vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
+            Box::new(move |t| {
+                let z = t[0].detach().to_dtype(candle_core::DType::BF16)?;
+                crate::bias_act::bias_act_low(&z, &t[1].detach(), act)?
+                    .to_dtype(candle_core::DType::F32)
+            }),
+        ));
         if let Some(a) = act {
             out.push((
                 format!("{name} backward in place [500, 96]"),

@@ -152,6 +152,27 @@ extern "C" __global__ void osrt_bias_act_bwd_inplace(float* x, const float* b, c
     }
 }
 
+// f32 -> bf16 rounded to nearest, ties to even (as candle's and the `half` crate's
+// conversions round), a NaN to a quiet NaN of the same sign.
+__device__ __forceinline__ unsigned short bf16_of(float f) {
+    unsigned int u = __float_as_uint(f);
+    if ((u & 0x7fffffffu) > 0x7f800000u) return (unsigned short)((u >> 16) | 0x0040u);
+    u += 0x7fffu + ((u >> 16) & 1u);
+    return (unsigned short)(u >> 16);
+}
+
+// y = bf16(act(f32(z) + b[col])): a bf16 product's bias and activation, rounded back to
+// bf16 for the next product, with no f32 tensor of the layer's size.
+extern "C" __global__ void osrt_bias_act_low(const unsigned short* z, const float* b,
+                                             unsigned short* y, long n, int cols, int kind,
+                                             float slope) {
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < n;
+         i += (long)gridDim.x * blockDim.x) {
+        float x = __uint_as_float(((unsigned int)z[i]) << 16);
+        y[i] = bf16_of(act_f(x + b[i % cols], kind, slope));
+    }
+}
+
 // Per chunk of `chunk` rows and column: the column's sum over the chunk (chunks as in
 // osrt_layer_norm_bwd_params).
 extern "C" __global__ void osrt_column_partials(const float* a, float* partial, int rows,

@@ -143,6 +143,7 @@ type SoftmaxBwdScaled = unsafe extern "C" fn(*const f32, *mut f32, i32, i32, f32
 type BiasActFwd = unsafe extern "C" fn(*const f32, *const f32, *mut f32, i64, i32, i32, f32);
 type BiasActBwd =
     unsafe extern "C" fn(*const f32, *const f32, *const f32, *mut f32, i64, i32, i32, f32);
+type BiasActLow = unsafe extern "C" fn(*const u16, *const f32, *mut u16, i64, i32, i32, f32);
 type BiasActFwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, i64, i32, i32, f32);
 type BiasActBwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, *const f32, i64, i32, i32, f32);
 type Fold<I, O> =
@@ -316,6 +317,25 @@ impl Emulator {
             )
         });
         dz
+    }
+
+    /// `cuda::bias_act_low` over `launch`: bf16 bits in and out.
+    pub(crate) fn bias_act_low(
+        &self,
+        z: &[u16],
+        b: &[f32],
+        act: (i32, f32),
+        l: Launch,
+    ) -> Vec<u16> {
+        let mut y = vec![0xffffu16; z.len()];
+        // SAFETY: the signature of `osrt_bias_act_low`.
+        let k: BiasActLow = unsafe { self.kernel("osrt_bias_act_low") };
+        let (n, cols) = (z.len() as i64, b.len() as i32);
+        let (zp, bp, yp) = (Ptr(z.as_ptr() as *mut u16), ptr(b), Ptr::of(&mut y));
+        self.launch(l, &|| unsafe {
+            k(zp.get(), bp.get(), yp.get(), n, cols, act.0, act.1)
+        });
+        y
     }
 
     /// `cuda::bias_act_fwd_in_place` over `launch`.

@@ -64,6 +64,7 @@ pub use softmax::softmax;
 use activation::{
     gelu_grad_slice, gelu_slice, leaky_relu_grad_slice, leaky_relu_slice, par_elementwise,
     par_elementwise_grad, par_elementwise_grad_in_place, par_elementwise_in_place,
+    par_elementwise_with,
 };
 use layer_norm::{LayerNormBwd, LayerNormOp};
 use linear::{ColumnSum, add_bias_rows, matmul_xwt, rows_layout, weight_grad, with_last_dim};

@@ -18,8 +18,8 @@ use super::gemm::{self, MatRef, Threads};
 use super::{
     ColumnSum, Kept, add_bias_rows, cpu_storage as cpu, f32_slice, gelu_grad_slice, gelu_slice,
     leaky_relu_grad_slice, leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad,
-    par_elementwise_grad_in_place, par_elementwise_in_place, rows_layout, usable, usable_with_cuda,
-    weight_grad, with_last_dim,
+    par_elementwise_grad_in_place, par_elementwise_in_place, par_elementwise_with, rows_layout,
+    usable, usable_with_cuda, weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -56,6 +56,26 @@ impl MlpAct {
                 par_elementwise_grad(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
             }
             MlpAct::Gelu => par_elementwise_grad(z, dy, gelu_grad_slice),
+        }
+    }
+
+    /// [`MlpAct::forward`] in `par_elementwise_with`'s chunks: `load` makes each chunk's
+    /// input, `store` takes its output.
+    pub(crate) fn forward_with<T: Send>(
+        act: Option<Self>,
+        out: &mut [T],
+        load: impl Fn(usize, &mut [f32]) + Sync,
+        store: impl Fn(&[f32], &mut [T]) + Sync,
+    ) {
+        match act {
+            None => par_elementwise_with(out, load, |o, x| o.copy_from_slice(x), store),
+            Some(MlpAct::Relu) => {
+                par_elementwise_with(out, load, |o, x| leaky_relu_slice(o, x, 0.0), store)
+            }
+            Some(MlpAct::LeakyRelu(s)) => {
+                par_elementwise_with(out, load, |o, x| leaky_relu_slice(o, x, s), store)
+            }
+            Some(MlpAct::Gelu) => par_elementwise_with(out, load, gelu_slice, store),
         }
     }
 

@@ -15,7 +15,7 @@
 //! price is one elementwise pass per hidden layer in the backward pass. The backward pass
 //! takes them layer by layer, so each is freed once used.
 
-use crate::bias_act::{BiasActOp, bias_act_bwd_in_place, bias_act_in_place};
+use crate::bias_act::{BiasActOp, bias_act_bwd_in_place, bias_act_in_place, bias_act_low};
 use crate::handover::Handover;
 use crate::linear::ColumnSum;
 use crate::mlp::{MlpAct, MlpLayer};
@@ -178,6 +178,16 @@ impl Plan {
         }
     }
 
+    /// A hidden layer `i`'s output as the next product reads it: [`Plan::finish`] in the
+    /// products' precision (in bf16 one op from the bf16 product to the bf16 output, the
+    /// bits of widening, finishing and rounding, with no f32 tensor of the layer's size).
+    fn finish_low(&self, i: usize, z: &Tensor) -> Result<Tensor> {
+        match self.bf16 {
+            true => bias_act_low(z, &self.params[i].1, Some(self.act)),
+            false => self.finish(i, z),
+        }
+    }
+
     /// `[rows, in] → [rows, out]`, and what the backward pass needs where `keep` is set.
     /// Each layer as `linear_act` composes it: the product with the weight's transpose
     /// (in bf16 a contiguous copy of it), then the bias with the activation in f32.
@@ -189,7 +199,10 @@ impl Plan {
         for (i, (w, _)) in self.params.iter().enumerate() {
             let z = self.low(&h)?.matmul(&self.low(&w.t()?)?)?;
             drop(h);
-            h = self.finish(i, &z)?;
+            h = match i + 1 < self.params.len() {
+                true => self.finish_low(i, &z)?,
+                false => self.finish(i, &z)?,
+            };
             if keep && i + 1 < self.params.len() {
                 saved.push(z);
             }
@@ -203,7 +216,7 @@ impl Plan {
     fn input(&self, i: usize, x: &dyn Fn() -> Result<Tensor>, saved: &Saved) -> Result<Tensor> {
         match i {
             0 => self.low(&x()?),
-            _ => self.low(&self.finish(i - 1, &saved[i - 1])?),
+            _ => self.finish_low(i - 1, &saved[i - 1]),
         }
     }
 

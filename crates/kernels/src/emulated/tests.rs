@@ -279,6 +279,63 @@ fn bias_act_matches_the_cpu_op() {
     }
 }
 
+/// The bf16-to-bf16 kernel (`osrt_bias_act_low`) writes the CPU op's bits (the `half`
+/// crate's rounding, ties to even), over both launches.
+#[test]
+fn bias_act_low_matches_the_cpu_op() {
+    use candle_core::DType;
+    let emu = Emulator::get();
+    let (rows, d) = (41, 23);
+    let mut x = seeded(rows * d, 2.0, 73);
+    for (j, v) in [
+        3.3e38f32,
+        -3.3e38,
+        1e-30,
+        -1e-30,
+        0.0,
+        -0.0,
+        1.0 + 1.0 / 256.0,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        x[j * 13] = v;
+    }
+    let b = seeded(d, 0.5, 74);
+    let z = Tensor::from_slice(&x, (rows, d), &Device::Cpu)
+        .unwrap()
+        .to_dtype(DType::BF16)
+        .unwrap();
+    let zbits: Vec<u16> = z
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<half::bf16>()
+        .unwrap()
+        .iter()
+        .map(|v| v.to_bits())
+        .collect();
+    let bt = Tensor::from_slice(&b, d, &Device::Cpu).unwrap();
+    let small = Launch {
+        grid: (3, 1, 1),
+        block: (64, 1, 1),
+    };
+    for act in ACTS {
+        let cpu: Vec<u16> = crate::bias_act::bias_act_low(&z, &bt, act)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<half::bf16>()
+            .unwrap()
+            .iter()
+            .map(|v| v.to_bits())
+            .collect();
+        for l in [geometry::elementwise(zbits.len()), small] {
+            let y = emu.bias_act_low(&zbits, &b, act_code(act), l);
+            assert_eq!(y, cpu, "{act:?} over {l:?}");
+        }
+    }
+}
+
 /// The in-place kernels (`osrt_bias_act_*_inplace`, over the bf16 MLP node's own f32
 /// copies) write the out-of-place kernels' bits, over both launches.
 #[test]
