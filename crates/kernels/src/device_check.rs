@@ -39,6 +39,14 @@ fn normal(shape: &[usize], scale: f32, seed: u64) -> Result<Tensor> {
 
 type Op = Box<dyn Fn(&[Tensor]) -> Result<Tensor>>;
 
+/// The bias-with-activation variants the checks run.
+const BIAS_ACTS: [(&str, Option<MlpAct>); 4] = [
+    ("bias", None),
+    ("bias+relu", Some(MlpAct::Relu)),
+    ("bias+leaky_relu", Some(MlpAct::LeakyRelu(0.01))),
+    ("bias+gelu", Some(MlpAct::Gelu)),
+];
+
 /// Value and input gradients of `Σ f(args) ⊙ w` on `device` (the fused ops on).
 fn run(args: &[Tensor], w: &Tensor, f: &Op, device: &Device) -> Result<(Vec<f32>, Vec<Vec<f32>>)> {
     crate::with_fused(true, || {
@@ -149,23 +157,9 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             }),
         ));
     }
-    // The attention node's scaled softmax backward, written over a copy of the gradient:
-    // values only.
-    out.push((
-        "softmax backward scaled in place [64, 40]".into(),
-        vec![normal(&[64, 40], 3.0, 22)?, normal(&[64, 40], 1.0, 23)?],
-        Box::new(|t| {
-            let y = crate::softmax::softmax_no_grad(&t[0].detach())?;
-            crate::softmax::softmax_grad_scaled(&y, t[1].detach().copy()?, 0.125)
-        }),
-    ));
     node_cases(&mut out)?;
-    for (name, act) in [
-        ("bias", None),
-        ("bias+relu", Some(MlpAct::Relu)),
-        ("bias+leaky_relu", Some(MlpAct::LeakyRelu(0.01))),
-        ("bias+gelu", Some(MlpAct::Gelu)),
-    ] {
+    own_buffer_cases(&mut out)?;
+    for (name, act) in BIAS_ACTS {
         out.push((
             format!("{name} [500, 96]"),
             vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
@@ -176,6 +170,23 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             vec![(extreme(8, 64)? * 1e3)?, normal(&[64], 1.0, 8)?],
             Box::new(move |t| crate::bias_act(&t[0], &t[1], act)),
         ));
+    }
+    Ok(out)
+}
+
+/// The ops the nodes run outside the graph on buffers of their own (the attention node's
+/// scaled softmax backward over the weights' gradient, the MLP node's bias and activation
+/// in place and from bf16 to bf16): values only.
+fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
+    out.push((
+        "softmax backward scaled in place [64, 40]".into(),
+        vec![normal(&[64, 40], 3.0, 22)?, normal(&[64, 40], 1.0, 23)?],
+        Box::new(|t| {
+            let y = crate::softmax::softmax_no_grad(&t[0].detach())?;
+            crate::softmax::softmax_grad_scaled(&y, t[1].detach().copy()?, 0.125)
+        }),
+    ));
+    for (name, act) in BIAS_ACTS {
         // Written over a copy of x (the bf16 MLP node's way): values only.
         out.push((
             format!("{name} in place [500, 96]"),
@@ -213,7 +224,7 @@ fn cases() -> Result<Vec<(String, Vec<Tensor>, Op)>> {
             ));
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 /// The convolution (on a GPU `conv_node.rs`: osrt's unfolding and col2im kernels around
