@@ -1,7 +1,8 @@
 //! The step's memory estimate (`osrt_trainer::footprint`, what `osrt train` checks before
 //! a job starts) against the step's counted peak heap (`osrt bench model`, the binary's
 //! counting allocator), for the `tiny`, `clevr-lite-cpu` and `paper` (batch 2) presets at
-//! two image sizes each: within 25 %.
+//! two image sizes each, and for the GPU's graph built on the CPU (`--kernels device`, the
+//! count a GPU job prints) in f32 and bf16: within 25 %.
 
 mod common;
 
@@ -37,19 +38,25 @@ fn estimate_and_peak(preset: &str, size: u32, extra: &[&str]) -> (f64, f64) {
 
 #[test]
 fn the_memory_estimate_is_within_a_quarter_of_the_measured_peak() {
-    let cases: [(&str, u32, &[&str]); 6] = [
+    let cases: [(&str, u32, &[&str]); 8] = [
         ("tiny", 32, &[]),
         ("tiny", 64, &[]),
         ("clevr-lite-cpu", 32, &[]),
         ("clevr-lite-cpu", 64, &[]),
         ("paper", 64, &["--batch-size", "2"]),
         ("paper", 128, &["--batch-size", "2"]),
+        ("clevr-lite-cpu", 64, &["--kernels", "device"]),
+        (
+            "clevr-lite-cpu",
+            64,
+            &["--kernels", "device", "--precision", "bf16"],
+        ),
     ];
     let mut report = Vec::new();
     for (preset, size, extra) in cases {
         let (estimate, peak) = estimate_and_peak(preset, size, extra);
         report.push(format!(
-            "{preset} {size}px: estimate {estimate:.3} GiB, peak {peak:.3} GiB"
+            "{preset} {size}px {extra:?}: estimate {estimate:.3} GiB, peak {peak:.3} GiB"
         ));
         assert!(
             (estimate / peak - 1.0).abs() <= 0.25,

@@ -13,10 +13,14 @@
 //! Three op paths keep different tensors: the f32 fused CPU kernels (`Kernels::Fused`,
 //! the default on a CPU), candle's composed ops on the CPU (`Kernels::Composed`: softmax
 //! and LayerNorm composed too, and their backward passes' temporaries, counted as
-//! measured), and a GPU step (composed, but LayerNorm, softmax, the bias-activation and
-//! the attention core are one node each). The fused count is checked against the
-//! counted peak heap of `osrt bench model` in `tests/memory_estimate.rs`; the other two
-//! are counts from the code (docs/performance.md has how close they come).
+//! measured), and the GPU's graph (`Kernels::Device`, on a GPU or built on the CPU: the
+//! product, LayerNorm, softmax, bias-activation, attention, MLP and convolution nodes,
+//! products read only by products stored in bf16 with bf16 products). On every path the
+//! backward pass runs in segments (`osrt_kernels::cut`), each segment's graph freed
+//! before the next. The fused and the GPU graph's counts are checked against the counted
+//! peak heap of `osrt bench model` in `tests/memory_estimate.rs` (the GPU's graph built
+//! on the CPU); the composed count is from the code (docs/performance.md has how close
+//! it comes).
 
 use crate::decoder;
 use crate::encoder::{self, RayInput};
@@ -101,6 +105,10 @@ struct Ledger {
     forward_peak: f64,
     /// Forward-pass locals freed when their function returns (not held by the graph).
     locals: f64,
+    /// Where each segment after the first begins (an index into `ops`): the step's
+    /// backward pass runs segment by segment, last first, and frees each segment's
+    /// graph before the next (`osrt_kernels::cut`).
+    cuts: Vec<usize>,
 }
 
 impl Ledger {
@@ -112,6 +120,7 @@ impl Ledger {
             live: 0.0,
             forward_peak: 0.0,
             locals: 0.0,
+            cuts: Vec::new(),
         }
     }
 
@@ -121,6 +130,20 @@ impl Ledger {
 
     fn gpu(&self) -> bool {
         matches!(self.path, OpPath::Gpu { .. })
+    }
+
+    /// Bytes of `n` values as a product stores them where only products or attention
+    /// read them (`osrt_kernels::linear_low`): bf16 on a GPU step with bf16 products.
+    fn lows(&self, n: usize) -> f64 {
+        match self.path {
+            OpPath::Gpu { bf16: true } => 2.0 * n as f64,
+            _ => f32s(n),
+        }
+    }
+
+    /// A segment boundary (`osrt_kernels::cut`).
+    fn cut(&mut self) {
+        self.cuts.push(self.ops.len());
     }
 
     fn op(&mut self, op: Op) {
@@ -158,25 +181,24 @@ impl Ledger {
         self.locals = 0.0;
     }
 
-    /// A matrix product's operand cast to bf16 (composed path with bf16 products).
-    fn cast(&mut self, n: usize) {
-        if let OpPath::Gpu { bf16: true } = self.path {
-            self.op(Op {
-                held: 2.0 * n as f64,
-                ..Op::default()
-            });
-        }
-    }
-
     /// The largest sum: the forward pass's, or the backward pass's, which starts from
-    /// everything held and frees each op's saved buffers as it passes the op.
+    /// everything held, frees each op's saved buffers as it passes the op and each
+    /// segment's graph once past the segment.
     fn peak(&self) -> f64 {
         let mut live = self.live;
         let mut peak = self.forward_peak;
-        for op in self.ops.iter().rev() {
+        let mut segment = 0.0;
+        let mut cuts = self.cuts.clone();
+        for (i, op) in self.ops.iter().enumerate().rev() {
             live += f32s(op.params);
             peak = peak.max(live + op.backward_extra);
             live -= op.saved;
+            segment += op.held;
+            if cuts.last() == Some(&i) {
+                cuts.pop();
+                live -= segment;
+                segment = 0.0;
+            }
         }
         peak
     }
@@ -188,10 +210,21 @@ fn linear(l: &mut Ledger, rows: usize, i: usize, o: usize, bias: bool) {
     linear_then(l, rows, (i, o), bias, bias && !l.fused());
 }
 
+/// A bias-free projection read only by products or attention: stored as the product
+/// returns it (`osrt_kernels::linear_low`; bf16 on a GPU step with bf16 products).
+fn linear_low(l: &mut Ledger, rows: usize, i: usize, o: usize) {
+    let held = l.lows(rows * o);
+    l.op(Op {
+        held,
+        backward_extra: f32s(2 * rows * o + rows * i),
+        params: i * o,
+        ..Op::default()
+    });
+}
+
 /// [`linear`], with the bias add as a node of its own or not (`bias_node`: on a GPU an
 /// MLP's bias add is one node with the activation).
 fn linear_then(l: &mut Ledger, rows: usize, (i, o): (usize, usize), bias: bool, bias_node: bool) {
-    l.cast(rows * i);
     l.op(Op {
         held: f32s(rows * o),
         backward_extra: f32s(2 * rows * o + rows * i),
@@ -238,10 +271,25 @@ fn mlp(l: &mut Ledger, rows: usize, dims: &[usize]) {
         });
         return;
     }
+    if l.gpu() {
+        // One node (`osrt_kernels::mlp_node`) keeping each hidden layer's product in the
+        // products' precision; it joins its input (one part or two) when it needs it.
+        // Forward: a layer's input and output beside the kept products; backward: a
+        // hidden layer's f32 gradient, its product widened (the gradient written over
+        // it) and the layer's input made again.
+        let params: usize = dims.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
+        let widest = dims.iter().copied().max().unwrap_or(0);
+        l.op(Op {
+            held: f32s(rows * out),
+            saved: l.lows(rows * hidden),
+            forward_extra: l.lows(rows * dims[0]) + l.lows(2 * rows * widest),
+            backward_extra: f32s(2 * rows * widest) + l.lows(rows * widest) + f32s(params),
+            params,
+        });
+        return;
+    }
     for w in dims.windows(2) {
-        // On a GPU the bias add and the activation are one node.
-        let bias_node = !l.gpu();
-        linear_then(l, rows, (w[0], w[1]), true, bias_node);
+        linear_then(l, rows, (w[0], w[1]), true, true);
     }
     l.node(rows * hidden);
 }
@@ -290,29 +338,41 @@ fn block(
     }
     layer_norm(l, rows, d);
     let source = if ctx.is_some() { ctx_rows } else { rows };
+    if l.gpu() {
+        // q, k, v stored as their products return them; one node that splits and merges
+        // the heads inside, keeps the weights, and in its backward pass holds the
+        // weights' gradient (the logits' written over it) and one operand's f32 copy and
+        // its gradient at a time.
+        linear_low(l, rows, d, inner);
+        linear_low(l, source, dc, inner);
+        linear_low(l, source, dc, inner);
+        let held = l.lows(rows * inner);
+        l.op(Op {
+            held,
+            saved: f32s(weights),
+            forward_extra: f32s(2 * rows * inner + 2 * ctx_rows * inner),
+            backward_extra: f32s(weights + 3 * rows * inner + 2 * ctx_rows * inner),
+            ..Op::default()
+        });
+        linear(l, rows, inner, d, true);
+        l.node(rows * d);
+        layer_norm(l, rows, d);
+        mlp(l, rows, &[d, t.mlp_hidden, d]);
+        l.node(rows * d);
+        return;
+    }
     linear(l, rows, d, inner, false);
     linear(l, source, dc, inner, false);
     linear(l, source, dc, inner, false);
     // The heads split (three copies), the attention core, the heads merged.
     l.node(rows * inner + 2 * ctx_rows * inner);
-    l.cast(rows * inner + 2 * ctx_rows * inner);
-    if l.gpu() {
-        // One node keeping the weights; its backward pass makes dP and dS at once.
-        l.op(Op {
-            held: f32s(rows * inner),
-            saved: f32s(weights),
-            backward_extra: f32s(2 * weights + 3 * rows * inner),
-            ..Op::default()
-        });
-    } else {
-        // Logits, scaled logits and the composed softmax's shifted logits, exponentials
-        // and quotient; its backward pass's temporaries, as measured: eleven more.
-        l.op(Op {
-            held: f32s(5 * weights + rows * inner),
-            backward_extra: f32s(11 * weights),
-            ..Op::default()
-        });
-    }
+    // Logits, scaled logits and the composed softmax's shifted logits, exponentials and
+    // quotient; its backward pass's temporaries, as measured: eleven more.
+    l.op(Op {
+        held: f32s(5 * weights + rows * inner),
+        backward_extra: f32s(11 * weights),
+        ..Op::default()
+    });
     l.node(rows * inner);
     linear(l, rows, inner, d, true);
     l.node(rows * d);
@@ -333,17 +393,33 @@ fn transformer(
 }
 
 /// A 3×3 or 1×1 convolution (NHWC) of `images` inputs of `h × w × c_in` to `c_out`
-/// channels: the im2col columns (kept for the weight gradient), the product.
+/// channels, with a ReLU after it where `relu`: the im2col columns (kept for the weight
+/// gradient), the product, the ReLU's output.
 fn conv(
     l: &mut Ledger,
     images: usize,
     (h, w, c_in): (usize, usize, usize),
     kernel: usize,
     c_out: usize,
+    relu: bool,
 ) {
     let cols = images * h * w * kernel * kernel * c_in;
     let out = images * h * w * c_out;
     let params = kernel * kernel * c_in * c_out;
+    if l.gpu() {
+        // The convolution node (`osrt_kernels::conv_node`): its input is held by the op
+        // before; it unfolds at most 2²⁵ values at a time and, with the ReLU, keeps a
+        // one-byte mask where it would keep its output.
+        let unfolded = l.lows(cols.min(1 << 25));
+        l.op(Op {
+            held: f32s(out),
+            saved: if relu { out as f64 } else { 0.0 },
+            forward_extra: unfolded,
+            backward_extra: unfolded + f32s(2 * out),
+            params,
+        });
+        return;
+    }
     if l.fused() {
         l.op(Op {
             held: f32s(out),
@@ -354,13 +430,15 @@ fn conv(
         });
     } else {
         l.node(cols);
-        l.cast(cols);
         l.op(Op {
             held: f32s(out),
             backward_extra: f32s(cols + 2 * out),
             params,
             ..Op::default()
         });
+    }
+    if relu {
+        l.node(out);
     }
 }
 
@@ -385,23 +463,26 @@ fn encode(l: &mut Ledger, cfg: &Config, s: &StepShape) {
         (encoder::Poses::Unposed, _) => 3,
     };
     for &c in &enc.conv_channels {
-        conv(l, images, (h, w, c_in), 3, c);
-        l.node(images * h * w * c);
+        conv(l, images, (h, w, c_in), 3, c, true);
         (h, w) = (h.div_ceil(2), w.div_ceil(2));
-        conv(l, images, (h, w, c), 3, 2 * c);
-        l.node(images * h * w * 2 * c);
+        conv(l, images, (h, w, c), 3, 2 * c, true);
         c_in = 2 * c;
     }
-    conv(l, images, (h, w, c_in), 1, enc.dim);
+    conv(l, images, (h, w, c_in), 1, enc.dim, false);
     let tokens = s.input_views * h * w;
     if enc.poses == encoder::Poses::Absolute && enc.ray_input == RayInput::Add {
         let stride = enc.stride();
-        conv(l, images, (h, w, e), stride, enc.dim);
+        conv(l, images, (h, w, e), stride, enc.dim, false);
         l.node(s.batch * tokens * enc.dim);
     }
+    // The backward pass's segments (`Osrt::encode`'s cuts): the CNN, the transformer, the
+    // slot attention, then the decoder.
+    l.cut();
     transformer(l, &enc.transformer, (s.batch, tokens, enc.dim), None);
     l.drop_locals();
+    l.cut();
     slot_attention(l, cfg, s.batch, tokens);
+    l.cut();
 }
 
 /// Slot attention over `tokens` set-latent tokens per scene.
@@ -423,10 +504,8 @@ fn slot_attention(l: &mut Ledger, cfg: &Config, b: usize, tokens: usize) {
     let iteration = |l: &mut Ledger| {
         layer_norm(l, b * k, ds);
         linear(l, b * k, ds, ds, false);
-        l.cast(b * k * ds + rows * ds);
         // Logits, scaled, softmax over slots, plus ε, renormalised over the inputs.
         l.node(5 * logits);
-        l.cast(logits + rows * ds);
         l.node(b * k * ds);
         // The GRU cell on `[b·k, ds]`: its gates and their products, small beside the rest.
         l.op(Op {
@@ -455,10 +534,16 @@ fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
             l.node(rows * e); // the rays' encoding
             mlp(l, rows, &[e, c.query_hidden, e]);
             transformer(l, &c.allocation, (b, r, e), Some((k, ds)));
-            // Slot mixing: the queries' projection, the weights over slots, the mix.
+            // Slot mixing: the queries' projection, the weights over slots, the mix (on a
+            // GPU the projection and the mix stored as their products return them).
+            let (q, mixed) = (l.lows(rows * ds), l.lows(rows * ds));
             l.op(Op {
-                held: f32s(rows * ds + rows * k),
-                saved: f32s(rows * ds + rows * k),
+                held: q + f32s(rows * k) + if l.gpu() { mixed } else { 0.0 },
+                saved: if l.gpu() {
+                    0.0
+                } else {
+                    f32s(rows * ds + rows * k)
+                },
                 backward_extra: f32s(3 * rows * ds + 2 * rows * e),
                 params: e * ds + ds * ds,
                 ..Op::default()
@@ -466,7 +551,8 @@ fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
             let mut dims = vec![ds + e];
             dims.extend(&c.render_hidden);
             dims.push(3);
-            if !l.fused() {
+            // Composed, the concatenation is a node; the fused and GPU MLPs join inside.
+            if l.path == OpPath::Composed {
                 l.node(rows * (ds + e));
             }
             mlp(l, rows, &dims);

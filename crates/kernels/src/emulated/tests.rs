@@ -204,7 +204,7 @@ fn the_scaled_softmax_backward_in_place_gives_the_two_ops_bits() {
         }
         let y = emu.softmax_fwd(&x, d);
         let dy = seeded(rows * d, 1.0, 90 + i as u64);
-        for scale in [0.125f32, 0.0883883476] {
+        for scale in [0.125f32, 0.088_388_35] {
             let want: Vec<f32> = emu
                 .softmax_bwd(&y, &dy, d)
                 .iter()
