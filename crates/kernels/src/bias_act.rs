@@ -128,17 +128,6 @@ impl CustomOp3 for BiasActBwd {
     }
 }
 
-/// The contiguous f32 elements of `s` under `l`, writable.
-fn f32_slice_mut<'a>(s: &'a mut CpuStorage, l: &Layout, what: &str) -> Result<&'a mut [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("{what}: in-place ops take f32");
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&mut v[a..b]),
-        None => candle_core::bail!("{what}: in-place ops take contiguous tensors"),
-    }
-}
-
 /// [`BiasActOp`] written over `x`: the same values, no second buffer of `x`'s size.
 impl InplaceOp2 for BiasActOp {
     fn name(&self) -> &'static str {

@@ -308,6 +308,21 @@ pub fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f
     }
 }
 
+/// [`f32_slice`], writable: the elements an in-place op overwrites.
+pub(crate) fn f32_slice_mut<'a>(
+    s: &'a mut CpuStorage,
+    l: &Layout,
+    what: &str,
+) -> Result<&'a mut [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("{what}: in-place ops take f32");
+    };
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&mut v[a..b]),
+        None => candle_core::bail!("{what}: in-place ops take contiguous tensors"),
+    }
+}
+
 /// The CPU storage behind a tensor (the fused ops run on the CPU only).
 fn cpu_storage(s: &candle_core::Storage) -> Result<&CpuStorage> {
     match s {

@@ -432,6 +432,26 @@ mod tests {
         Ok(h)
     }
 
+    /// Weights `[out, in]` and biases of layers of widths `dims`, as variables, seeded
+    /// from `seed` (weights) and `seed + 10` (biases).
+    fn biased_layers(dims: &[usize], seed: u64) -> Vec<(Var, Var)> {
+        dims.windows(2)
+            .enumerate()
+            .map(|(i, d)| {
+                let w = randn(&[d[1], d[0]], 0.4, seed + i as u64);
+                let b = randn(&[d[1]], 0.2, seed + 10 + i as u64);
+                (Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap())
+            })
+            .collect()
+    }
+
+    fn layers_of(params: &[(Var, Var)]) -> Vec<MlpLayer<'_>> {
+        params
+            .iter()
+            .map(|(w, b)| (w.as_tensor(), Some(b.as_tensor())))
+            .collect()
+    }
+
     fn values(t: &Tensor) -> Vec<f32> {
         t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
     }
@@ -506,20 +526,8 @@ mod tests {
     /// part or both carry a gradient; it matches finite differences.
     #[test]
     fn the_two_input_node_is_the_node_of_the_concatenation() {
-        let dims = [12, 20, 5];
-        let params: Vec<(Var, Var)> = dims
-            .windows(2)
-            .enumerate()
-            .map(|(i, d)| {
-                let w = randn(&[d[1], d[0]], 0.4, 30 + i as u64);
-                let b = randn(&[d[1]], 0.2, 40 + i as u64);
-                (Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap())
-            })
-            .collect();
-        let layers: Vec<MlpLayer> = params
-            .iter()
-            .map(|(w, b)| (w.as_tensor(), Some(b.as_tensor())))
-            .collect();
+        let params = biased_layers(&[12, 20, 5], 30);
+        let layers = layers_of(&params);
         for (p, tracked) in [
             (Precision::F32, [true, true]),
             (Precision::Bf16, [true, true]),
@@ -595,20 +603,8 @@ mod tests {
     /// concatenation of its f32 values, its gradient comes back in bf16.
     #[test]
     fn a_part_stored_in_bf16_is_taken() {
-        let dims = [12, 20, 5];
-        let params: Vec<(Var, Var)> = dims
-            .windows(2)
-            .enumerate()
-            .map(|(i, d)| {
-                let w = randn(&[d[1], d[0]], 0.4, 70 + i as u64);
-                let b = randn(&[d[1]], 0.2, 80 + i as u64);
-                (Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap())
-            })
-            .collect();
-        let layers: Vec<MlpLayer> = params
-            .iter()
-            .map(|(w, b)| (w.as_tensor(), Some(b.as_tensor())))
-            .collect();
+        let params = biased_layers(&[12, 20, 5], 70);
+        let layers = layers_of(&params);
         let a =
             Var::from_tensor(&randn(&[2, 3, 7], 1.0, 90).to_dtype(DType::BF16).unwrap()).unwrap();
         let b = Var::from_tensor(&randn(&[2, 3, 5], 1.0, 91)).unwrap();

@@ -166,13 +166,7 @@ impl InplaceOp2 for SoftmaxBwdScaled {
         l2: &Layout,
     ) -> Result<()> {
         let y = f32_slice(s2, l2, "softmax backward in place output")?;
-        let CpuStorage::F32(v) = s1 else {
-            candle_core::bail!("softmax backward in place: f32 only");
-        };
-        let Some((a, b)) = l1.contiguous_offsets() else {
-            candle_core::bail!("softmax backward in place: a contiguous gradient only");
-        };
-        let dy = &mut v[a..b];
+        let dy = f32_slice_mut(s1, l1, "softmax backward in place gradient")?;
         let d = l2.dims().last().copied().unwrap_or(1).max(1);
         if dy.len() != y.len() {
             candle_core::bail!(
