@@ -17,12 +17,14 @@
 #                              # timeouts; WORKERS_PRECISIONS=bf16 for one precision)
 #   bench/gpu_check.sh visit   # one call of a short visit, most important first: the
 #                              # plumbing, ops and steps against the CPU, the paper preset's
-#                              # 1-view step (time, peak memory) in f32 and bf16 beside
-#                              # PyTorch, then both sides' profiles of it, and the 5-view
-#                              # batch-8 bf16 step against its earlier peak (590 s of
-#                              # timeouts; the paper preset at batch 32 on an H200, 16 on a
-#                              # card under 100 GiB: ask for nvidia-h200 to compare with the
-#                              # earlier H200 figures)
+#                              # four step cases (1 view 8,192 rays and 5 views 2,304, f32
+#                              # and bf16: time, peak memory) beside PyTorch, then both
+#                              # sides' profiles of the 1-view bf16 step (560 s of timeouts;
+#                              # the paper preset at batch 32 on an H200, 16 on a card under
+#                              # 100 GiB: ask for nvidia-h200 to compare with the earlier
+#                              # H200 figures)
+#   bench/gpu_check.sh lite    # the small model's four step cases beside PyTorch, a second
+#                              # short call after `visit` (180 s of timeouts)
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -188,38 +190,48 @@ workers)
     ;;
 visit)
     check_device 90
-    # The paper preset's step at batch 32 peaked at 83–90 GiB (docs/gpu.md, older build):
+    # The paper preset's step at batch 32 peaked at 71–90 GiB (docs/gpu.md, older build):
     # on a card under 100 GiB (an H100) both sides run at batch 16 instead.
     mib="$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits | head -n 1)"
     pb=32
     [ "${mib:-0}" -lt 100000 ] && pb=16
     echo "== paper preset at batch $pb (${mib} MiB card)"
-    paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size "$pb"
-        --input-views 1 --rays-per-scene 8192)
-    for prec in f32 bf16; do
-        echo "== osrt paper 1x8192 $prec"
-        timeout 80 "$BIN" bench model "${paper[@]}" --steps 5 --precision "$prec" \
-            --out "$OUT/osrt-paper1-$prec.json" 2>&1 | tail -n 6
+    paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size "$pb")
+    # The four cases of the memory issue, osrt then PyTorch, time and peak memory.
+    for vr in "1 8192" "5 2304"; do
+        set -- $vr
+        for prec in f32 bf16; do
+            echo "== osrt paper ${1}x$2 $prec"
+            timeout 60 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
+                --steps 5 --precision "$prec" --out "$OUT/osrt-paper$1-$prec.json" 2>&1 | tail -n 6
+        done
     done
-    timeout 80 python3 bench/torch_step.py --device cuda --presets paper --batch-size "$pb" \
-        --image-size 128 --cases 1x8192 --dtypes f32,bf16 --steps 5 --no-render \
-        --out "$OUT/torch-paper.json" 2>&1 | tail -n 6
-    for prec in bf16 f32; do
-        echo "== osrt profile paper 1x8192 $prec"
-        timeout 80 "$BIN" bench model "${paper[@]}" --profile --steps 2 --precision "$prec" \
-            --out "$OUT/profile-paper1-$prec.json" 2>&1 | tail -n 30
-    done
-    timeout 60 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size "$pb" \
+    timeout 120 python3 bench/torch_step.py --device cuda --presets paper --batch-size "$pb" \
+        --image-size 128 --cases 1x8192,5x2304 --dtypes f32,bf16 --steps 5 --no-render \
+        --out "$OUT/torch-paper.json" 2>&1 | tail -n 8
+    # Where osrt's bf16 step goes, beside PyTorch's profiler on the same case.
+    echo "== osrt profile paper 1x8192 bf16"
+    timeout 60 "$BIN" bench model "${paper[@]}" --input-views 1 --rays-per-scene 8192 --profile \
+        --steps 2 --precision bf16 --out "$OUT/profile-paper1-bf16.json" 2>&1 | tail -n 30
+    timeout 50 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size "$pb" \
         --image-size 128 --cases 1x8192 --dtypes bf16 --steps 2 --no-render \
         --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 36
-    # Beside the one-node ops' earlier figure (docs/gpu.md: 21.6 GiB fused, 43.5 composed).
-    echo "== osrt paper b8 5x2304 bf16 fused"
-    timeout 40 "$BIN" bench model --device cuda --step-only --presets paper --image-size 128 \
-        --batch-size 8 --input-views 5 --rays-per-scene 2304 --precision bf16 --steps 3 \
-        --out "$OUT/osrt-paper5-b8-bf16.json" 2>&1 | tail -n 6
+    ;;
+lite)
+    # The small model's four cases beside PyTorch (a second, short call after `visit`).
+    lite=(--device cuda --steps 10 --step-only --presets clevr-lite-cpu)
+    for prec in f32 bf16; do
+        for b in 16 256; do
+            echo "== osrt clevr-lite-cpu b$b $prec"
+            timeout 30 "$BIN" bench model "${lite[@]}" --precision "$prec" --batch-size "$b" \
+                --out "$OUT/osrt-lite$b-$prec.json" 2>&1 | tail -n 4
+        done
+    done
+    timeout 60 python3 bench/torch_step.py --device cuda --presets clevr-lite-cpu --batch-size 16,256 \
+        --dtypes f32,bf16 --no-render --out "$OUT/torch-lite.json" 2>&1 | tail -n 8
     ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench|memory|profile|workers|visit"
+    echo "usage: bench/gpu_check.sh train|bench|memory|profile|workers|visit|lite"
     exit 2
     ;;
 esac
