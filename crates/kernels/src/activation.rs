@@ -61,6 +61,23 @@ pub(crate) fn par_elementwise_with<T: Send>(
         });
 }
 
+/// `kernel(x, dy)` in [`par_elementwise_grad`]'s chunks where the operands are not f32:
+/// each chunk's `x` and `dy` made by `load` (from the chunk's first index), the result
+/// written into `out`.
+pub(crate) fn par_elementwise_grad_with(
+    out: &mut [f32],
+    load: impl Fn(usize, &mut [f32], &mut [f32]) + Sync,
+    kernel: impl Fn(&mut [f32], &[f32], &[f32]) + Sync,
+) {
+    out.par_chunks_mut(ELEMENTS_PER_TASK)
+        .enumerate()
+        .for_each(|(i, o)| {
+            let (mut x, mut dy) = (vec![0f32; o.len()], vec![0f32; o.len()]);
+            load(i * ELEMENTS_PER_TASK, &mut x, &mut dy);
+            kernel(o, &x, &dy);
+        });
+}
+
 /// [`par_elementwise`] written over `x`, in the same chunks (each copied once, so that
 /// the kernel reads and writes distinct slices): the same bits, no second buffer.
 pub(crate) fn par_elementwise_in_place(x: &mut [f32], kernel: impl Fn(&mut [f32], &[f32]) + Sync) {

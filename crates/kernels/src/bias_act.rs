@@ -287,6 +287,89 @@ pub(crate) fn bias_act_low(z: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Resul
         .apply_op2_no_bwd(&b.contiguous()?, &BiasActLow { act })
 }
 
+/// `dy · act'(f32(z) + b)` in f32 for a bf16 product `z` and a bf16 gradient `dy`: the
+/// bits of widening both and [`BiasActBwd`], without their two f32 copies of the layer's
+/// size (a bf16 MLP node's hidden layer, whose incoming gradient is the layer after's
+/// bf16 product).
+struct BiasActBwdLow {
+    act: MlpAct,
+}
+
+impl CustomOp3 for BiasActBwdLow {
+    fn name(&self) -> &'static str {
+        "osrt-bias-act-bwd-low"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (CpuStorage::BF16(z), CpuStorage::BF16(dy)) = (s1, s3) else {
+            candle_core::bail!("bias+activation backward from bf16: bf16 z and gradient only");
+        };
+        let (Some((a, e)), Some((c, f))) = (l1.contiguous_offsets(), l3.contiguous_offsets())
+        else {
+            candle_core::bail!("bias+activation backward from bf16: contiguous operands only");
+        };
+        let (z, dy) = (&z[a..e], &dy[c..f]);
+        let b = f32_slice(s2, l2, "bias+activation backward from bf16 bias")?;
+        let d = b.len().max(1);
+        if z.len() != dy.len() || z.len() % d != 0 {
+            candle_core::bail!(
+                "bias+activation backward from bf16: {} elements, a gradient of {}, a bias of {}",
+                z.len(),
+                dy.len(),
+                b.len()
+            )
+        }
+        let mut out = vec![0f32; z.len()];
+        self.act.backward_with(&mut out, |start, x, g| {
+            for (j, (x, g)) in x.iter_mut().zip(g).enumerate() {
+                // `add_bias_rows`'s sum on the widened value.
+                *x = z[start + j].to_f32() + b[(start + j) % d];
+                *g = dy[start + j].to_f32();
+            }
+        });
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        crate::cuda::bias_act_bwd_low(s1, l1, s2, l2, s3, l3, act_code(Some(self.act)))
+    }
+}
+
+/// `dy · act'(f32(z) + b)` in f32 for a bf16 `z: [.., d]`, an f32 `b: [d]` and a bf16 `dy`
+/// of `z`'s shape, outside the graph.
+pub(crate) fn bias_act_bwd_low(z: &Tensor, b: &Tensor, dy: &Tensor, act: MlpAct) -> Result<Tensor> {
+    check_rows(z, b, Some(dy))?;
+    let bf16 = candle_core::DType::BF16;
+    if z.dtype() != bf16 || dy.dtype() != bf16 || b.dtype() != candle_core::DType::F32 {
+        candle_core::bail!(
+            "bias+activation backward from bf16: z {:?}, bias {:?}, gradient {:?}; expected \
+             bf16, f32, bf16",
+            z.dtype(),
+            b.dtype(),
+            dy.dtype()
+        )
+    }
+    z.contiguous()?
+        .apply_op3_no_bwd(&b.contiguous()?, &dy.contiguous()?, &BiasActBwdLow { act })
+}
+
 /// `x ← act(x + b)` for `x: [.., d]` (f32, contiguous), `b: [d]`, outside the graph. `x`
 /// must be the caller's own: every tensor sharing its storage sees the change.
 pub(crate) fn bias_act_in_place(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<()> {
@@ -455,6 +538,59 @@ mod tests {
             assert_eq!(bits(&got), bits(&want), "{act:?}");
         }
         assert!(bias_act_low(&z.to_dtype(DType::F32).unwrap(), &b, None).is_err());
+    }
+
+    /// The backward op from bf16 gives the bits of widening `z` and `dy` and
+    /// [`BiasActBwd`], over sizes that end mid-chunk, with products whose sums overflow,
+    /// tiny values, exact zeros of `z + b` and gradients at bf16's extremes; it refuses f32
+    /// operands and a gradient of another shape.
+    #[test]
+    fn the_backward_from_bf16_gives_the_widened_ops_bits() {
+        use candle_core::DType;
+        let (rows, d) = (700, 37);
+        let mut x = randn(&[rows * d], 2.0, 97).to_vec1::<f32>().unwrap();
+        let mut g = randn(&[rows * d], 1.0, 98).to_vec1::<f32>().unwrap();
+        for (j, v) in [
+            3.3e38f32,
+            -3.3e38,
+            1e-30,
+            -1e-30,
+            0.0,
+            -0.0,
+            1.0 + 1.0 / 128.0,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            x[j * 1001] = v;
+            g[j * 1001 + 7] = v;
+        }
+        let b = randn(&[d], 0.5, 99);
+        x[9 * d + 3] = -b.to_vec1::<f32>().unwrap()[3];
+        let low = |v: Vec<f32>| {
+            Tensor::from_vec(v, (rows, d), &Device::Cpu)
+                .unwrap()
+                .to_dtype(DType::BF16)
+                .unwrap()
+        };
+        let (z, dy) = (low(x), low(g));
+        let bits = |t: &Tensor| -> Vec<u32> {
+            let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            v.iter().map(|x| x.to_bits()).collect()
+        };
+        let wide = |t: &Tensor| t.to_dtype(DType::F32).unwrap();
+        for act in [MlpAct::Relu, MlpAct::LeakyRelu(0.01), MlpAct::Gelu] {
+            let want = wide(&z)
+                .apply_op3_no_bwd(&b, &wide(&dy), &BiasActBwd { act })
+                .unwrap();
+            let got = bias_act_bwd_low(&z, &b, &dy, act).unwrap();
+            assert_eq!(got.dtype(), DType::F32);
+            assert_eq!(bits(&got), bits(&want), "{act:?}");
+        }
+        assert!(bias_act_bwd_low(&wide(&z), &b, &dy, MlpAct::Gelu).is_err());
+        assert!(bias_act_bwd_low(&z, &b, &wide(&dy), MlpAct::Gelu).is_err());
+        let short = dy.narrow(0, 0, rows - 1).unwrap();
+        assert!(bias_act_bwd_low(&z, &b, &short, MlpAct::Gelu).is_err());
     }
 
     #[test]

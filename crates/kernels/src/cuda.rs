@@ -443,6 +443,51 @@ pub fn bias_act_bwd_in_place(
     Ok(())
 }
 
+/// `f32(dy) · act'(f32(z) + b)` for a bf16 `z: [.., d]`, an f32 `b: [d]` and a bf16 `dy`, in
+/// f32.
+#[allow(clippy::too_many_arguments)]
+pub fn bias_act_bwd_low(
+    z: &CudaStorage,
+    lz: &Layout,
+    b: &CudaStorage,
+    lb: &Layout,
+    dy: &CudaStorage,
+    ldy: &Layout,
+    (kind, slope): (i32, f32),
+) -> Result<(CudaStorage, Shape)> {
+    let dev = device(b).clone();
+    let d = lb.shape().elem_count();
+    let (_, cols) = rows_cols(lz, d, "bias+activation backward from bf16")?;
+    let n = lz.shape().elem_count();
+    let (Some((a, e)), Some((c, f))) = (lz.contiguous_offsets(), ldy.contiguous_offsets()) else {
+        candle_core::bail!(
+            "bias+activation backward from bf16: the CUDA kernel needs contiguous operands"
+        )
+    };
+    if f - c != n {
+        candle_core::bail!(
+            "bias+activation backward from bf16: gradient {:?} for {:?}",
+            ldy.shape(),
+            lz.shape()
+        )
+    }
+    let zv = z.as_cuda_slice::<half::bf16>()?.slice(a..e);
+    let dyv = dy.as_cuda_slice::<half::bf16>()?.slice(c..f);
+    let bv = input(b, lb, "bias+activation backward from bf16 bias")?;
+    let n64 = n as i64;
+    // SAFETY: every element is written by the kernel below.
+    let mut dz = unsafe { dev.alloc::<f32>(n.max(1))? };
+    {
+        let func = dev.get_or_load_custom_func("osrt_bias_act_bwd_low", MODULE, ptx()?)?;
+        let mut l = func.builder();
+        l.arg(&zv).arg(&bv).arg(&dyv).arg(&mut dz);
+        l.arg(&n64).arg(&cols).arg(&kind).arg(&slope);
+        // SAFETY: the arguments match the kernel's signature; sizes were checked above.
+        unsafe { l.launch(elementwise_launch(n)) }.w()?;
+    }
+    Ok((CudaStorage::wrap_cuda_slice(dz, dev), lz.shape().clone()))
+}
+
 /// `dy · act'(x + b)`.
 #[allow(clippy::too_many_arguments)]
 pub fn bias_act_bwd(

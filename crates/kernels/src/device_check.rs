@@ -222,6 +222,19 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
                     Ok(h)
                 }),
             ));
+            // From a bf16 product and a bf16 gradient (the bf16 MLP node's hidden layers).
+            out.push((
+                format!("{name} backward from bf16 [500, 96]"),
+                vec![
+                    normal(&[500, 96], 2.0, 6)?,
+                    normal(&[96], 1.0, 7)?,
+                    normal(&[500, 96], 1.0, 21)?,
+                ],
+                Box::new(move |t| {
+                    let low = |t: &Tensor| t.detach().to_dtype(candle_core::DType::BF16);
+                    crate::bias_act::bias_act_bwd_low(&low(&t[0])?, &t[1].detach(), &low(&t[2])?, a)
+                }),
+            ));
         }
     }
     Ok(())

@@ -173,6 +173,19 @@ extern "C" __global__ void osrt_bias_act_low(const unsigned short* z, const floa
     }
 }
 
+// dz = f32(dy) * act'(f32(z) + b[col]): a bf16 hidden layer's gradient from its bf16 product
+// and the bf16 gradient the layer after gave it, in f32 (osrt_bias_act_bwd of both widened).
+extern "C" __global__ void osrt_bias_act_bwd_low(const unsigned short* z, const float* b,
+                                                 const unsigned short* dy, float* dz, long n,
+                                                 int cols, int kind, float slope) {
+    for (long i = (long)blockIdx.x * blockDim.x + threadIdx.x; i < n;
+         i += (long)gridDim.x * blockDim.x) {
+        float x = __uint_as_float(((unsigned int)z[i]) << 16);
+        float g = __uint_as_float(((unsigned int)dy[i]) << 16);
+        dz[i] = g * act_grad(x + b[i % cols], kind, slope);
+    }
+}
+
 // Per chunk of `chunk` rows and column: the column's sum over the chunk (chunks as in
 // osrt_layer_norm_bwd_params).
 extern "C" __global__ void osrt_column_partials(const float* a, float* partial, int rows,

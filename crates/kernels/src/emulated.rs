@@ -146,6 +146,8 @@ type BiasActBwd =
 type BiasActLow = unsafe extern "C" fn(*const u16, *const f32, *mut u16, i64, i32, i32, f32);
 type BiasActFwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, i64, i32, i32, f32);
 type BiasActBwdInPlace = unsafe extern "C" fn(*mut f32, *const f32, *const f32, i64, i32, i32, f32);
+type BiasActBwdLow =
+    unsafe extern "C" fn(*const u16, *const f32, *const u16, *mut f32, i64, i32, i32, f32);
 type Fold<I, O> =
     unsafe extern "C" fn(*const I, *mut O, i64, i32, i32, i32, i32, i32, i32, i32, i32);
 
@@ -336,6 +338,37 @@ impl Emulator {
             k(zp.get(), bp.get(), yp.get(), n, cols, act.0, act.1)
         });
         y
+    }
+
+    /// `cuda::bias_act_bwd_low` over `launch`: bf16 bits of `z` and `dy` in, f32 out.
+    pub(crate) fn bias_act_bwd_low(
+        &self,
+        z: &[u16],
+        b: &[f32],
+        dy: &[u16],
+        act: (i32, f32),
+        l: Launch,
+    ) -> Vec<f32> {
+        assert_eq!(z.len(), dy.len());
+        let mut dz = vec![f32::NAN; z.len()];
+        // SAFETY: the signature of `osrt_bias_act_bwd_low`.
+        let k: BiasActBwdLow = unsafe { self.kernel("osrt_bias_act_bwd_low") };
+        let (n, cols) = (z.len() as i64, b.len() as i32);
+        let (zp, bp) = (Ptr(z.as_ptr() as *mut u16), ptr(b));
+        let (dyp, dzp) = (Ptr(dy.as_ptr() as *mut u16), Ptr::of(&mut dz));
+        self.launch(l, &|| unsafe {
+            k(
+                zp.get(),
+                bp.get(),
+                dyp.get(),
+                dzp.get(),
+                n,
+                cols,
+                act.0,
+                act.1,
+            )
+        });
+        dz
     }
 
     /// `cuda::bias_act_fwd_in_place` over `launch`.

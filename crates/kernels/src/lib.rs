@@ -63,8 +63,8 @@ pub use softmax::softmax;
 // Row kernels the one-node ops share.
 use activation::{
     gelu_grad_slice, gelu_slice, leaky_relu_grad_slice, leaky_relu_slice, par_elementwise,
-    par_elementwise_grad, par_elementwise_grad_in_place, par_elementwise_in_place,
-    par_elementwise_with,
+    par_elementwise_grad, par_elementwise_grad_in_place, par_elementwise_grad_with,
+    par_elementwise_in_place, par_elementwise_with,
 };
 use layer_norm::{LayerNormBwd, LayerNormOp};
 use linear::{ColumnSum, add_bias_rows, matmul_xwt, rows_layout, weight_grad, with_last_dim};

@@ -18,8 +18,8 @@ use super::gemm::{self, MatRef, Threads};
 use super::{
     ColumnSum, Kept, add_bias_rows, cpu_storage as cpu, f32_slice, gelu_grad_slice, gelu_slice,
     leaky_relu_grad_slice, leaky_relu_slice, matmul_xwt, par_elementwise, par_elementwise_grad,
-    par_elementwise_grad_in_place, par_elementwise_in_place, par_elementwise_with, rows_layout,
-    usable, usable_with_cuda, weight_grad, with_last_dim,
+    par_elementwise_grad_in_place, par_elementwise_grad_with, par_elementwise_in_place,
+    par_elementwise_with, rows_layout, usable, usable_with_cuda, weight_grad, with_last_dim,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -98,6 +98,24 @@ impl MlpAct {
                 par_elementwise_grad_in_place(z, dy, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
             }
             MlpAct::Gelu => par_elementwise_grad_in_place(z, dy, gelu_grad_slice),
+        }
+    }
+
+    /// [`MlpAct::backward`] in `par_elementwise_grad_with`'s chunks: `load` makes each
+    /// chunk's `z` and `dy`.
+    pub(crate) fn backward_with(
+        self,
+        out: &mut [f32],
+        load: impl Fn(usize, &mut [f32], &mut [f32]) + Sync,
+    ) {
+        match self {
+            MlpAct::Relu => {
+                par_elementwise_grad_with(out, load, |o, x, d| leaky_relu_grad_slice(o, x, d, 0.0))
+            }
+            MlpAct::LeakyRelu(s) => {
+                par_elementwise_grad_with(out, load, |o, x, d| leaky_relu_grad_slice(o, x, d, s))
+            }
+            MlpAct::Gelu => par_elementwise_grad_with(out, load, gelu_grad_slice),
         }
     }
 

@@ -15,7 +15,9 @@
 //! price is one elementwise pass per hidden layer in the backward pass. The backward pass
 //! takes them layer by layer, so each is freed once used.
 
-use crate::bias_act::{BiasActOp, bias_act_bwd_in_place, bias_act_in_place, bias_act_low};
+use crate::bias_act::{
+    BiasActOp, bias_act_bwd_in_place, bias_act_bwd_low, bias_act_in_place, bias_act_low,
+};
 use crate::handover::Handover;
 use crate::linear::ColumnSum;
 use crate::mlp::{MlpAct, MlpLayer};
@@ -220,8 +222,9 @@ impl Plan {
         }
     }
 
-    /// The gradients of the input `x() : [rows, in]` (where `want_dx`) and of the
-    /// parameters (each weight `[out, in]` then its bias `[out]`, first layer first), from
+    /// The gradients of the input `x() : [rows, in]` (where `want_dx`, in the products'
+    /// precision as their product made it) and of the parameters (each weight
+    /// `[out, in]` then its bias `[out]`, first layer first), from
     /// the output's `dy`: per layer what candle's backward pass of `linear_act` computes,
     /// in the same products. The input is made when the first layer needs it, and each
     /// tensor goes once used: the step's peak is inside this pass (the Slot Mixer's
@@ -241,23 +244,31 @@ impl Plan {
                 self.params.len()
             );
         }
-        let mut g = dy.contiguous()?;
+        // The gradient of the current layer's output: `dy` (f32), then each product's.
+        let mut g = dy.clone();
         let mut parts = Vec::with_capacity(2 * self.params.len());
         let mut dx = None;
         for (i, (w, b)) in self.params.iter().enumerate().rev() {
-            let dz = match i + 1 < self.params.len() {
-                true => {
-                    // This layer's kept output is used for the last time here (the layer
-                    // after made its input from it already), and it is this node's own (the
-                    // product it made, or in bf16 that product widened): its gradient is
-                    // written over it.
-                    let z = self.high(saved.pop().expect("checked"))?.contiguous()?;
-                    bias_act_bwd_in_place(&z, b, &g.contiguous()?, self.act)?;
-                    drop(g);
+            // This layer's kept output is used for the last time here (the layer after
+            // made its input from it already).
+            // `g` is taken, so that it is freed once read.
+            let g_out = g;
+            let dz = match (i + 1 < self.params.len(), self.bf16) {
+                // In bf16 the kept product and `g` (the layer after's bf16 product) are read
+                // widened by one op: no f32 copy of either.
+                (true, true) => {
+                    let z = saved.pop().expect("checked");
+                    bias_act_bwd_low(&z, b, &g_out, self.act)?
+                }
+                // In f32 the kept product is this node's own: its gradient is written over it.
+                (true, false) => {
+                    let z = saved.pop().expect("checked").contiguous()?;
+                    bias_act_bwd_in_place(&z, b, &g_out, self.act)?;
                     z
                 }
-                false => g,
+                (false, _) => g_out.contiguous()?,
             };
+            drop(g_out);
             let db = dz.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
             // In bf16 the f32 gradient goes here: the products read the rounded one.
             let dz_low = self.low(&dz)?;
@@ -273,10 +284,15 @@ impl Plan {
             if i == 0 && !want_dx {
                 break;
             }
-            g = self.high(dz.matmul(&wt.t()?)?)?.contiguous()?;
+            let dinput = dz.matmul(&wt.t()?)?;
             if i == 0 {
-                dx = Some(g.clone());
+                // In the products' precision: each part takes it in its own (see
+                // `MlpNode::backward`), with no f32 copy of the whole input's gradient.
+                dx = Some(dinput);
+                break;
             }
+            // In the products' precision (bf16: what `bias_act_bwd_low` reads).
+            g = dinput.contiguous()?;
         }
         parts.reverse();
         Ok((dx, parts))
@@ -312,6 +328,8 @@ impl MlpNode {
             .plan
             .backward(saved, &|| self.plan.joined(&owned), grad, want)?;
         self.grads.put(dp);
+        // Each part's gradient in the part's type (a view of `dx` where that is the products'
+        // type: candle adds it to a fresh tensor at once).
         let mut start = 0;
         let mut out = Vec::with_capacity(rows.len());
         for (t, &w) in rows.iter().zip(&self.widths) {

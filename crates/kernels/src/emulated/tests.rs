@@ -374,6 +374,60 @@ fn bias_act_in_place_gives_the_out_of_place_bits() {
     }
 }
 
+/// The backward kernel from bf16 (`osrt_bias_act_bwd_low`) writes the f32 kernel's bits on
+/// the widened operands, over both launches, with sums that overflow and exact zeros of
+/// `z + b`.
+#[test]
+fn bias_act_bwd_low_gives_the_widened_kernel_bits() {
+    let emu = Emulator::get();
+    let (rows, d) = (41, 23);
+    let mut x = seeded(rows * d, 2.0, 75);
+    let mut g = seeded(rows * d, 1.0, 76);
+    for (j, v) in [
+        3.3e38f32,
+        -3.3e38,
+        1e-30,
+        -1e-30,
+        0.0,
+        -0.0,
+        1.0 + 1.0 / 128.0,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        x[j * 13] = v;
+        g[j * 13 + 5] = v;
+    }
+    let b = seeded(d, 0.5, 77);
+    let low = |v: &[f32]| -> Vec<u16> {
+        v.iter()
+            .map(|&x| half::bf16::from_f32(x).to_bits())
+            .collect()
+    };
+    let (zbits, dybits) = (low(&x), low(&g));
+    // An exact zero of z + b in row 5, column 2.
+    let mut b2 = b;
+    b2[2] = -half::bf16::from_bits(zbits[5 * d + 2]).to_f32();
+    let wide = |v: &[u16]| -> Vec<f32> {
+        v.iter()
+            .map(|&u| half::bf16::from_bits(u).to_f32())
+            .collect()
+    };
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let small = Launch {
+        grid: (3, 1, 1),
+        block: (64, 1, 1),
+    };
+    for a in [MlpAct::Relu, MlpAct::LeakyRelu(0.01), MlpAct::Gelu] {
+        let code = act_code(Some(a));
+        let want = emu.bias_act_bwd(&wide(&zbits), &b2, &wide(&dybits), code);
+        for l in [geometry::elementwise(zbits.len()), small] {
+            let got = emu.bias_act_bwd_low(&zbits, &b2, &dybits, code, l);
+            assert_eq!(bits(&got), bits(&want), "{a:?} over {l:?}");
+        }
+    }
+}
+
 #[test]
 fn column_sums_match_the_f64_reference() {
     let emu = Emulator::get();
