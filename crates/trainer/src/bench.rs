@@ -162,9 +162,17 @@ pub fn bench_step(
         let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
         device.synchronize()?;
         let t1 = Instant::now();
+        let gradients_peak = crate::device::device_peak_bytes(device);
         let outcome = trainer.apply(g.loss, g.grads)?;
         device.synchronize()?;
-        tracing::debug!(apply_s = t1.elapsed().as_secs_f64(), "apply and drop");
+        // The step's device peak before the update and with it (GiB): which holds it.
+        let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
+        tracing::debug!(
+            apply_s = t1.elapsed().as_secs_f64(),
+            gradients_peak_gib = gib(gradients_peak),
+            step_peak_gib = gib(crate::device::device_peak_bytes(device)),
+            "apply and drop"
+        );
         if let crate::step::ApplyOutcome::Skipped { reason } = outcome
             && i >= warmup
         {

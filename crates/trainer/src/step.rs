@@ -78,6 +78,11 @@ impl MemoryProbe {
         Some(self.meter.live()?.saturating_sub(before))
     }
 
+    /// Bytes held when the probe started (`None` when off).
+    fn held_before(&self) -> Option<u64> {
+        self.before
+    }
+
     /// The most bytes held at once since the start, beyond it (`None` when off).
     fn peak(&self) -> Option<u64> {
         let before = self.before?;
@@ -419,7 +424,20 @@ impl Trainer {
         let peak_bytes = probe.peak();
         let flat = self.flatten(param_grads, keep)?;
         let flatten_s = lap(&mut clock)?;
-        tracing::debug!(forward_s, backward_s, flatten_s, "train step gradients");
+        // The memory where the meter reads it: what was held before the batch came in, what
+        // the forward pass added, the passes' peak above the start and what the flat
+        // gradient's making added to it (GiB; where a step's peak lies).
+        let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
+        tracing::debug!(
+            forward_s,
+            backward_s,
+            flatten_s,
+            start_gib = gib(probe.held_before()),
+            forward_held_gib = gib(forward_kept_bytes),
+            passes_peak_gib = gib(peak_bytes),
+            with_flatten_peak_gib = gib(probe.peak()),
+            "train step gradients"
+        );
         Ok(StepGradients {
             loss: loss_value,
             grads: flat,
