@@ -19,12 +19,17 @@
 #                              # plumbing, ops and steps against the CPU, the paper preset's
 #                              # four step cases (1 view 8,192 rays and 5 views 2,304, f32
 #                              # and bf16: time, peak memory) beside PyTorch, then both
-#                              # sides' profiles of the 1-view bf16 step (560 s of timeouts;
+#                              # sides' profiles of the 1-view bf16 step, and its memory
+#                              # at each phase of the step (550 s of timeouts;
 #                              # the paper preset at batch 32 on an H200, 16 on a card under
 #                              # 100 GiB: ask for nvidia-h200 to compare with the earlier
 #                              # H200 figures)
 #   bench/gpu_check.sh lite    # the small model's four step cases beside PyTorch, a second
 #                              # short call after `visit` (180 s of timeouts)
+#   bench/gpu_check.sh kernels # each GPU kernel's time in the paper preset's 1-view step
+#                              # at batch 32 under Nsight Compute (`ncu`), summed by name
+#                              # (bench/ncu_kernels.py; ≤ 400 s of timeouts, untried: the
+#                              # first call tells whether ncu works on the machine)
 #
 # Results go to $OUT (default target/gpu-check). The CUDA 13 libraries are taken from the
 # machine's PyTorch (site-packages/nvidia/*/lib); the driver's libcuda.so.1 from the system.
@@ -202,11 +207,16 @@ visit)
         set -- $vr
         for prec in f32 bf16; do
             echo "== osrt paper ${1}x$2 $prec"
-            timeout 60 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
+            timeout 50 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
                 --steps 5 --precision "$prec" --out "$OUT/osrt-paper$1-$prec.json" 2>&1 | tail -n 6
         done
     done
-    timeout 120 python3 bench/torch_step.py --device cuda --presets paper --batch-size "$pb" \
+    # Which phase holds the peak: each step's memory at its phases (debug log; GiB).
+    echo "== osrt paper 1x8192 bf16, memory by phase"
+    RUST_LOG=osrt_trainer=debug timeout 50 "$BIN" bench model "${paper[@]}" --input-views 1 \
+        --rays-per-scene 8192 --steps 2 --precision bf16 --out "$OUT/osrt-phases-bf16.json" 2>&1 |
+        grep -E "train step gradients|apply and drop" | tail -n 4
+    timeout 100 python3 bench/torch_step.py --device cuda --presets paper --batch-size "$pb" \
         --image-size 128 --cases 1x8192,5x2304 --dtypes f32,bf16 --steps 5 --no-render \
         --out "$OUT/torch-paper.json" 2>&1 | tail -n 8
     # Where osrt's bf16 step goes, beside PyTorch's profiler on the same case.
@@ -230,8 +240,24 @@ lite)
     timeout 60 python3 bench/torch_step.py --device cuda --presets clevr-lite-cpu --batch-size 16,256 \
         --dtypes f32,bf16 --no-render --out "$OUT/torch-lite.json" 2>&1 | tail -n 8
     ;;
+kernels)
+    # Each kernel's GPU time in the paper preset's 1-view bf16 step at batch 32 (Nsight
+    # Compute, one metric, launches serialised: 3 steps, the 2 warm-up ones included),
+    # summed by kernel name: what inside the MLP and attention nodes takes the time.
+    NCU="$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -n 1)"
+    for prec in ${KERNELS_PRECISIONS:-bf16 f32}; do
+        echo "== ncu osrt paper 1x8192 $prec"
+        timeout 200 "$NCU" --clock-control none --cache-control none --metrics gpu__time_duration.sum \
+            --csv --page details --log-file "$OUT/ncu-paper1-$prec.csv" \
+            "$BIN" bench model --device cuda --step-only --presets paper --image-size 128 \
+            --batch-size 32 --input-views 1 --rays-per-scene 8192 --steps 1 --precision "$prec" \
+            --out "$OUT/osrt-ncu-$prec.json" 2>&1 | tail -n 4
+        python3 bench/ncu_kernels.py "$OUT/ncu-paper1-$prec.csv" --steps 3 --top 40
+        gzip -f "$OUT/ncu-paper1-$prec.csv"
+    done
+    ;;
 *)
-    echo "usage: bench/gpu_check.sh train|bench|memory|profile|workers|visit|lite"
+    echo "usage: bench/gpu_check.sh train|bench|memory|profile|workers|visit|lite|kernels"
     exit 2
     ;;
 esac
