@@ -165,14 +165,7 @@ pub fn bench_step(
         let gradients_peak = crate::device::device_peak_bytes(device);
         let outcome = trainer.apply(g.loss, g.grads)?;
         device.synchronize()?;
-        // The step's device peak before the update and with it (GiB): which holds it.
-        let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
-        tracing::debug!(
-            apply_s = t1.elapsed().as_secs_f64(),
-            gradients_peak_gib = gib(gradients_peak),
-            step_peak_gib = gib(crate::device::device_peak_bytes(device)),
-            "apply and drop"
-        );
+        log_apply(t1, gradients_peak, device);
         if let crate::step::ApplyOutcome::Skipped { reason } = outcome
             && i >= warmup
         {
@@ -316,6 +309,18 @@ pub fn profile_step(
         kinds: profile::by_kind(&ops),
         ops,
     })
+}
+
+/// The update's time, and the step's device peak before the update and with it (GiB:
+/// which of the two holds it), in the debug log.
+fn log_apply(started: Instant, gradients_peak: Option<u64>, device: &Device) {
+    let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
+    tracing::debug!(
+        apply_s = started.elapsed().as_secs_f64(),
+        gradients_peak_gib = gib(gradients_peak),
+        step_peak_gib = gib(crate::device::device_peak_bytes(device)),
+        "apply and drop"
+    );
 }
 
 fn gib(bytes: usize) -> f64 {
