@@ -71,10 +71,26 @@ impl Heads {
             .reshape((self.b, len, self.h * self.dh))
     }
 
-    /// [`Heads::split`] of `t` detached, then widened to f32 where it is bf16: the values
-    /// of widening first, with the copy made in the narrower type.
-    fn split_f32(&self, t: &Tensor) -> Result<Tensor> {
-        f32_of(&self.split(&t.detach())?)
+    /// [`Heads::split`] of `t` detached, as a product's operand: a bf16 `t` stays bf16
+    /// where the products take bf16 operands (they round an f32 operand to bf16, which
+    /// gives a widened bf16 value back exactly), else it is widened to f32 after the split
+    /// (the copy made in the narrower type).
+    fn split_operand(&self, t: &Tensor) -> Result<Tensor> {
+        let s = self.split(&t.detach())?;
+        match s.dtype() == DType::BF16 && crate::stores_low(&[&s]) {
+            true => Ok(s),
+            false => f32_of(&s),
+        }
+    }
+
+    /// `a · b` (`[b·h, len, dh]`) merged into `[b, len, h·dh]` in `dtype`: where that is bf16
+    /// and the products run on bf16 operands, the bf16 product as it comes out (the bits
+    /// of its f32 result rounded back), with no f32 copy of it.
+    fn merged_product(&self, a: &Tensor, b: &Tensor, dtype: DType) -> Result<Tensor> {
+        if dtype == DType::BF16 && crate::stores_low(&[a, b]) {
+            return self.merge(&crate::matmul_low(a, b)?);
+        }
+        self.merge_to(matmul(a, b)?, dtype)
     }
 
     /// [`Heads::merge`] of `t` in `dtype`: narrowed first (the values of narrowing after
@@ -132,19 +148,19 @@ impl CustomOp3 for AttentionNode {
             let hs = self.heads;
             let a = match self.weights.take() {
                 Some(a) => a,
-                None => scores(&hs.split_f32(q)?, &hs.split_f32(k)?, self.scale)?,
+                None => scores(&hs.split_operand(q)?, &hs.split_operand(k)?, self.scale)?,
             };
-            let g = hs.split_f32(grad)?;
-            let dv = hs.merge_to(matmul(&a.t()?, &g)?, v.dtype())?;
-            let da = matmul(&g, &hs.split_f32(v)?.t()?)?.contiguous()?;
+            let g = hs.split_operand(grad)?;
+            let dv = hs.merged_product(&a.t()?, &g, v.dtype())?;
+            let da = matmul(&g, &hs.split_operand(v)?.t()?)?.contiguous()?;
             drop(g);
             // The logits' gradient written over the weights' (the product's own tensor).
             let dl = softmax::softmax_grad_scaled(&a, da, self.scale)?;
             drop(a);
-            // k and q widened one at a time, each where its product reads it: with many
+            // k and q split one at a time, each where its product reads it: with many
             // queries (the decoder's rays) q and its gradient are the largest tensors here.
-            let dq = hs.merge_to(matmul(&dl, &hs.split_f32(k)?)?, self.dtypes[0])?;
-            let dk = hs.merge_to(matmul(&dl.t()?, &hs.split_f32(q)?)?, self.dtypes[1])?;
+            let dq = hs.merged_product(&dl, &hs.split_operand(k)?, self.dtypes[0])?;
+            let dk = hs.merged_product(&dl.t()?, &hs.split_operand(q)?, self.dtypes[1])?;
             Ok((Some(dq), Some(dk), Some(dv)))
         })
     }
@@ -155,7 +171,8 @@ fn scores(q: &Tensor, k: &Tensor, scale: f64) -> Result<Tensor> {
     // The scale goes on the smaller operand: `q` has n·dh values, the logits n·m.
     let (dh, m) = (q.dim(2)?, k.dim(1)?);
     let logits = if dh <= m {
-        matmul(&(q * scale)?, &k.t()?)?
+        // Scaled in f32, as an f32 `q` is, before the product rounds it.
+        matmul(&(f32_of(q)? * scale)?, &k.t()?)?
     } else {
         (matmul(q, &k.t()?)? * scale)?
     };
@@ -178,8 +195,8 @@ pub(crate) fn attention(
         h: heads,
         dh: inner / heads,
     };
-    let a = scores(&hs.split_f32(q)?, &hs.split_f32(k)?, scale)?;
-    let out = hs.merge_to(matmul(&a, &hs.split_f32(v)?)?, q.dtype())?;
+    let a = scores(&hs.split_operand(q)?, &hs.split_operand(k)?, scale)?;
+    let out = hs.merged_product(&a, &hs.split_operand(v)?, q.dtype())?;
     let keep = q.track_op() || k.track_op() || v.track_op();
     let node = AttentionNode {
         out: Handover::new(out)?,
@@ -195,6 +212,7 @@ pub(crate) fn attention(
 mod tests {
     use super::*;
     use crate::testing::*;
+    use candle_core::Var;
 
     /// `[b, len, h·dh]` → per head `softmax(s · q kᵀ) v` → `[b, n, h·dh]` from candle's ops.
     fn composed(t: &[Tensor], heads: usize, s: f64) -> Result<Tensor> {
@@ -229,6 +247,62 @@ mod tests {
                 assert!(max_diff(a, b) < 1e-5 * max_abs(b).max(1.0));
             }
             finite_difference_check(&args, node);
+        }
+    }
+
+    /// On the device graph with bf16 products, `q`, `k`, `v` stored in bf16 (as the bf16
+    /// projections return them) give the values and gradients of the same values stored
+    /// in f32, to the bit (each in its operand's type), with the scale on `q` (`dh ≤ m`)
+    /// and on the logits (`dh > m`, the decoder's rays over few slots).
+    #[test]
+    fn bf16_operands_give_their_f32_values_bits() {
+        let run = |dtype: DType, n: usize, m: usize, heads: usize, dh: usize| {
+            let vars: Vec<Var> = [(n, 91u64), (m, 92), (m, 93)]
+                .iter()
+                .map(|&(len, seed)| {
+                    let t = randn(&[2, len, heads * dh], 1.0, seed);
+                    // Values a bf16 tensor holds, in either type.
+                    let t = t.to_dtype(DType::BF16).unwrap().to_dtype(dtype).unwrap();
+                    Var::from_tensor(&t).unwrap()
+                })
+                .collect();
+            with_kernels(Kernels::Device, || {
+                with_precision(Precision::Bf16, || {
+                    let (q, k, v) = (
+                        vars[0].as_tensor(),
+                        vars[1].as_tensor(),
+                        vars[2].as_tensor(),
+                    );
+                    let y = attention(q, k, v, heads, 0.3).unwrap();
+                    assert_eq!(y.dtype(), dtype);
+                    let w = randn(y.dims(), 1.0, 94).to_dtype(dtype).unwrap();
+                    let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                    let f32s = |t: &Tensor| -> Vec<u32> {
+                        let v: Vec<f32> = t
+                            .to_dtype(DType::F32)
+                            .unwrap()
+                            .flatten_all()
+                            .unwrap()
+                            .to_vec1()
+                            .unwrap();
+                        v.iter().map(|x| x.to_bits()).collect()
+                    };
+                    let mut out = vec![f32s(&y)];
+                    for var in &vars {
+                        let d = g.get(var.as_tensor()).unwrap();
+                        assert_eq!(d.dtype(), dtype);
+                        out.push(f32s(d));
+                    }
+                    out
+                })
+            })
+        };
+        for (n, m, heads, dh) in [(5, 7, 2, 3), (40, 3, 2, 8)] {
+            let low = run(DType::BF16, n, m, heads, dh);
+            let high = run(DType::F32, n, m, heads, dh);
+            for (k, (a, b)) in low.iter().zip(&high).enumerate() {
+                assert_eq!(a, b, "output/gradient {k}, n {n} m {m} dh {dh}");
+            }
         }
     }
 
