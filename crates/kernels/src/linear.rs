@@ -344,6 +344,22 @@ fn linear_here(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Ten
             None => x.apply_op2(&w, LinearNoBiasOp),
         };
     }
+    // On the device graph a layer with a bias is the one-layer MLP node: the same ops (the
+    // product, then the bias added in f32), without the product kept beside the output
+    // for the backward pass (a bias add's needs neither).
+    if let Some(b) = bias
+        && fits
+        && crate::enabled()
+        && crate::usable_with_cuda_any(&all)
+        && crate::device_graph(x)
+    {
+        let bf16 = crate::precision() == crate::Precision::Bf16;
+        // The activation is never applied: the one layer is the last.
+        let layer = [(weight, Some(b))];
+        if let Some(y) = crate::mlp_node::mlp_node(x, &layer, MlpAct::Relu, bf16)? {
+            return Ok(y);
+        }
+    }
     linear_act(x, weight, bias, None)
 }
 
@@ -402,6 +418,58 @@ mod tests {
     use super::*;
     use crate::testing::*;
     use candle_core::{Device, Var};
+
+    /// On the device graph a layer with a bias (the one-layer MLP node) gives the bits of
+    /// the product followed by the bias node, values and the gradients of input, weight
+    /// and bias, in f32 and in bf16 (with an f32 input and with a bf16-stored one).
+    #[test]
+    fn the_device_graph_biased_layer_gives_the_product_and_bias_bits() {
+        use crate::{Kernels, Precision, with_kernels, with_precision};
+        use candle_core::DType;
+        for (p, dtype) in [
+            (Precision::F32, DType::F32),
+            (Precision::Bf16, DType::F32),
+            (Precision::Bf16, DType::BF16),
+        ] {
+            let x =
+                Var::from_tensor(&randn(&[2, 9, 11], 1.0, 41).to_dtype(dtype).unwrap()).unwrap();
+            let w = Var::from_tensor(&randn(&[6, 11], 0.5, 42)).unwrap();
+            let b = Var::from_tensor(&randn(&[6], 0.5, 43)).unwrap();
+            let run = |node: bool| -> Vec<Vec<u32>> {
+                with_kernels(Kernels::Device, || {
+                    with_precision(p, || {
+                        let (xt, wt, bt) = (x.as_tensor(), w.as_tensor(), b.as_tensor());
+                        let y = match node {
+                            true => linear(xt, wt, Some(bt)),
+                            false => linear_act(xt, wt, Some(bt), None),
+                        }
+                        .unwrap();
+                        let r = randn(y.dims(), 1.0, 44);
+                        let g = (&y * &r).unwrap().sum_all().unwrap().backward().unwrap();
+                        let bits = |t: &Tensor| -> Vec<u32> {
+                            let v: Vec<f32> = t
+                                .to_dtype(DType::F32)
+                                .unwrap()
+                                .flatten_all()
+                                .unwrap()
+                                .to_vec1()
+                                .unwrap();
+                            v.iter().map(|v| v.to_bits()).collect()
+                        };
+                        let dx = g.get(xt).unwrap();
+                        assert_eq!(dx.dtype(), dtype);
+                        vec![
+                            bits(&y),
+                            bits(dx),
+                            bits(g.get(wt).unwrap()),
+                            bits(g.get(bt).unwrap()),
+                        ]
+                    })
+                })
+            };
+            assert_eq!(run(true), run(false), "{p} {dtype:?}");
+        }
+    }
 
     #[test]
     fn linear_matches_the_composed_version_and_finite_differences() {
