@@ -224,12 +224,22 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
                 .join(","),
         )
         .envs(crate::cluster::compute_thread_env(n));
+        // Asked for a log (`RUST_LOG`, e.g. the train step's phases at debug level), the
+        // child writes it where this process does; otherwise its messages are kept for
+        // the error below.
+        let logging = std::env::var_os("RUST_LOG").is_some();
+        if logging {
+            cmd.stderr(std::process::Stdio::inherit());
+        }
         let out = cmd.output().context("running the benchmark child")?;
         if !out.status.success() {
             bail!(
                 "benchmark child ({n} threads) failed ({}):\n{}",
                 child_exit(out.status),
-                String::from_utf8_lossy(&out.stderr)
+                match logging {
+                    true => "its log is above".into(),
+                    false => String::from_utf8_lossy(&out.stderr),
+                }
             );
         }
         let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;

@@ -204,10 +204,10 @@ impl Ledger {
     }
 }
 
-/// A linear layer `[rows, i] → [rows, o]` (fused: one node; composed: the product, and
-/// the bias add as a second node).
+/// A linear layer `[rows, i] → [rows, o]` (fused: one node; on a GPU a layer with a bias
+/// is the one-layer MLP node; composed: the product, and the bias add as a second node).
 fn linear(l: &mut Ledger, rows: usize, i: usize, o: usize, bias: bool) {
-    linear_then(l, rows, (i, o), bias, bias && !l.fused());
+    linear_then(l, rows, (i, o), bias, bias && l.path == OpPath::Composed);
 }
 
 /// A bias-free projection read only by products or attention: stored as the product
@@ -275,15 +275,15 @@ fn mlp(l: &mut Ledger, rows: usize, dims: &[usize]) {
         // One node (`osrt_kernels::mlp_node`) keeping each hidden layer's product in the
         // products' precision; it joins its input (one part or two) when it needs it.
         // Forward: a layer's input and output beside the kept products; backward: a
-        // hidden layer's f32 gradient, its product widened (the gradient written over
-        // it) and the layer's input made again.
+        // hidden layer's f32 gradient (in f32 written over its kept product), the
+        // incoming gradient and the layer's input made again in the products' precision.
         let params: usize = dims.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
         let widest = dims.iter().copied().max().unwrap_or(0);
         l.op(Op {
             held: f32s(rows * out),
             saved: l.lows(rows * hidden),
             forward_extra: l.lows(rows * dims[0]) + l.lows(2 * rows * widest),
-            backward_extra: f32s(2 * rows * widest) + l.lows(rows * widest) + f32s(params),
+            backward_extra: f32s(rows * widest) + 2.0 * l.lows(rows * widest) + f32s(params),
             params,
         });
         return;
@@ -340,9 +340,9 @@ fn block(
     let source = if ctx.is_some() { ctx_rows } else { rows };
     if l.gpu() {
         // q, k, v stored as their products return them; one node that splits and merges
-        // the heads inside, keeps the weights, and in its backward pass holds the
-        // weights' gradient (the logits' written over it) and one operand's f32 copy and
-        // its gradient at a time.
+        // the heads inside (in the products' precision), keeps the weights, and in its
+        // backward pass holds the weights' gradient (the logits' written over it) and one
+        // operand's copies and its gradient at a time.
         linear_low(l, rows, d, inner);
         linear_low(l, source, dc, inner);
         linear_low(l, source, dc, inner);
@@ -350,8 +350,8 @@ fn block(
         l.op(Op {
             held,
             saved: f32s(weights),
-            forward_extra: f32s(2 * rows * inner + 2 * ctx_rows * inner),
-            backward_extra: f32s(weights + 3 * rows * inner + 2 * ctx_rows * inner),
+            forward_extra: l.lows(2 * rows * inner + 2 * ctx_rows * inner),
+            backward_extra: f32s(weights) + l.lows(3 * rows * inner + 2 * ctx_rows * inner),
             ..Op::default()
         });
         linear(l, rows, inner, d, true);

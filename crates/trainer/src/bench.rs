@@ -162,7 +162,7 @@ pub fn bench_step(
         let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
         device.synchronize()?;
         let t1 = Instant::now();
-        let gradients_peak = crate::device::device_peak_bytes(device);
+        let gradients_peak = step_peak(device);
         let outcome = trainer.apply(g.loss, g.grads)?;
         device.synchronize()?;
         log_apply(t1, gradients_peak, device);
@@ -311,16 +311,25 @@ pub fn profile_step(
     })
 }
 
-/// The update's time, and the step's device peak before the update and with it (GiB:
-/// which of the two holds it), in the debug log.
+/// The update's time, and the step's peak before the update and with it (GiB: which of
+/// the two holds it), in the debug log.
 fn log_apply(started: Instant, gradients_peak: Option<u64>, device: &Device) {
     let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
     tracing::debug!(
         apply_s = started.elapsed().as_secs_f64(),
         gradients_peak_gib = gib(gradients_peak),
-        step_peak_gib = gib(crate::device::device_peak_bytes(device)),
+        step_peak_gib = gib(step_peak(device)),
         "apply and drop"
     );
+}
+
+/// The most bytes held at once since the step began: the heap on the CPU (where the
+/// binary counts it), the memory pool on a GPU.
+fn step_peak(device: &Device) -> Option<u64> {
+    match device.is_cpu() {
+        true => crate::memory::peak_heap_bytes().map(|b| b as u64),
+        false => crate::device::device_peak_bytes(device),
+    }
 }
 
 fn gib(bytes: usize) -> f64 {
