@@ -277,21 +277,11 @@ mod tests {
                     assert_eq!(y.dtype(), dtype);
                     let w = randn(y.dims(), 1.0, 94).to_dtype(dtype).unwrap();
                     let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
-                    let f32s = |t: &Tensor| -> Vec<u32> {
-                        let v: Vec<f32> = t
-                            .to_dtype(DType::F32)
-                            .unwrap()
-                            .flatten_all()
-                            .unwrap()
-                            .to_vec1()
-                            .unwrap();
-                        v.iter().map(|x| x.to_bits()).collect()
-                    };
-                    let mut out = vec![f32s(&y)];
+                    let mut out = vec![f32_bits(&y)];
                     for var in &vars {
                         let d = g.get(var.as_tensor()).unwrap();
                         assert_eq!(d.dtype(), dtype);
-                        out.push(f32s(d));
+                        out.push(f32_bits(d));
                     }
                     out
                 })

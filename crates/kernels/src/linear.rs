@@ -446,23 +446,13 @@ mod tests {
                         .unwrap();
                         let r = randn(y.dims(), 1.0, 44);
                         let g = (&y * &r).unwrap().sum_all().unwrap().backward().unwrap();
-                        let bits = |t: &Tensor| -> Vec<u32> {
-                            let v: Vec<f32> = t
-                                .to_dtype(DType::F32)
-                                .unwrap()
-                                .flatten_all()
-                                .unwrap()
-                                .to_vec1()
-                                .unwrap();
-                            v.iter().map(|v| v.to_bits()).collect()
-                        };
                         let dx = g.get(xt).unwrap();
                         assert_eq!(dx.dtype(), dtype);
                         vec![
-                            bits(&y),
-                            bits(dx),
-                            bits(g.get(wt).unwrap()),
-                            bits(g.get(bt).unwrap()),
+                            f32_bits(&y),
+                            f32_bits(dx),
+                            f32_bits(g.get(wt).unwrap()),
+                            f32_bits(g.get(bt).unwrap()),
                         ]
                     })
                 })

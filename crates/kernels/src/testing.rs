@@ -20,6 +20,18 @@ pub(crate) fn randn(shape: &[usize], scale: f32, seed: u64) -> Tensor {
     Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
 }
 
+/// The bits of `t`'s values widened to f32 (any float type), flattened.
+pub(crate) fn f32_bits(t: &Tensor) -> Vec<u32> {
+    let v: Vec<f32> = t
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
 pub(crate) fn max_abs(a: &Tensor) -> f32 {
     a.abs()
         .unwrap()
