@@ -18,14 +18,15 @@
 #   bench/gpu_check.sh visit   # one call of a short visit, most important first: the
 #                              # plumbing, ops and steps against the CPU, the paper preset's
 #                              # four step cases (1 view 8,192 rays and 5 views 2,304, f32
-#                              # and bf16: time, peak memory) beside PyTorch, then both
-#                              # sides' profiles of the 1-view bf16 step, and its memory
-#                              # at each phase of the step (550 s of timeouts;
+#                              # and bf16: time, peak memory), keeping and recomputing the
+#                              # activations (--recompute), beside PyTorch, and the 1-view
+#                              # bf16 step's memory at each phase (560 s of timeouts;
 #                              # the paper preset at batch 32 on an H200, 16 on a card under
 #                              # 100 GiB: ask for nvidia-h200 to compare with the earlier
 #                              # H200 figures)
-#   bench/gpu_check.sh lite    # the small model's four step cases beside PyTorch, a second
-#                              # short call after `visit` (180 s of timeouts)
+#   bench/gpu_check.sh lite    # both sides' profiles of the paper preset's 1-view bf16 step,
+#                              # the small model's four step cases beside PyTorch: a second
+#                              # short call after `visit` (290 s of timeouts)
 #   bench/gpu_check.sh kernels # each GPU kernel's time in the paper preset's 1-view step
 #                              # at batch 32 under Nsight Compute (`ncu`), summed by name
 #                              # (bench/ncu_kernels.py; ≤ 400 s of timeouts, untried: the
@@ -202,13 +203,17 @@ visit)
     [ "${mib:-0}" -lt 100000 ] && pb=16
     echo "== paper preset at batch $pb (${mib} MiB card)"
     paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size "$pb")
-    # The four cases of the memory issue, osrt then PyTorch, time and peak memory.
-    for vr in "1 8192" "5 2304"; do
-        set -- $vr
-        for prec in f32 bf16; do
-            echo "== osrt paper ${1}x$2 $prec"
-            timeout 50 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
-                --steps 5 --precision "$prec" --out "$OUT/osrt-paper$1-$prec.json" 2>&1 | tail -n 6
+    # The four cases of the memory issue, osrt then PyTorch, time and peak memory; then
+    # the same with the activations made again in the backward pass (`--recompute`).
+    for rc in "" --recompute; do
+        for vr in "1 8192" "5 2304"; do
+            set -- $vr
+            for prec in f32 bf16; do
+                echo "== osrt paper ${1}x$2 $prec $rc"
+                timeout 40 "$BIN" bench model "${paper[@]}" --input-views "$1" --rays-per-scene "$2" \
+                    --steps 5 --precision "$prec" $rc --out "$OUT/osrt-paper$1-$prec$rc.json" 2>&1 |
+                    tail -n 6
+            done
         done
     done
     # Which phase holds the peak: each step's memory at its phases (debug log; GiB).
@@ -219,16 +224,18 @@ visit)
     timeout 100 python3 bench/torch_step.py --device cuda --presets paper --batch-size "$pb" \
         --image-size 128 --cases 1x8192,5x2304 --dtypes f32,bf16 --steps 5 --no-render \
         --out "$OUT/torch-paper.json" 2>&1 | tail -n 8
-    # Where osrt's bf16 step goes, beside PyTorch's profiler on the same case.
-    echo "== osrt profile paper 1x8192 bf16"
-    timeout 60 "$BIN" bench model "${paper[@]}" --input-views 1 --rays-per-scene 8192 --profile \
-        --steps 2 --precision bf16 --out "$OUT/profile-paper1-bf16.json" 2>&1 | tail -n 30
-    timeout 50 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size "$pb" \
-        --image-size 128 --cases 1x8192 --dtypes bf16 --steps 2 --no-render \
-        --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 36
     ;;
 lite)
-    # The small model's four cases beside PyTorch (a second, short call after `visit`).
+    # Where osrt's bf16 step goes, beside PyTorch's profiler on the same case (the paper
+    # preset at batch 32), then the small model's four cases beside PyTorch: a second,
+    # short call after `visit`.
+    echo "== osrt profile paper 1x8192 bf16"
+    paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size 32)
+    timeout 60 "$BIN" bench model "${paper[@]}" --input-views 1 --rays-per-scene 8192 --profile \
+        --steps 2 --precision bf16 --out "$OUT/profile-paper1-bf16.json" 2>&1 | tail -n 30
+    timeout 50 python3 bench/torch_step.py --device cuda --profile --presets paper --batch-size 32 \
+        --image-size 128 --cases 1x8192 --dtypes bf16 --steps 2 --no-render \
+        --out "$OUT/torch-profile-paper.json" 2>&1 | tail -n 36
     lite=(--device cuda --steps 10 --step-only --presets clevr-lite-cpu)
     for prec in f32 bf16; do
         for b in 16 256; do

@@ -53,6 +53,10 @@ pub struct BenchModelArgs {
     /// the fused ops' speed-up unless --step-only or a GPU).
     #[arg(long)]
     pub kernels: Option<Kernels>,
+    /// Make the transformer blocks' and convolutions' activations again in the backward
+    /// pass instead of keeping them (`train.recompute`).
+    #[arg(long)]
+    pub recompute: bool,
     /// Override the presets' scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -82,6 +86,7 @@ fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
     if let Some(k) = a.kernels {
         t.kernels = k;
     }
+    t.recompute = a.recompute;
     job.validate()?;
     Ok(job)
 }
@@ -191,6 +196,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         .args(a.step_only.then_some("--step-only"))
         .args(a.render_only.then_some("--render-only"))
         .args(a.profile.then_some("--profile"))
+        .args(a.recompute.then_some("--recompute"))
         .args(["--device", &a.device.to_string()])
         .args(["--precision", &a.precision.to_string()])
         .args(
@@ -336,6 +342,62 @@ fn print_profile(p: &serde_json::Value) {
     }
 }
 
+/// One step's figures of `osrt bench model`, for people.
+fn print_step(s: &serde_json::Value) {
+    let ms = |k: &str| s[k].as_f64().unwrap_or(0.0) * 1e3;
+    println!(
+        "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} view(s), {} rays, {}px, {} {}{})",
+        s["preset"].as_str().unwrap_or(""),
+        s["kernels"].as_str().unwrap_or(""),
+        ms("median_step_s"),
+        s["scenes_per_s"].as_f64().unwrap_or(0.0),
+        ms("median_forward_backward_s"),
+        s["parameters"],
+        s["batch_size"],
+        s["input_views"],
+        s["rays_per_scene"],
+        s["image_size"],
+        s["device"].as_str().unwrap_or(""),
+        s["precision"].as_str().unwrap_or(""),
+        match s["recompute"].as_bool() {
+            Some(true) => ", activations recomputed",
+            _ => "",
+        },
+    );
+    let gib = |k: &str| match s[k].as_f64() {
+        Some(g) => format!("{g:.2} GiB"),
+        None => "not counted".into(),
+    };
+    println!(
+        "    optimiser {:.1} ms median; peak heap {}, peak resident {}; estimated peak {}",
+        ms("median_optimizer_s"),
+        gib("peak_heap_gib"),
+        gib("peak_rss_gib"),
+        gib("estimated_peak_gib"),
+    );
+    if let Some(n) = s["skipped_steps"].as_u64().filter(|&n| n > 0) {
+        println!(
+            "    SKIPPED {n} of the timed steps: {}",
+            s["skip_reason"].as_str().unwrap_or("")
+        );
+    }
+    if s["peak_gib"].is_number() {
+        println!("    peak device memory {}", gib("peak_gib"));
+    }
+    if ms("median_gradient_transfer_s") > 0.0 {
+        println!(
+            "    gradient device → host → device through the all-reduce's staging \
+             (paid by each of ≥ 2 workers beside the ring, not in the step above): \
+             {:.2} ms median ({:.1} % of the step)",
+            ms("median_gradient_transfer_s"),
+            100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
+        );
+    }
+    if let Some(e) = s["gradient_transfer_error"].as_str() {
+        println!("    GRADIENT ROUND TRIP FAILED: {e}");
+    }
+}
+
 /// The figures of `osrt bench model`, for people.
 fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
     for (threads, v) in report.as_object().expect("object") {
@@ -344,54 +406,7 @@ fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
             print_profile(p);
         }
         for s in v["steps"].as_array().expect("array") {
-            let ms = |k: &str| s[k].as_f64().unwrap_or(0.0) * 1e3;
-            println!(
-                "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} view(s), {} rays, {}px, {} {})",
-                s["preset"].as_str().unwrap_or(""),
-                s["kernels"].as_str().unwrap_or(""),
-                ms("median_step_s"),
-                s["scenes_per_s"].as_f64().unwrap_or(0.0),
-                ms("median_forward_backward_s"),
-                s["parameters"],
-                s["batch_size"],
-                s["input_views"],
-                s["rays_per_scene"],
-                s["image_size"],
-                s["device"].as_str().unwrap_or(""),
-                s["precision"].as_str().unwrap_or(""),
-            );
-            let gib = |k: &str| match s[k].as_f64() {
-                Some(g) => format!("{g:.2} GiB"),
-                None => "not counted".into(),
-            };
-            println!(
-                "    optimiser {:.1} ms median; peak heap {}, peak resident {}; estimated peak {}",
-                ms("median_optimizer_s"),
-                gib("peak_heap_gib"),
-                gib("peak_rss_gib"),
-                gib("estimated_peak_gib"),
-            );
-            if let Some(n) = s["skipped_steps"].as_u64().filter(|&n| n > 0) {
-                println!(
-                    "    SKIPPED {n} of the timed steps: {}",
-                    s["skip_reason"].as_str().unwrap_or("")
-                );
-            }
-            if s["peak_gib"].is_number() {
-                println!("    peak device memory {}", gib("peak_gib"));
-            }
-            if ms("median_gradient_transfer_s") > 0.0 {
-                println!(
-                    "    gradient device → host → device through the all-reduce's staging \
-                     (paid by each of ≥ 2 workers beside the ring, not in the step above): \
-                     {:.2} ms median ({:.1} % of the step)",
-                    ms("median_gradient_transfer_s"),
-                    100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
-                );
-            }
-            if let Some(e) = s["gradient_transfer_error"].as_str() {
-                println!("    GRADIENT ROUND TRIP FAILED: {e}");
-            }
+            print_step(s);
         }
         let steps = v["steps"].as_array().expect("array");
         for p in &a.presets {

@@ -465,7 +465,7 @@ impl Kills {
         Some(format!(
             "worker {k} was killed by SIGKILL twice at step {step}{rss}{machine}: the kernel's \
              out-of-memory killer, most likely, and a replacement would meet the same end. \
-             Make the step smaller (--batch-size, --rays-per-scene, fewer workers, smaller \
+             Make the step smaller (--recompute, --batch-size, --rays-per-scene, fewer workers, smaller \
              images: osrt data import --resize) or run on a machine with more memory"
         ))
     }

@@ -97,6 +97,11 @@ pub struct TrainArgs {
     /// `device` (the GPU's graph, on any device): the same functions, at different speeds.
     #[arg(long)]
     pub kernels: Option<Kernels>,
+    /// Make the transformer blocks', convolutions' and render MLP's activations again in
+    /// the backward pass instead of keeping them (`train.recompute`): a smaller peak for
+    /// a second forward pass, the same gradients.
+    #[arg(long)]
+    pub recompute: bool,
     /// Override seconds between validation runs.
     #[arg(long)]
     pub eval_every_s: Option<f64>,
@@ -172,6 +177,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.kernels {
         t.kernels = v;
+    }
+    if a.recompute {
+        t.recompute = true;
     }
     if let Some(d) = &a.decoder {
         job.model = job.model.clone().with_decoder(d).with_context(|| {

@@ -2,7 +2,8 @@
 //! a job starts) against the step's counted peak heap (`osrt bench model`, the binary's
 //! counting allocator), for the `tiny`, `clevr-lite-cpu` and `paper` (batch 2) presets at
 //! two image sizes each, and for the GPU's graph built on the CPU (`--kernels device`, the
-//! count a GPU job prints) in f32 and bf16: within 25 %.
+//! count a GPU job prints) in f32 and bf16, with and without the activations recomputed
+//! (`--recompute`): within 25 %.
 
 mod common;
 
@@ -38,7 +39,7 @@ fn estimate_and_peak(preset: &str, size: u32, extra: &[&str]) -> (f64, f64) {
 
 #[test]
 fn the_memory_estimate_is_within_a_quarter_of_the_measured_peak() {
-    let cases: [(&str, u32, &[&str]); 8] = [
+    let cases: [(&str, u32, &[&str]); 10] = [
         ("tiny", 32, &[]),
         ("tiny", 64, &[]),
         ("clevr-lite-cpu", 32, &[]),
@@ -50,6 +51,12 @@ fn the_memory_estimate_is_within_a_quarter_of_the_measured_peak() {
             "clevr-lite-cpu",
             64,
             &["--kernels", "device", "--precision", "bf16"],
+        ),
+        ("clevr-lite-cpu", 64, &["--recompute"]),
+        (
+            "clevr-lite-cpu",
+            64,
+            &["--kernels", "device", "--precision", "bf16", "--recompute"],
         ),
     ];
     let mut report = Vec::new();

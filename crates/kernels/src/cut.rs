@@ -1,5 +1,6 @@
 //! The backward pass in segments, so that each segment's activations are freed before the
-//! segment before it runs its backward pass.
+//! segment before it runs its backward pass; optionally with the segments' activations
+//! not kept at all but made again in the backward pass ([`recompute`]).
 //!
 //! Why: candle frees a graph only as a whole, when its output is dropped, so every
 //! activation of the step stays until the whole backward pass has ended, when the step
@@ -15,19 +16,51 @@
 //! gradients are summed after its segment's backward pass instead of before (the same up
 //! to rounding). Outside [`with_cuts`] (evaluation, tests of the model) [`cut`] returns its
 //! operand itself.
+//!
+//! [`recompute`] marks a segment by the function that makes it (a transformer block, a
+//! convolution): with recomputation on, the forward pass keeps only the segment's inputs
+//! and a copy of its output, and drops its graph; the backward pass runs the function
+//! again on the same inputs and takes the gradients from that graph (activation
+//! checkpointing, as `torch.utils.checkpoint`). The forward pass is then paid twice (about
+//! a third more per step), for a peak of one segment's activations instead of all of
+//! them. The ops are deterministic, so the graph made again is the one the forward pass
+//! made and the gradients are those of a [`cut`] at the same places, to the bit.
 
 use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor, Var};
 use std::cell::RefCell;
 
 thread_local! {
-    static CUTS: RefCell<Option<Vec<Cut>>> = const { RefCell::new(None) };
+    static CUTS: RefCell<Option<Boundaries>> = const { RefCell::new(None) };
 }
 
-/// One boundary: the tensor before it (with its graph) and the variable the later
-/// segments were built on.
+/// The boundaries a forward pass inside [`with_cuts`] has crossed so far.
+struct Boundaries {
+    cuts: Vec<Cut>,
+    /// Whether [`recompute`] drops its segment's graph (else it is a [`cut`] after the
+    /// segment).
+    recompute: bool,
+}
+
+/// A segment's forward pass, run again by the backward pass.
+type Forward = Box<dyn Fn(&[Tensor]) -> Result<Tensor>>;
+
+/// Where the backward pass finds a segment's graph.
+enum Upstream {
+    /// The segment's output, which holds its graph.
+    Kept(Tensor),
+    /// The segment's inputs (leaves: earlier boundaries' copies, parameters, data) and the
+    /// function that makes its output from them.
+    Recomputed {
+        inputs: Vec<Tensor>,
+        forward: Forward,
+    },
+}
+
+/// One boundary: the segment before it and the variable the later segments were built
+/// on.
 struct Cut {
-    upstream: Tensor,
+    upstream: Upstream,
     copy: Var,
 }
 
@@ -36,17 +69,18 @@ struct Cut {
 pub struct Cuts(Vec<Cut>);
 
 /// A segment boundary: inside [`with_cuts`] a tracked `t` is copied into a fresh variable
-/// (the same shape and values), which is returned; otherwise `t` itself.
+/// (the same shape and values), which is returned; otherwise, and where `t` is a variable
+/// already (a parameter, a recomputed segment's output), `t` itself.
 pub fn cut(t: &Tensor) -> Result<Tensor> {
-    if !t.track_op() {
+    if !t.track_op() || t.is_variable() {
         return Ok(t.clone());
     }
     CUTS.with(|c| match c.borrow_mut().as_mut() {
-        Some(cuts) => {
+        Some(b) => {
             let copy = Var::from_tensor(&t.detach())?;
             let out = copy.as_tensor().clone();
-            cuts.push(Cut {
-                upstream: t.clone(),
+            b.cuts.push(Cut {
+                upstream: Upstream::Kept(t.clone()),
                 copy,
             });
             Ok(out)
@@ -55,21 +89,104 @@ pub fn cut(t: &Tensor) -> Result<Tensor> {
     })
 }
 
-/// Runs `f` (a forward pass) with [`cut`] active on this thread, and returns the
-/// boundaries it crossed.
-pub fn with_cuts<T>(f: impl FnOnce() -> T) -> (T, Cuts) {
-    let before = CUTS.with(|c| c.replace(Some(Vec::new())));
+/// `f(inputs)` as a segment of its own. Inside [`with_cuts`] with recomputation on, the
+/// tracked inputs that are not leaves get a [`cut`] first (so that the segment's graph
+/// ends at leaves and is made again alone), `f` runs without boundaries of its own, its
+/// output is copied into a fresh variable, which is returned, and its graph is dropped;
+/// [`Cuts::backward`] runs `f` again on the same inputs. Otherwise (recomputation off,
+/// or outside [`with_cuts`]) it is `f(inputs)`, the graph kept as it is.
+///
+/// `f` must give the same values on the same inputs each time (no randomness of its
+/// own): its second graph is then its first, and the gradients are those of the cuts.
+pub fn recompute(
+    inputs: &[&Tensor],
+    f: impl Fn(&[Tensor]) -> Result<Tensor> + 'static,
+) -> Result<Tensor> {
+    let recompute = CUTS.with(|c| c.borrow().as_ref().map(|b| b.recompute));
+    let owned = |t: &[&Tensor]| t.iter().map(|&t| t.clone()).collect::<Vec<_>>();
+    match recompute {
+        None | Some(false) => f(&owned(inputs)),
+        Some(true) => {
+            let inputs = inputs
+                .iter()
+                .map(|&t| match t.track_op() && !t.is_variable() {
+                    true => boundary(t),
+                    false => Ok(t.clone()),
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let out = without_cuts(|| f(&inputs))?;
+            if !out.track_op() {
+                return Ok(out); // nothing of the segment to differentiate
+            }
+            // The copy, then the output and with it the segment's graph go.
+            let copy = Var::from_tensor(&out.detach())?;
+            drop(out);
+            let t = copy.as_tensor().clone();
+            CUTS.with(|c| {
+                if let Some(b) = c.borrow_mut().as_mut() {
+                    b.cuts.push(Cut {
+                        upstream: Upstream::Recomputed {
+                            inputs,
+                            forward: Box::new(f),
+                        },
+                        copy,
+                    })
+                }
+            });
+            Ok(t)
+        }
+    }
+}
+
+/// The copy of `t`'s boundary: the one made already if `t` crossed one (a tensor read by
+/// two recomputed segments gets one copy, whose gradient sums both), else a new [`cut`].
+fn boundary(t: &Tensor) -> Result<Tensor> {
+    let made = CUTS.with(|c| {
+        let c = c.borrow();
+        let cuts = c.as_ref().map_or(&[][..], |b| &b.cuts[..]);
+        cuts.iter().find_map(|cut| match &cut.upstream {
+            Upstream::Kept(u) if u.id() == t.id() => Some(cut.copy.as_tensor().clone()),
+            _ => None,
+        })
+    });
+    match made {
+        Some(copy) => Ok(copy),
+        None => cut(t),
+    }
+}
+
+/// `f` with no boundaries active on this thread (they are restored after).
+fn without_cuts<T>(f: impl FnOnce() -> T) -> T {
+    let saved = CUTS.with(|c| c.replace(None));
     let out = f();
-    let cuts = CUTS.with(|c| c.replace(before)).unwrap_or_default();
+    CUTS.with(|c| c.replace(saved));
+    out
+}
+
+/// Runs `f` (a forward pass) with [`cut`] and [`recompute`] active on this thread, and
+/// returns the boundaries it crossed; with `recompute`, the segments [`recompute`] marks
+/// keep no activations.
+pub fn with_cuts<T>(recompute: bool, f: impl FnOnce() -> T) -> (T, Cuts) {
+    let before = CUTS.with(|c| {
+        c.replace(Some(Boundaries {
+            cuts: Vec::new(),
+            recompute,
+        }))
+    });
+    let out = f();
+    let cuts = CUTS
+        .with(|c| c.replace(before))
+        .map_or_else(Vec::new, |b| b.cuts);
     (out, Cuts(cuts))
 }
 
 impl Cuts {
     /// The earlier segments' backward passes, last first, after the last segment's
     /// (`grads`, from the loss): each boundary's gradient taken from `grads` (the copy is
-    /// then freed) and carried into its upstream segment, whose gradients are added to
-    /// `grads`; each segment's graph is freed before the next one's backward pass. The
-    /// caller drops the last segment's graph (the loss) before calling this.
+    /// then freed) and carried into its upstream segment (made again first where it was
+    /// recomputed), whose gradients are added to `grads`; each segment's graph is freed
+    /// before the next one's backward pass. The caller drops the last segment's graph
+    /// (the loss) before calling this.
     pub fn backward(self, grads: &mut GradStore) -> Result<()> {
         detach_all(grads);
         let mut cuts = self.0;
@@ -78,6 +195,10 @@ impl Cuts {
                 continue; // the loss did not reach this boundary
             };
             drop(copy);
+            let upstream = match upstream {
+                Upstream::Kept(t) => t,
+                Upstream::Recomputed { inputs, forward } => without_cuts(|| forward(&inputs))?,
+            };
             // Detached: a variable's gradient is candle's sum of its parts, which may still
             // carry their own graph (a product with a weight), and that graph is not part
             // of this segment.
@@ -144,7 +265,7 @@ mod tests {
         };
         for bypass in [false, true] {
             let plain = forward(bypass).unwrap().backward().unwrap();
-            let (loss, cuts) = with_cuts(|| forward(bypass));
+            let (loss, cuts) = with_cuts(false, || forward(bypass));
             assert_eq!(cuts.0.len(), 2);
             let mut grads = loss.unwrap().backward().unwrap();
             cuts.backward(&mut grads).unwrap();
@@ -175,7 +296,94 @@ mod tests {
         assert_eq!(cut(&x).unwrap().id(), x.id());
         let tracked = x.matmul(w1.as_tensor()).unwrap();
         assert_eq!(cut(&tracked).unwrap().id(), tracked.id());
-        let (_, cuts) = with_cuts(|| cut(&x).unwrap());
+        let (_, cuts) = with_cuts(false, || cut(&x).unwrap());
         assert!(cuts.0.is_empty());
+    }
+
+    /// Recomputed segments give the gradients of cuts at the same places to the bit; the
+    /// forward pass runs each once more, in the backward pass, and only where the loss
+    /// reaches it; a non-leaf input gets a boundary first (one for two segments that read
+    /// it); inside a segment's function recomputation is off; without it, or outside
+    /// [`with_cuts`], the function runs once and the graph is whole.
+    #[test]
+    fn recomputed_segments_give_the_cut_gradients() {
+        use std::cell::Cell;
+        use std::rc::Rc;
+        let w1 = Var::from_tensor(&randn(&[5, 4], 0.5, 1)).unwrap();
+        let w2 = Var::from_tensor(&randn(&[4, 4], 0.5, 2)).unwrap();
+        let w3 = Var::from_tensor(&randn(&[4, 3], 0.5, 3)).unwrap();
+        let x = randn(&[6, 5], 1.0, 4);
+        let calls = Rc::new(Cell::new(0));
+        let nested = Rc::new(Cell::new(0));
+        // recompute: whether the two middle layers are recomputed segments (else cuts).
+        let forward = |recompute: bool| -> Result<(Tensor, Tensor)> {
+            let h1 = x.matmul(w1.as_tensor())?.tanh()?; // not a leaf: gets a boundary
+            let layer = |w: &Var| {
+                let (w, calls, nested) = (w.as_tensor().clone(), calls.clone(), nested.clone());
+                move |t: &[Tensor]| {
+                    calls.set(calls.get() + 1);
+                    // A recomputation inside one runs as a plain function.
+                    let inner = recompute_count(&nested, &t[0])?;
+                    (inner.matmul(&w)?.gelu_erf()? + &t[1])?.sin()
+                }
+            };
+            let (h2, h3) = match recompute {
+                true => {
+                    let h2 = super::recompute(&[&h1, &h1], layer(&w2))?;
+                    let h3 = super::recompute(&[&h2, &h1], layer(&w2))?;
+                    (h2, h3)
+                }
+                false => {
+                    let c1 = cut(&h1)?;
+                    let h2 = cut(&layer(&w2)(&[c1.clone(), c1.clone()])?)?;
+                    let h3 = cut(&layer(&w2)(&[h2.clone(), c1])?)?;
+                    (h2, h3)
+                }
+            };
+            // A segment the loss does not reach is not made again.
+            let unused = super::recompute(&[&h3, &h1], layer(&w2))?;
+            let loss = (h3.matmul(w3.as_tensor())?.sqr()?.sum_all()? + h2.sum_all()?)?;
+            Ok((loss, unused))
+        };
+        let grads = |recompute: bool| {
+            calls.set(0);
+            let (out, cuts) = with_cuts(recompute, || forward(recompute));
+            let (loss, unused) = out.unwrap();
+            let forward_calls = calls.get();
+            let mut grads = loss.backward().unwrap();
+            drop((loss, unused));
+            cuts.backward(&mut grads).unwrap();
+            let g = [&w1, &w2, &w3].map(|w| {
+                let g = grads.get(w.as_tensor()).unwrap();
+                let v = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                v.iter().map(|f| f.to_bits()).collect::<Vec<_>>()
+            });
+            (g, forward_calls, calls.get())
+        };
+        let (cut_grads, forward_calls, all_calls) = grads(false);
+        assert_eq!((forward_calls, all_calls), (3, 3));
+        let (recomputed, forward_calls, all_calls) = grads(true);
+        assert_eq!((forward_calls, all_calls), (3, 5));
+        assert_eq!(recomputed, cut_grads);
+        assert!(nested.get() > 0);
+        // Outside `with_cuts` it is the function, its graph kept.
+        calls.set(0);
+        let (loss, _) = forward(true).unwrap();
+        assert_eq!(calls.get(), 3);
+        let whole = loss.backward().unwrap();
+        assert!(whole.get(w1.as_tensor()).is_some());
+        assert_eq!(cut(w1.as_tensor()).unwrap().id(), w1.as_tensor().id());
+    }
+
+    /// `t` through a [`recompute`] made inside another one's function: there, recomputation
+    /// is off and the function runs as it is (counted in `runs`).
+    fn recompute_count(runs: &std::rc::Rc<std::cell::Cell<usize>>, t: &Tensor) -> Result<Tensor> {
+        let runs = runs.clone();
+        let out = recompute(&[t], move |t| {
+            runs.set(runs.get() + 1);
+            t[0].affine(1.0, 0.0)
+        })?;
+        assert!(!out.is_variable(), "a nested segment is not a boundary");
+        Ok(out)
     }
 }

@@ -53,7 +53,7 @@ pub use attention::{attention, attention_composed};
 pub use bias_act::bias_act;
 pub use block::{BlockParams, block};
 pub use conv::{conv2d_nhwc, conv2d_relu_nhwc};
-pub use cut::{Cuts, cut, with_cuts};
+pub use cut::{Cuts, cut, recompute, with_cuts};
 pub use layer_norm::layer_norm;
 pub use linear::{bias_add, linear, linear_low};
 pub use mix::slot_mix;

@@ -243,8 +243,12 @@ impl Encoder {
             Some(_) => images.reshape((b * v, h, w, 3))?,
         };
         for (a, s2) in &self.convs {
-            x = conv2d_relu_nhwc(&x, a.weight(), 1, 1)?;
-            x = conv2d_relu_nhwc(&x, s2.weight(), 2, 1)?;
+            // Each pair a segment whose activations a train step may make again in its
+            // backward pass (`osrt_kernels::recompute`).
+            let (a, s2) = (a.weight().clone(), s2.weight().clone());
+            x = osrt_kernels::recompute(&[&x], move |t| {
+                conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
+            })?;
         }
         let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {
@@ -264,8 +268,12 @@ impl Encoder {
         let (b, v, h, w, _) = images.dims5()?;
         let mut x = images.reshape((b * v, h, w, 3))?;
         for (a, s2) in &self.convs {
-            x = conv2d_relu_nhwc(&x, a.weight(), 1, 1)?;
-            x = conv2d_relu_nhwc(&x, s2.weight(), 2, 1)?;
+            // Each pair a segment whose activations a train step may make again in its
+            // backward pass (`osrt_kernels::recompute`).
+            let (a, s2) = (a.weight().clone(), s2.weight().clone());
+            x = osrt_kernels::recompute(&[&x], move |t| {
+                conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
+            })?;
         }
         let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
         let (_, h2, w2, d) = x.dims4()?;

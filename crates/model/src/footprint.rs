@@ -41,6 +41,9 @@ pub struct StepShape {
     /// Threads the step's kernels run on (the attention backward works on one batch
     /// element per thread at a time).
     pub threads: usize,
+    /// Whether the transformer blocks', the convolutions' and the render MLP's
+    /// activations are made again in the backward pass (`train.recompute`).
+    pub recompute: bool,
 }
 
 /// Which implementation of the ops the step runs: they keep different tensors.
@@ -67,7 +70,7 @@ pub struct Footprint {
 /// The footprint of one step of `cfg` on `shape`; `None` for a decoder without a count
 /// (volumetric).
 pub fn step(cfg: &Config, shape: &StepShape, path: OpPath) -> Option<Footprint> {
-    let mut l = Ledger::new(path, shape.threads);
+    let mut l = Ledger::new(path, shape.threads, shape.recompute);
     encode(&mut l, cfg, shape);
     decode(&mut l, cfg, shape)?;
     Some(Footprint {
@@ -109,10 +112,15 @@ struct Ledger {
     /// backward pass runs segment by segment, last first, and frees each segment's
     /// graph before the next (`osrt_kernels::cut`).
     cuts: Vec<usize>,
+    /// Whether [`Self::recomputed`] segments keep their activations or make them again.
+    recompute: bool,
+    /// The ops (`start..end` in `ops`) of each segment made again in the backward pass
+    /// (`osrt_kernels::recompute`), in order.
+    recomputed: Vec<std::ops::Range<usize>>,
 }
 
 impl Ledger {
-    fn new(path: OpPath, threads: usize) -> Self {
+    fn new(path: OpPath, threads: usize, recompute: bool) -> Self {
         Self {
             path,
             threads: threads.max(1),
@@ -121,6 +129,8 @@ impl Ledger {
             forward_peak: 0.0,
             locals: 0.0,
             cuts: Vec::new(),
+            recompute,
+            recomputed: Vec::new(),
         }
     }
 
@@ -144,6 +154,31 @@ impl Ledger {
     /// A segment boundary (`osrt_kernels::cut`).
     fn cut(&mut self) {
         self.cuts.push(self.ops.len());
+    }
+
+    /// Books `f`'s ops as a segment that a step with recomputation makes again in its
+    /// backward pass (`osrt_kernels::recompute`), `out` values its output: its forward
+    /// pass then keeps only the output's copy (beside the segment's inputs, held before).
+    fn recomputed(&mut self, out: usize, f: impl FnOnce(&mut Self)) {
+        let from = self.ops.len();
+        f(self);
+        if !self.recompute {
+            return;
+        }
+        self.live -= kept(&self.ops[from..]);
+        self.recomputed.push(from..self.ops.len());
+        self.node(out);
+    }
+
+    /// A boundary's copy of `bytes` where a recomputed segment reads a tensor that is not
+    /// a leaf (`osrt_kernels::recompute`); nothing without recomputation.
+    fn boundary_copy(&mut self, bytes: f64) {
+        if self.recompute {
+            self.op(Op {
+                held: bytes,
+                ..Op::default()
+            });
+        }
     }
 
     fn op(&mut self, op: Op) {
@@ -189,11 +224,31 @@ impl Ledger {
         let mut peak = self.forward_peak;
         let mut segment = 0.0;
         let mut cuts = self.cuts.clone();
+        let mut recomputed = self.recomputed.clone();
+        // What the recomputed segment being passed holds, freed at its start.
+        let mut remade = 0.0;
         for (i, op) in self.ops.iter().enumerate().rev() {
+            let inside = recomputed.last().filter(|r| r.contains(&i)).cloned();
+            if let Some(r) = inside.as_ref().filter(|r| r.end == i + 1) {
+                // The segment's forward pass again: its activations, at its forward peak.
+                let ops = &self.ops[r.clone()];
+                live += kept(ops);
+                peak = peak.max(live + ops.iter().map(|o| o.forward_extra).fold(0.0, f64::max));
+            }
             live += f32s(op.params);
             peak = peak.max(live + op.backward_extra);
             live -= op.saved;
-            segment += op.held;
+            match inside {
+                Some(r) => {
+                    remade += op.held;
+                    if r.start == i {
+                        live -= remade;
+                        remade = 0.0;
+                        recomputed.pop();
+                    }
+                }
+                None => segment += op.held,
+            }
             if cuts.last() == Some(&i) {
                 cuts.pop();
                 live -= segment;
@@ -202,6 +257,12 @@ impl Ledger {
         }
         peak
     }
+}
+
+/// What `ops` hold from the forward pass until their backward pass: outputs and saved
+/// buffers.
+fn kept(ops: &[Op]) -> f64 {
+    ops.iter().map(|o| o.held + o.saved).sum()
 }
 
 /// A linear layer `[rows, i] → [rows, o]` (fused: one node; on a GPU a layer with a bias
@@ -387,8 +448,9 @@ fn transformer(
     rows: (usize, usize, usize),
     ctx: Option<(usize, usize)>,
 ) {
+    let (b, n, d) = rows;
     for _ in 0..t.layers {
-        block(l, t, rows, ctx);
+        l.recomputed(b * n * d, |l| block(l, t, rows, ctx));
     }
 }
 
@@ -463,10 +525,12 @@ fn encode(l: &mut Ledger, cfg: &Config, s: &StepShape) {
         (encoder::Poses::Unposed, _) => 3,
     };
     for &c in &enc.conv_channels {
-        conv(l, images, (h, w, c_in), 3, c, true);
-        (h, w) = (h.div_ceil(2), w.div_ceil(2));
-        conv(l, images, (h, w, c), 3, 2 * c, true);
-        c_in = 2 * c;
+        let (h2, w2) = (h.div_ceil(2), w.div_ceil(2));
+        l.recomputed(images * h2 * w2 * 2 * c, |l| {
+            conv(l, images, (h, w, c_in), 3, c, true);
+            conv(l, images, (h2, w2, c), 3, 2 * c, true);
+        });
+        (h, w, c_in) = (h2, w2, 2 * c);
     }
     conv(l, images, (h, w, c_in), 1, enc.dim, false);
     let tokens = s.input_views * h * w;
@@ -551,11 +615,15 @@ fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
             let mut dims = vec![ds + e];
             dims.extend(&c.render_hidden);
             dims.push(3);
+            // A recomputed segment, reading copies of the query and the mixed slot.
             // Composed, the concatenation is a node; the fused and GPU MLPs join inside.
-            if l.path == OpPath::Composed {
-                l.node(rows * (ds + e));
-            }
-            mlp(l, rows, &dims);
+            l.boundary_copy(f32s(rows * e) + mixed);
+            l.recomputed(rows * 3, |l| {
+                if l.path == OpPath::Composed {
+                    l.node(rows * (ds + e));
+                }
+                mlp(l, rows, &dims);
+            });
         }
         decoder::Config::Transformer(c) => {
             l.node(rows * e);

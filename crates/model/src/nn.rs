@@ -316,7 +316,15 @@ impl Transformer {
     pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
         let mut h = x.clone();
         for b in &self.blocks {
-            h = b.forward(&h, ctx)?;
+            // Each block a segment whose activations a train step may make again in its
+            // backward pass (`osrt_kernels::recompute`).
+            let block = b.clone();
+            h = match ctx {
+                None => osrt_kernels::recompute(&[&h], move |t| block.forward(&t[0], None))?,
+                Some(c) => {
+                    osrt_kernels::recompute(&[&h, c], move |t| block.forward(&t[0], Some(&t[1])))?
+                }
+            };
         }
         Ok(h)
     }

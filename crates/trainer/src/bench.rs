@@ -34,6 +34,9 @@ pub struct StepFigures {
     pub fused: bool,
     /// The job's kernels (`fused`, `composed`, `device`).
     pub kernels: String,
+    /// Whether the backward pass made the segments' activations again
+    /// (`train.recompute`).
+    pub recompute: bool,
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
     /// On a GPU: a gradient's round trip device → host → device through the staging of a
@@ -196,6 +199,7 @@ pub fn bench_step(
         precision: job.train.precision.to_string(),
         fused: job.train.kernels == osrt_model::Kernels::Fused && device.is_cpu(),
         kernels: job.train.kernels.to_string(),
+        recompute: job.train.recompute,
         median_step_s: m,
         median_forward_backward_s: median(fb_s),
         median_gradient_transfer_s: if transfer_s.is_empty() {

@@ -61,6 +61,12 @@ pub struct TrainConfig {
     /// `composed` (candle's ops only): the same functions, at different speeds.
     #[serde(default)]
     pub kernels: Kernels,
+    /// Make each transformer block's and convolution's activations again in the backward
+    /// pass instead of keeping them (`osrt_kernels::recompute`: activation
+    /// checkpointing): the step's peak memory falls to about one segment's activations,
+    /// for a second forward pass. The same gradients, to the bit.
+    #[serde(default)]
+    pub recompute: bool,
 }
 
 impl TrainConfig {
@@ -92,6 +98,7 @@ impl TrainConfig {
             device: DeviceSpec::Cpu,
             precision: Precision::F32,
             kernels: Kernels::Fused,
+            recompute: false,
         }
     }
 

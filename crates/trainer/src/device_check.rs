@@ -156,17 +156,67 @@ pub struct PlumbingCheck {
 /// Floats of the gradient the staging check sends through (three ring buckets and a part).
 const PLUMBING_FLOATS: usize = 3 * (1 << 22) + 12_345;
 
-/// The plumbing checks for `device`; on the CPU only the staging (the others concern a
-/// GPU's memory pool and context).
+/// The plumbing checks for `device`; on the CPU only the staging and the recomputed step
+/// (the others concern a GPU's memory pool and context).
 pub fn plumbing(device: &Device) -> Result<Vec<PlumbingCheck>> {
     let bucket = osrt_run::cluster::ClusterConfig::default().bucket_floats;
-    let mut out = vec![staged_round_trip(device, PLUMBING_FLOATS, bucket)?];
+    let mut out = vec![
+        staged_round_trip(device, PLUMBING_FLOATS, bucket)?,
+        recomputed_step(device)?,
+    ];
     if device.is_cuda() {
         out.push(peak_memory(device)?);
         out.push(out_of_memory(device)?);
         out.push(freed_on_another_thread(device)?);
     }
     Ok(out)
+}
+
+/// Largest relative L2 difference between a step's gradient with its activations made
+/// again in the backward pass and the same step keeping them: the same ops on the same
+/// inputs, where only the decoder's query sums its three gradients in another order.
+pub const RECOMPUTE_TOLERANCE: f64 = 1e-5;
+
+/// `clevr-lite-cpu`'s step on the GPU's graph with `train.recompute` against the same step
+/// without (f32, and bf16 on a GPU): a device whose ops gave other values the second time
+/// they run on the same inputs would show here.
+fn recomputed_step(device: &Device) -> Result<PlumbingCheck> {
+    let precisions: &[Precision] = match device.is_cuda() {
+        true => &[Precision::F32, Precision::Bf16],
+        false => &[Precision::F32],
+    };
+    let mut detail = Vec::new();
+    let mut pass = true;
+    for &precision in precisions {
+        let mut job = JobConfig::preset("clevr-lite-cpu")?;
+        job.train.device = DeviceSpec::from_device(device);
+        job.train.kernels = osrt_model::Kernels::Device;
+        job.train.precision = precision;
+        let batch = bench_batch(&job, 32, &mut ChaCha8Rng::seed_from_u64(7))?;
+        let step = |recompute: bool| -> Result<Vec<f32>> {
+            let mut job = job.clone();
+            job.train.recompute = recompute;
+            let t = Trainer::new(job, device.clone())?;
+            Ok(t.gradients(&batch, &mut ChaCha8Rng::seed_from_u64(8))?
+                .grads)
+        };
+        let (kept, recomputed) = (step(false)?, step(true)?);
+        let rel = rel_l2(&kept, &recomputed, 0.0);
+        let same_bits = kept
+            .iter()
+            .zip(&recomputed)
+            .all(|(a, b)| a.to_bits() == b.to_bits());
+        pass &= rel <= RECOMPUTE_TOLERANCE && recomputed.iter().all(|g| g.is_finite());
+        detail.push(format!(
+            "{precision}: gradient rel. L2 {rel:.1e} (≤ {RECOMPUTE_TOLERANCE:e}){}",
+            if same_bits { ", the same bits" } else { "" }
+        ));
+    }
+    Ok(PlumbingCheck {
+        check: "recomputed activations",
+        pass,
+        detail: detail.join("; "),
+    })
 }
 
 /// A gradient of `n` floats to the host and back through the all-reduce's staging

@@ -44,7 +44,7 @@ impl StepMemory {
     pub fn describe(&self) -> String {
         let s = &self.shape;
         format!(
-            "{}estimated peak {} per worker: {} (weights {}, optimiser {}, batch {}, activations {}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
+            "{}estimated peak {} per worker: {} (weights {}, optimiser {}, batch {}, activations {}{}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
             if self.checked { "" } else { "(unchecked) " },
             self.kind,
             size(self.total()),
@@ -52,6 +52,7 @@ impl StepMemory {
             size(self.optimizer),
             size(self.batch),
             size(self.activations),
+            if s.recompute { ", recomputed" } else { "" },
             s.batch,
             s.input_views,
             s.width,
@@ -88,6 +89,7 @@ pub fn estimate(
         width: image[0] as usize,
         rays: t.rays_per_scene,
         threads,
+        recompute: t.recompute,
     };
     let gpu = t.device.is_cuda();
     // `device` kernels build the GPU's graph on any device.
@@ -198,9 +200,16 @@ pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -
     } else {
         String::new()
     };
+    let recompute = match m.shape.recompute {
+        true => "",
+        false => {
+            " --recompute (activations made again in the backward pass: the same gradients, \
+             about a third more time per step),"
+        }
+    };
     Some(format!(
         "the job needs about {:.2} GiB{each} and {what} is {:.2} GiB. {}; a worker's \
-         resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller: --batch-size (scenes per step), \
+         resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller:{recompute} --batch-size (scenes per step), \
          --rays-per-scene (the decoder's share), --precision bf16 (GPU), fewer workers on \
          this machine, or smaller images (osrt data import --resize WxH); --skip-memory-check runs it anyway",
         need / GIB,

@@ -339,7 +339,7 @@ impl Trainer {
         .map_or("no estimate for this decoder".to_string(), |m| m.describe());
         let card = self.card_memory();
         TrainError::OutOfMemory(format!(
-            "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
+            "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. {}Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
             self.device.location(),
             batch.batch_size,
             batch.input_views,
@@ -348,6 +348,11 @@ impl Trainer {
             batch.rays_per_scene,
             t.precision,
             t.kernels,
+            match t.recompute {
+                true => "",
+                false =>
+                    "Set train.recompute = true (--recompute: activations made again in the backward pass, the same gradients). ",
+            },
         ))
     }
 
@@ -387,7 +392,7 @@ impl Trainer {
         // activations freed before the next: the step's peak is then not every activation
         // beside every gradient at the end of the backward pass. The gradients are the
         // uncut graph's, to the bit.
-        let (forward, cuts) = osrt_kernels::with_cuts(|| -> Result<_> {
+        let (forward, cuts) = osrt_kernels::with_cuts(self.cfg.train.recompute, || -> Result<_> {
             let slots = self
                 .model
                 .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?;

@@ -101,8 +101,13 @@ impl SlotMixer {
         let scale = 1.0 / (self.slot_dim as f64).sqrt();
         // [b, r, ds], [b, r, k]
         let (mixed, weights) = mix(&allocated, slots, &self.mix_q, &self.mix_k, scale)?;
-        // The render MLP of (mixed ⊕ query), without materialising the concatenation.
-        Ok((self.render.forward_cat(&mixed, &query)?, weights))
+        // The render MLP of (mixed ⊕ query), without materialising the concatenation; a
+        // segment whose activations a train step may make again in its backward pass
+        // (`osrt_kernels::recompute`).
+        let render = self.render.clone();
+        let out =
+            osrt_kernels::recompute(&[&mixed, &query], move |t| render.forward_cat(&t[0], &t[1]))?;
+        Ok((out, weights))
     }
 }
 
