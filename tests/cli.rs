@@ -140,11 +140,15 @@ fn bad_arguments_are_clear_errors() {
         .map(|s| s["precision"].as_str().unwrap())
         .collect();
     assert_eq!(precisions, ["f32", "f32"], "fused and composed, f32 only");
-    // The plumbing on the CPU: the gradient's staging, exact.
+    // The plumbing on the CPU: the gradient's staging, exact, and a step with recomputed
+    // activations against one keeping them.
     let pipes = v["plumbing"].as_array().unwrap();
-    assert_eq!(pipes.len(), 1);
+    assert_eq!(pipes.len(), 2);
     assert_eq!(pipes[0]["check"], "staged gradient round trip");
-    assert_eq!(pipes[0]["pass"], true, "{}", pipes[0]);
+    assert_eq!(pipes[1]["check"], "recomputed activations");
+    for p in pipes {
+        assert_eq!(p["pass"], true, "{p}");
+    }
     // Without the `cuda` feature a GPU preset is one clear error, not a worker restart loop.
     if !cfg!(feature = "cuda") {
         let out = Command::new(env!("CARGO_BIN_EXE_osrt"))

@@ -21,10 +21,12 @@
 //! convolution): with recomputation on, the forward pass keeps only the segment's inputs
 //! and a copy of its output, and drops its graph; the backward pass runs the function
 //! again on the same inputs and takes the gradients from that graph (activation
-//! checkpointing, as `torch.utils.checkpoint`). The forward pass is then paid twice (about
-//! a third more per step), for a peak of one segment's activations instead of all of
-//! them. The ops are deterministic, so the graph made again is the one the forward pass
-//! made and the gradients are those of a [`cut`] at the same places, to the bit.
+//! checkpointing, as `torch.utils.checkpoint`). The forward pass is then paid twice
+//! (1.13–1.38× the step's time on the CPU, docs/performance.md), for a peak of one
+//! segment's activations instead of all of them. The ops are deterministic, so the graph
+//! made again is the one the forward pass made and the gradients are those of a [`cut`]
+//! at the same places, to the bit, except where a tensor read by two segments sums more
+//! than two gradient parts: the sum is then taken in another order (to rounding).
 
 use candle_core::backprop::GradStore;
 use candle_core::{Result, Tensor, Var};
@@ -37,8 +39,7 @@ thread_local! {
 /// The boundaries a forward pass inside [`with_cuts`] has crossed so far.
 struct Boundaries {
     cuts: Vec<Cut>,
-    /// Whether [`recompute`] drops its segment's graph (else it is a [`cut`] after the
-    /// segment).
+    /// Whether [`recompute`] drops its segment's graph (else its function runs as it is).
     recompute: bool,
 }
 

@@ -632,16 +632,18 @@ fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
             let mut dims = vec![e];
             dims.extend(&c.render_hidden);
             dims.push(3);
-            mlp(l, rows, &dims);
+            l.recomputed(rows * 3, |l| mlp(l, rows, &dims));
         }
         decoder::Config::SpatialBroadcast(c) => {
             l.node(rows * e);
             let pairs = rows * k;
-            l.node(pairs * (e + ds));
             let mut dims = vec![e + ds];
             dims.extend(&c.hidden);
             dims.push(4);
-            mlp(l, pairs, &dims);
+            l.recomputed(pairs * 4, |l| {
+                l.node(pairs * (e + ds));
+                mlp(l, pairs, &dims);
+            });
             // Colours, weights, their product.
             l.node(pairs * 7);
         }

@@ -61,10 +61,11 @@ pub struct TrainConfig {
     /// `composed` (candle's ops only): the same functions, at different speeds.
     #[serde(default)]
     pub kernels: Kernels,
-    /// Make each transformer block's and convolution's activations again in the backward
-    /// pass instead of keeping them (`osrt_kernels::recompute`: activation
-    /// checkpointing): the step's peak memory falls to about one segment's activations,
-    /// for a second forward pass. The same gradients, to the bit.
+    /// Make each transformer block's, convolution pair's and the decoder's render MLP's
+    /// activations again in the backward pass instead of keeping them
+    /// (`osrt_kernels::recompute`: activation checkpointing): the step's peak memory falls
+    /// to about one segment's activations, for a second forward pass. The same gradients
+    /// (to rounding where the decoder's query sums three parts in another order).
     #[serde(default)]
     pub recompute: bool,
 }

@@ -42,11 +42,16 @@ impl SpatialBroadcast {
     pub fn forward(&self, slots: &Tensor, rays: &Tensor) -> Result<DecoderOutput> {
         let (b, k, ds) = slots.dims3()?;
         let (_, r, e) = rays.dims3()?;
-        let rays = rays.unsqueeze(2)?.broadcast_as((b, r, k, e))?;
-        let slots = slots.unsqueeze(1)?.broadcast_as((b, r, k, ds))?;
-        // One flat matrix of (ray, slot) rows: [b·r·k, e + ds].
-        let x = Tensor::cat(&[&rays, &slots], D::Minus1)?.reshape((b * r * k, e + ds))?;
-        let out = self.mlp.forward(&x)?.reshape((b, r, k, 4))?;
+        // The (ray, slot) rows and the MLP over them: a segment whose activations a train
+        // step may make again in its backward pass (`osrt_kernels::recompute`).
+        let mlp = self.mlp.clone();
+        let out = osrt_kernels::recompute(&[rays, slots], move |t| {
+            let rays = t[0].unsqueeze(2)?.broadcast_as((b, r, k, e))?;
+            let slots = t[1].unsqueeze(1)?.broadcast_as((b, r, k, ds))?;
+            // One flat matrix of (ray, slot) rows: [b·r·k, e + ds].
+            let x = Tensor::cat(&[&rays, &slots], D::Minus1)?.reshape((b * r * k, e + ds))?;
+            mlp.forward(&x)?.reshape((b, r, k, 4))
+        })?;
         let logits = out.narrow(D::Minus1, 0, 1)?.squeeze(D::Minus1)?; // [b, r, k]
         let colours = candle_nn::ops::sigmoid(&out.narrow(D::Minus1, 1, 3)?)?; // [b, r, k, 3]
         let weights = osrt_kernels::softmax(&logits, D::Minus1)?;

@@ -64,7 +64,11 @@ impl TransformerDecoder {
     pub fn forward(&self, slots: &Tensor, rays: &Tensor) -> Result<DecoderOutput> {
         let q = self.query_mlp.forward(rays)?;
         let q = self.transformer.forward(&q, Some(slots))?;
-        let rgb = candle_nn::ops::sigmoid(&self.render.forward(&q)?)?;
+        // A segment whose activations a train step may make again in its backward pass
+        // (`osrt_kernels::recompute`).
+        let render = self.render.clone();
+        let out = osrt_kernels::recompute(&[&q], move |t| render.forward(&t[0]))?;
+        let rgb = candle_nn::ops::sigmoid(&out)?;
         Ok(DecoderOutput { rgb, weights: None })
     }
 }
