@@ -598,27 +598,28 @@ fn decode(l: &mut Ledger, cfg: &Config, s: &StepShape) -> Option<()> {
             l.node(rows * e); // the rays' encoding
             mlp(l, rows, &[e, c.query_hidden, e]);
             transformer(l, &c.allocation, (b, r, e), Some((k, ds)));
-            // Slot mixing: the queries' projection, the weights over slots, the mix (on a
-            // GPU the projection and the mix stored as their products return them).
-            let (q, mixed) = (l.lows(rows * ds), l.lows(rows * ds));
-            l.op(Op {
-                held: q + f32s(rows * k) + if l.gpu() { mixed } else { 0.0 },
-                saved: if l.gpu() {
-                    0.0
-                } else {
-                    f32s(rows * ds + rows * k)
-                },
-                backward_extra: f32s(3 * rows * ds + 2 * rows * e),
-                params: e * ds + ds * ds,
-                ..Op::default()
-            });
             let mut dims = vec![ds + e];
             dims.extend(&c.render_hidden);
             dims.push(3);
-            // A recomputed segment, reading copies of the query and the mixed slot.
-            // Composed, the concatenation is a node; the fused and GPU MLPs join inside.
-            l.boundary_copy(f32s(rows * e) + mixed);
+            // The mixing block and the render MLP, a recomputed segment reading a copy of
+            // the query.
+            l.boundary_copy(f32s(rows * e));
             l.recomputed(rows * 3, |l| {
+                // Slot mixing: the queries' projection, the weights over slots, the mix (on
+                // a GPU the projection and the mix stored as their products return them).
+                let (q, mixed) = (l.lows(rows * ds), l.lows(rows * ds));
+                l.op(Op {
+                    held: q + f32s(rows * k) + if l.gpu() { mixed } else { 0.0 },
+                    saved: if l.gpu() {
+                        0.0
+                    } else {
+                        f32s(rows * ds + rows * k)
+                    },
+                    backward_extra: f32s(3 * rows * ds + 2 * rows * e),
+                    params: e * ds + ds * ds,
+                    ..Op::default()
+                });
+                // Composed, the concatenation is a node; the fused and GPU MLPs join inside.
                 if l.path == OpPath::Composed {
                     l.node(rows * (ds + e));
                 }

@@ -11,6 +11,8 @@ use crate::nn::{Activation, Linear, Mlp, Transformer, TransformerConfig, linear}
 use candle_core::{D, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
+use std::rc::Rc;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Config {
@@ -92,6 +94,9 @@ impl SlotMixer {
 
     /// Query MLP, allocation, mixing and render MLP, before any output activation.
     ///
+    /// The slot weights are the metrics' (no loss reads them): they come without their
+    /// graph.
+    ///
     /// # Shapes
     /// `slots: [b, k, ds]`, `queries: [b, r, ray_dim]` (encoded) → render-MLP output
     /// `[b, r, outputs]`, weights `[b, r, k]`
@@ -99,14 +104,23 @@ impl SlotMixer {
         let query = self.query_mlp.forward(queries)?; // [b, r, ray_dim]
         let allocated = self.allocation.forward(&query, Some(slots))?; // [b, r, ray_dim]
         let scale = 1.0 / (self.slot_dim as f64).sqrt();
-        // [b, r, ds], [b, r, k]
-        let (mixed, weights) = mix(&allocated, slots, &self.mix_q, &self.mix_k, scale)?;
-        // The render MLP of (mixed ⊕ query), without materialising the concatenation; a
-        // segment whose activations a train step may make again in its backward pass
-        // (`osrt_kernels::recompute`).
-        let render = self.render.clone();
-        let out =
-            osrt_kernels::recompute(&[&mixed, &query], move |t| render.forward_cat(&t[0], &t[1]))?;
+        // The mixing block and the render MLP of (mixed ⊕ query), without materialising
+        // the concatenation: a segment whose activations a train step may make again in
+        // its backward pass (`osrt_kernels::recompute`), which hands the weights out of
+        // its forward pass beside its output.
+        let (mix_q, mix_k, render) = (self.mix_q.clone(), self.mix_k.clone(), self.render.clone());
+        let weights = Rc::new(RefCell::new(None));
+        let taken = weights.clone();
+        let out = osrt_kernels::recompute(&[&allocated, slots, &query], move |t| {
+            // [b, r, ds], [b, r, k]
+            let (mixed, weights) = mix(&t[0], &t[1], &mix_q, &mix_k, scale)?;
+            *taken.borrow_mut() = Some(weights.detach());
+            render.forward_cat(&mixed, &t[2])
+        })?;
+        let weights = weights
+            .borrow_mut()
+            .take()
+            .expect("the segment's forward pass ran");
         Ok((out, weights))
     }
 }
