@@ -50,11 +50,13 @@ type Forward = Box<dyn Fn(&[Tensor]) -> Result<Tensor>>;
 enum Upstream {
     /// The segment's output, which holds its graph.
     Kept(Tensor),
-    /// The segment's inputs (leaves: earlier boundaries' copies, parameters, data) and the
-    /// function that makes its output from them.
+    /// The segment's inputs (leaves: earlier boundaries' copies, parameters, data), the
+    /// function that makes its output from them, and the ops and precision it ran with
+    /// (it runs again with them, whatever the backward pass's caller has set).
     Recomputed {
         inputs: Vec<Tensor>,
         forward: Forward,
+        ops: (crate::Kernels, crate::Precision),
     },
 }
 
@@ -129,6 +131,7 @@ pub fn recompute(
                         upstream: Upstream::Recomputed {
                             inputs,
                             forward: Box::new(f),
+                            ops: (crate::kernels(), crate::precision()),
                         },
                         copy,
                     })
@@ -198,7 +201,13 @@ impl Cuts {
             drop(copy);
             let upstream = match upstream {
                 Upstream::Kept(t) => t,
-                Upstream::Recomputed { inputs, forward } => without_cuts(|| forward(&inputs))?,
+                Upstream::Recomputed {
+                    inputs,
+                    forward,
+                    ops: (kernels, precision),
+                } => crate::with_kernels(kernels, || {
+                    crate::with_precision(precision, || without_cuts(|| forward(&inputs)))
+                })?,
             };
             // Detached: a variable's gradient is candle's sum of its parts, which may still
             // carry their own graph (a product with a weight), and that graph is not part
@@ -374,6 +383,36 @@ mod tests {
         let whole = loss.backward().unwrap();
         assert!(whole.get(w1.as_tensor()).is_some());
         assert_eq!(cut(w1.as_tensor()).unwrap().id(), w1.as_tensor().id());
+    }
+
+    /// A recomputed segment runs again with the ops and precision of its first run, where
+    /// the backward pass runs outside them.
+    #[test]
+    fn a_segment_is_made_again_with_its_first_runs_ops() {
+        use crate::{Kernels, Precision};
+        use std::cell::RefCell;
+        use std::rc::Rc;
+        let w = Var::from_tensor(&randn(&[4, 4], 0.5, 1)).unwrap();
+        let x = randn(&[3, 4], 1.0, 2);
+        let seen = Rc::new(RefCell::new(Vec::new()));
+        let (out, cuts) = with_cuts(true, || {
+            crate::with_kernels(Kernels::Composed, || {
+                crate::with_precision(Precision::Bf16, || {
+                    let (w, seen) = (w.as_tensor().clone(), seen.clone());
+                    recompute(&[&x], move |t| {
+                        seen.borrow_mut()
+                            .push((crate::kernels(), crate::precision()));
+                        t[0].matmul(&w)?.tanh()
+                    })
+                })
+            })
+        });
+        let loss = out.unwrap().sqr().unwrap().sum_all().unwrap();
+        let mut grads = loss.backward().unwrap();
+        cuts.backward(&mut grads).unwrap();
+        assert!(grads.get(w.as_tensor()).is_some());
+        let first = (Kernels::Composed, Precision::Bf16);
+        assert_eq!(*seen.borrow(), [first, first]);
     }
 
     /// `t` through a [`recompute`] made inside another one's function: there, recomputation
