@@ -237,20 +237,12 @@ impl Encoder {
         }
         // Channels-last throughout: the convolutions are im2col + matmul on NHWC
         // (`osrt_kernels::conv2d_nhwc`), and the tokens come out in (view, row, column) order.
-        let mut x = match &self.ray_embed {
+        let x = match &self.ray_embed {
             None => Tensor::cat(&[images, &enc], D::Minus1)? // [b, v, h, w, 3 + r]
                 .reshape((b * v, h, w, 3 + r))?, // [b·v, h, w, c]
             Some(_) => images.reshape((b * v, h, w, 3))?,
         };
-        for (a, s2) in &self.convs {
-            // Each pair a segment whose activations a train step may make again in its
-            // backward pass (`osrt_kernels::recompute`).
-            let (a, s2) = (a.weight().clone(), s2.weight().clone());
-            x = osrt_kernels::recompute(&[&x], move |t| {
-                conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
-            })?;
-        }
-        let mut x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        let mut x = self.cnn(x)?; // [b·v, h', w', d]
         if let Some(embed) = &self.ray_embed {
             let enc = enc.reshape((b * v, h, w, r))?;
             x = (x + conv2d_nhwc(&enc, embed.weight(), s, 0)?)?; // [b·v, h/s, w/s, d]
@@ -260,22 +252,29 @@ impl Encoder {
         self.transformer.forward(&osrt_kernels::cut(&tokens)?, None)
     }
 
+    /// The CNN: each pair of 3×3 convolutions (stride 1, then 2, ReLU after each), then
+    /// the 1×1 projection. Each pair is a segment whose activations a train step may make
+    /// again in its backward pass (`osrt_kernels::recompute`).
+    ///
+    /// # Shapes
+    /// `x: [n, h, w, c]` → `[n, h/s, w/s, dim]` with `s` = [`Config::stride`]
+    fn cnn(&self, mut x: Tensor) -> Result<Tensor> {
+        for (a, s2) in &self.convs {
+            let (a, s2) = (a.weight().clone(), s2.weight().clone());
+            x = osrt_kernels::recompute(&[&x], move |t| {
+                conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
+            })?;
+        }
+        conv2d_nhwc(&x, self.project.weight(), 1, 0)
+    }
+
     /// Up-OSRT's tokens: the CNN over RGB, plus camera-ID and row/column embeddings.
     ///
     /// # Shapes
     /// `images: [b, v, h, w, 3]` → `[b, v·h'·w', dim]`
     fn unposed_tokens(&self, e: &UnposedEmbeddings, images: &Tensor) -> Result<Tensor> {
         let (b, v, h, w, _) = images.dims5()?;
-        let mut x = images.reshape((b * v, h, w, 3))?;
-        for (a, s2) in &self.convs {
-            // Each pair a segment whose activations a train step may make again in its
-            // backward pass (`osrt_kernels::recompute`).
-            let (a, s2) = (a.weight().clone(), s2.weight().clone());
-            x = osrt_kernels::recompute(&[&x], move |t| {
-                conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
-            })?;
-        }
-        let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?; // [b·v, h', w', d]
+        let x = self.cnn(images.reshape((b * v, h, w, 3))?)?; // [b·v, h', w', d]
         let (_, h2, w2, d) = x.dims4()?;
         let g = self.cfg.max_grid;
         if h2 > g || w2 > g {
