@@ -25,7 +25,7 @@ pub struct BenchModelArgs {
     #[arg(long, value_delimiter = ',', default_value = "6,32")]
     pub slots: Vec<usize>,
     /// Thread counts, one child process each.
-    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    #[arg(long, value_delimiter = ',', default_value = "1,2", value_parser = crate::flags::threads)]
     pub threads: Vec<usize>,
     /// Time only the train step with the fused ops (no composed step, no renders): the
     /// quick figure, and the loop to profile.
@@ -465,8 +465,8 @@ pub struct BenchAllReduceArgs {
     /// more, at most 20×); medians are reported.
     #[arg(long, default_value_t = 5)]
     pub repeats: usize,
-    /// Floats per chunk (at most 262144 = 1 MiB).
-    #[arg(long, default_value_t = osrt_proto::MAX_CHUNK_FLOATS)]
+    /// Floats per chunk (1024 to 262144: 4 KiB to 1 MiB).
+    #[arg(long, default_value_t = osrt_proto::MAX_CHUNK_FLOATS, value_parser = crate::flags::chunk_floats)]
     pub chunk_floats: usize,
     /// Print JSON.
     #[arg(long)]

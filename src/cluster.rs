@@ -50,7 +50,8 @@ pub struct CoordinatorArgs {
     pub health_listen: Option<SocketAddr>,
     #[arg(long, env = "OSRT_MAX_STEPS")]
     pub max_steps: Option<u64>,
-    #[arg(long, env = "OSRT_MAX_MINUTES")]
+    /// Stop after this many minutes of wall-clock time (positive, finite, at most a year).
+    #[arg(long, env = "OSRT_MAX_MINUTES", value_parser = crate::flags::minutes)]
     pub max_minutes: Option<f64>,
     /// Continue the job in --run (a finished one too) with the limits given here.
     #[arg(long, env = "OSRT_RESUME")]
@@ -60,15 +61,15 @@ pub struct CoordinatorArgs {
     #[arg(long, env = "OSRT_TAKE_OVER")]
     pub take_over: bool,
     /// Override cluster.min_workers / max_workers / max_restarts of the config.
-    #[arg(long, env = "OSRT_MIN_WORKERS")]
+    #[arg(long, env = "OSRT_MIN_WORKERS", value_parser = crate::flags::workers)]
     pub min_workers: Option<usize>,
-    #[arg(long, env = "OSRT_MAX_WORKERS")]
+    #[arg(long, env = "OSRT_MAX_WORKERS", value_parser = crate::flags::workers)]
     pub max_workers: Option<usize>,
     #[arg(long, env = "OSRT_MAX_RESTARTS")]
     pub max_restarts: Option<u32>,
     /// Seconds to keep answering after the job is over, so every worker hears it (a
-    /// Deployment sets it long: its pod must not exit and be restarted).
-    #[arg(long, env = "OSRT_LINGER_S", default_value_t = 3.0)]
+    /// Deployment sets it long: its pod must not exit and be restarted). At most a year.
+    #[arg(long, env = "OSRT_LINGER_S", default_value_t = 3.0, value_parser = crate::flags::seconds)]
     pub linger_s: f64,
 }
 
@@ -88,7 +89,7 @@ pub struct WorkerArgs {
     #[arg(long, env = "OSRT_ADVERTISE")]
     pub advertise: Option<String>,
     /// Compute threads (candle's pool); the process re-executes itself to apply it.
-    #[arg(long, env = "OSRT_THREADS")]
+    #[arg(long, env = "OSRT_THREADS", value_parser = crate::flags::threads)]
     pub threads: Option<usize>,
     /// Join a job even where its step's estimated peak memory exceeds this machine's.
     #[arg(long, env = "OSRT_SKIP_MEMORY_CHECK")]
@@ -97,8 +98,9 @@ pub struct WorkerArgs {
     /// `train.device`). Each worker owns one GPU.
     #[arg(long, env = "OSRT_DEVICE")]
     pub device: Option<DeviceSpec>,
-    /// Give up after the coordinator has been unreachable this long.
-    #[arg(long, default_value_t = 60.0)]
+    /// Give up after the coordinator has been unreachable this many seconds (positive,
+    /// at most a year).
+    #[arg(long, default_value_t = 60.0, value_parser = crate::flags::positive_seconds)]
     pub coordinator_timeout_s: f64,
 }
 
@@ -178,6 +180,10 @@ pub async fn spec(
         job.resolve_scene_bounds(&manifest, data)?;
     }
     job.validate()?;
+    // The flags are checked as they are parsed; a sweep file's budget arrives here.
+    if let Some(m) = max_minutes {
+        crate::flags::check_minutes(m).map_err(|why| anyhow::anyhow!("max_minutes {why}"))?;
+    }
     Ok(JobSpec {
         job_id: job_id(),
         job_toml: job.to_toml(),
@@ -416,13 +422,43 @@ fn spawn_worker(
     Ok(cmd.spawn()?)
 }
 
-/// One local worker slot's SIGKILLs: a worker killed twice at the same step of the job
+/// Where the job was when a worker was killed: at a step, or setting a generation up
+/// from a checkpoint (the heartbeats' step is 0 then, whatever the job's step).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Point {
+    Step(u64),
+    Setup(Option<u64>),
+}
+
+impl Point {
+    /// The point of the job's status: its ranks' step, or during a generation's set-up
+    /// (step 0), the checkpoint the generation starts from.
+    fn of(step: u64, last_checkpoint: Option<u64>) -> Self {
+        if step > 0 {
+            Point::Step(step)
+        } else {
+            Point::Setup(last_checkpoint)
+        }
+    }
+}
+
+impl std::fmt::Display for Point {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Point::Step(s) => write!(f, "at step {s}"),
+            Point::Setup(Some(c)) => write!(f, "while setting up from checkpoint {c}"),
+            Point::Setup(None) => write!(f, "while setting up the job's first step"),
+        }
+    }
+}
+
+/// One local worker slot's SIGKILLs: a worker killed twice at the same point of the job
 /// (the kernel's out-of-memory killer, most likely: it kills with SIGKILL) would be
 /// killed again however often it is replaced.
 #[derive(Default)]
 struct Kills {
-    /// The job's step when this slot's worker was last killed.
-    at_step: Option<u64>,
+    /// Where the job was when this slot's worker was last killed.
+    at: Option<Point>,
     /// The worker's resident memory when last sampled, in MiB.
     rss_mb: Option<f64>,
 }
@@ -440,19 +476,19 @@ impl Kills {
         }
     }
 
-    /// Why the job must end, where worker `k`'s `exit` is its second SIGKILL at `step`.
+    /// Why the job must end, where worker `k`'s `exit` is its second SIGKILL at `at`.
     fn killed_again(
         &mut self,
         k: usize,
         exit: std::process::ExitStatus,
-        step: u64,
+        at: Point,
     ) -> Option<String> {
         use std::os::unix::process::ExitStatusExt;
         if exit.signal() != Some(9) {
-            self.at_step = None;
+            self.at = None;
             return None;
         }
-        if self.at_step.replace(step) != Some(step) {
+        if self.at.replace(at) != Some(at) {
             return None;
         }
         let rss = self.rss_mb.map_or(String::new(), |mb| {
@@ -463,7 +499,7 @@ impl Kills {
                 format!(" ({what}: {:.2} GiB)", b / (1u64 << 30) as f64)
             });
         Some(format!(
-            "worker {k} was killed by SIGKILL twice at step {step}{rss}{machine}: the kernel's \
+            "worker {k} was killed by SIGKILL twice {at}{rss}{machine}: the kernel's \
              out-of-memory killer, most likely, and a replacement would meet the same end. \
              Make the step smaller (--recompute, --batch-size, --rays-per-scene, fewer workers, smaller \
              images: osrt data import --resize) or run on a machine with more memory"
@@ -483,7 +519,7 @@ struct Replacements<'a> {
 fn replace_exited(
     children: &mut [tokio::process::Child],
     kills: &mut [Kills],
-    (coord, step): (&Coordinator, u64),
+    (coord, at): (&Coordinator, Point),
     r: Replacements,
     spawn: impl Fn(usize) -> Result<tokio::process::Child>,
 ) -> Result<()> {
@@ -491,7 +527,7 @@ fn replace_exited(
         let Ok(Some(exit)) = child.try_wait() else {
             continue;
         };
-        if let Some(why) = kills[k].killed_again(k, exit, step) {
+        if let Some(why) = kills[k].killed_again(k, exit, at) {
             coord.fail(why);
             return Ok(());
         }
@@ -611,7 +647,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
             if let Err(e) = replace_exited(
                 &mut children,
                 &mut kills,
-                (&status_view, s.step),
+                (&status_view, Point::of(s.step, s.last_checkpoint)),
                 replacements,
                 spawn,
             ) {
@@ -657,5 +693,32 @@ async fn reap(mut c: tokio::process::Child) {
         .is_err()
     {
         let _ = c.kill().await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::process::ExitStatusExt;
+
+    /// Kills during set-up are told apart by the checkpoint the generation starts from
+    /// (the heartbeats' step is 0 in every set-up): one at step 40 and one setting up from
+    /// checkpoint 40 are different points, two set-ups from checkpoint 40 the same.
+    #[test]
+    fn setup_kills_are_keyed_by_the_generations_start() {
+        let kill = std::process::ExitStatus::from_raw(9);
+        let mut k = Kills::default();
+        assert!(k.killed_again(0, kill, Point::of(40, Some(40))).is_none());
+        assert!(k.killed_again(0, kill, Point::of(0, Some(40))).is_none());
+        assert!(k.killed_again(0, kill, Point::of(0, Some(20))).is_none());
+        let why = k.killed_again(0, kill, Point::of(0, Some(20))).unwrap();
+        assert!(
+            why.contains("twice while setting up from checkpoint 20"),
+            "{why}"
+        );
+        let mut k = Kills::default();
+        assert!(k.killed_again(1, kill, Point::of(57, Some(50))).is_none());
+        let why = k.killed_again(1, kill, Point::of(57, Some(50))).unwrap();
+        assert!(why.contains("twice at step 57"), "{why}");
     }
 }

@@ -151,7 +151,7 @@ pub struct BenchDataArgs {
     pub step_batch: usize,
     /// … and milliseconds per step (default: the `paper` preset's bf16 step in PyTorch
     /// on one H200, 125 ms).
-    #[arg(long, default_value_t = 125.0)]
+    #[arg(long, default_value_t = 125.0, value_parser = crate::flags::positive_millis)]
     pub step_ms: f64,
     /// Print JSON instead of a table.
     #[arg(long)]

@@ -5,6 +5,7 @@ mod bench;
 mod cluster;
 mod data;
 mod device;
+mod flags;
 mod render;
 mod sweep;
 mod train;

@@ -28,10 +28,10 @@ pub struct TrainArgs {
     pub data: String,
     /// Worker processes on this machine (a coordinator runs in this process); default 2
     /// on the CPU, one per GPU on `cuda`.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::flags::workers)]
     pub workers: Option<usize>,
     /// Compute threads per worker (default: the machine's cores divided among workers).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::flags::threads)]
     pub threads: Option<usize>,
     /// Run folder or URL (default: runs/<preset>-<unix time>).
     #[arg(long)]
@@ -47,8 +47,8 @@ pub struct TrainArgs {
     /// Stop after this many optimiser steps.
     #[arg(long)]
     pub max_steps: Option<u64>,
-    /// Stop after this many minutes of wall-clock time.
-    #[arg(long)]
+    /// Stop after this many minutes of wall-clock time (positive, finite, at most a year).
+    #[arg(long, value_parser = crate::flags::minutes)]
     pub max_minutes: Option<f64>,
     /// Override the seed (initial weights and data order).
     #[arg(long)]
@@ -103,7 +103,7 @@ pub struct TrainArgs {
     #[arg(long)]
     pub recompute: bool,
     /// Override seconds between validation runs.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::flags::positive_seconds)]
     pub eval_every_s: Option<f64>,
     /// Override the validation subset size.
     #[arg(long)]
@@ -256,9 +256,6 @@ pub async fn ensure_default_data(data: &str) -> Result<()> {
 }
 
 pub async fn train(a: TrainArgs) -> Result<()> {
-    if a.workers == Some(0) {
-        bail!("--workers must be at least 1");
-    }
     if a.resume && a.run.is_none() {
         bail!("--resume needs the --run folder to continue");
     }

@@ -39,11 +39,23 @@ fn job_file(dir: &Path, workers: usize) -> PathBuf {
     path
 }
 
-fn start_coordinator(port: u16, data: &Path, run: &Path, job: &Path, resume: bool) -> Proc {
+/// `Start::Resume` continues the job; `Start::TakeOver` also takes the lease of a
+/// coordinator known to be dead (it was SIGKILLed) without watching it for renewals.
+#[derive(PartialEq)]
+enum Start {
+    New,
+    Resume,
+    TakeOver,
+}
+
+fn start_coordinator(port: u16, data: &Path, run: &Path, job: &Path, how: Start) -> Proc {
     let steps = STEPS.to_string();
     let mut args = vec!["--config", job.to_str().unwrap(), "--max-steps", &steps];
-    if resume {
+    if how != Start::New {
         args.push("--resume");
+    }
+    if how == Start::TakeOver {
+        args.push("--take-over");
     }
     coordinator(port, data, run, &args)
 }
@@ -80,7 +92,7 @@ fn job_state(run: &Path) -> String {
 enum Fault {
     /// SIGKILL a worker; a replacement starts a moment later.
     KillWorker(usize),
-    /// SIGKILL the coordinator; restart it with `--resume`.
+    /// SIGKILL the coordinator; restart it with `--resume --take-over`.
     KillCoordinator,
     /// SIGSTOP a worker past the heartbeat timeout, then SIGCONT.
     PauseWorker(usize),
@@ -149,7 +161,7 @@ fn chaos(n: usize, seed: u64) {
     // The uninterrupted run.
     let reference = dir.path().join("reference");
     let port = free_port();
-    let mut coord = start_coordinator(port, &data, &reference, &job, false);
+    let mut coord = start_coordinator(port, &data, &reference, &job, Start::New);
     let mut ws: Vec<Proc> = (0..n).map(|_| worker(port)).collect();
     assert!(coord.wait_for_exit(Duration::from_secs(120)).success());
     for w in &mut ws {
@@ -162,7 +174,7 @@ fn chaos(n: usize, seed: u64) {
     // then); a worker that died that way is replaced like a killed one.
     let run = dir.path().join("chaos");
     let port = free_port();
-    let mut coord = start_coordinator(port, &data, &run, &job, false);
+    let mut coord = start_coordinator(port, &data, &run, &job, Start::New);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let torn_at = 10 * rng.random_range(30..60u64);
     let marker = dir.path().join("torn-checkpoint");
@@ -250,7 +262,7 @@ fn chaos(n: usize, seed: u64) {
                 signal(&coord, "KILL");
                 let _ = coord.0.wait();
                 std::thread::sleep(Duration::from_millis(500));
-                coord = start_coordinator(port, &data, &run, &job, true);
+                coord = start_coordinator(port, &data, &run, &job, Start::TakeOver);
             }
             Fault::PauseWorker(i) => {
                 let w = workers[i].as_ref().unwrap();
@@ -264,7 +276,7 @@ fn chaos(n: usize, seed: u64) {
                 workers[i] = Some(start_worker());
             }
             Fault::SecondCoordinator => {
-                let mut second = start_coordinator(free_port(), &data, &run, &job, true);
+                let mut second = start_coordinator(free_port(), &data, &run, &job, Start::Resume);
                 let status = second.wait_for_exit(Duration::from_secs(30));
                 assert!(
                     !status.success(),

@@ -162,6 +162,73 @@ fn bad_arguments_are_clear_errors() {
     }
 }
 
+/// Durations and counts out of range are refused by the flag's name before anything runs:
+/// `Duration::from_secs_f64` panicked on a negative timeout (the coordinator's after it
+/// had taken the run folder's lease), a NaN budget never stopped the job, and an infinite
+/// one was saved as `null`, no deadline at all.
+#[test]
+fn flags_out_of_range_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let (data, r) = (dir.path().to_str().unwrap(), run.to_str().unwrap());
+    let coordinator = [
+        "coordinator",
+        "--data",
+        data,
+        "--run",
+        r,
+        "--listen",
+        "127.0.0.1:0",
+    ];
+    let train = ["train", "--data", data, "--run", r];
+    let cases: [(Vec<&str>, &str); 7] = [
+        (
+            vec![
+                "worker",
+                "--coordinator",
+                "http://127.0.0.1:9",
+                "--coordinator-timeout-s=-1",
+            ],
+            "--coordinator-timeout-s",
+        ),
+        (
+            [&coordinator[..], &["--max-steps", "1", "--linger-s=-1"]].concat(),
+            "--linger-s",
+        ),
+        (
+            [&coordinator[..], &["--max-minutes", "NaN"]].concat(),
+            "--max-minutes",
+        ),
+        (
+            [&train[..], &["--max-minutes", "NaN"]].concat(),
+            "--max-minutes",
+        ),
+        (
+            [&train[..], &["--max-minutes", "inf"]].concat(),
+            "--max-minutes",
+        ),
+        (
+            [&train[..], &["--eval-every-s", "1e30"]].concat(),
+            "--eval-every-s",
+        ),
+        ([&train[..], &["--workers", "0"]].concat(), "--workers"),
+    ];
+    for (args, flag) in cases {
+        let out = Command::new(bin())
+            .args(&args)
+            .env("OSRT_TOKEN", "flags-test-token")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(
+            err.contains(flag) && !err.contains("panicked"),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!run.exists(), "a refused command wrote its run folder");
+}
+
 /// pyarrow reads what we wrote (`scripts/test` installs pyarrow).
 #[test]
 fn pyarrow_reads_generated_splits() {

@@ -130,6 +130,10 @@ pub struct Core {
     /// The checkpoint the current generation started from (fixed at formation: a late
     /// report of an abandoned generation's checkpoint must not split the ring).
     pub resume_step: Option<u64>,
+    /// The generation's checkpoints past `resume_step` (an abandoned timeline's) are
+    /// still to be discarded by the service, which verifies `resume_step` first: no plan
+    /// goes out meanwhile, so no rank of the new generation meets them.
+    pub discard_pending: bool,
     pub hash_checks: u64,
     /// step → rank → parameter hash, until every rank has reported.
     hashes: BTreeMap<u64, BTreeMap<usize, String>>,
@@ -194,6 +198,7 @@ impl Core {
             restarts_before: 0,
             last_checkpoint: None,
             resume_step: None,
+            discard_pending: false,
             hash_checks: 0,
             hashes: BTreeMap::new(),
             records: Vec::new(),
@@ -467,13 +472,18 @@ impl Core {
         Ok((self.directive_for(id, generation), self.generation))
     }
 
+    /// The checkpoints past the generation's `resume_step` are gone: plans go out.
+    pub fn discarded(&mut self) {
+        self.discard_pending = false;
+    }
+
     /// The plan of member `id` if a generation newer than `after` includes it.
     pub fn plan(&mut self, id: u64, after: u64, now: Instant) -> Result<PlanState, Status> {
         self.member(id, now)?;
         Ok(match &self.phase {
             Phase::Done => PlanState::Done,
             Phase::Failed(m) => PlanState::Failed(m.clone()),
-            Phase::Running if self.generation > after => {
+            Phase::Running if self.generation > after && !self.discard_pending => {
                 match self.ring.iter().position(|&m| m == id) {
                     Some(rank) => PlanState::Running(WorkerPlan {
                         job: self.spec.job_id.clone(),
@@ -504,7 +514,7 @@ impl Core {
         if self.is_over() {
             return;
         }
-        let timeout = Duration::from_secs_f64(self.spec.cluster.heartbeat_timeout_s);
+        let timeout: Duration = self.spec.cluster.heartbeat_timeout();
         let lost: Vec<u64> = self
             .members
             .values()
@@ -536,13 +546,13 @@ impl Core {
                 .collect();
             let c = &self.spec.cluster;
             let n = eligible.len();
-            let grace = Duration::from_secs_f64(c.join_grace_s);
+            let grace = c.join_grace();
             let waited = now.duration_since(since);
             let limit = c.max_workers.min(self.batch.unwrap_or(usize::MAX));
             if n >= limit || (n >= c.min_workers && waited >= grace) {
                 // A ring larger than the batch could not give every rank a scene.
                 self.form(eligible.into_iter().take(limit).collect());
-            } else if waited.as_secs_f64() > c.wait_timeout_s {
+            } else if waited > c.wait_timeout() {
                 let names: Vec<&str> = self.members.values().map(|m| m.name.as_str()).collect();
                 let (min, limit) = (c.min_workers, c.wait_timeout_s);
                 self.fail(format!(
@@ -558,6 +568,7 @@ impl Core {
         self.generation += 1;
         self.ring = ring;
         self.resume_step = self.last_checkpoint;
+        self.discard_pending = true;
         self.phase = Phase::Running;
         self.hashes.clear();
         let keep = self.last_checkpoint;
@@ -583,6 +594,35 @@ impl Core {
             resume_step = ?self.last_checkpoint,
             "generation starts"
         );
+    }
+
+    /// Stores rank 0's record lines, in order, skipping those already held.
+    fn take_records(&mut self, records: Vec<String>) -> Result<(), Status> {
+        // Every line is checked before any is stored: a line that would split
+        // `metrics.jsonl` (and lose records past it when a restart reads the file) is
+        // refused, and a refused report stores none of its records.
+        let mut steps = Vec::with_capacity(records.len());
+        for (i, line) in records.iter().enumerate() {
+            let record = osrt_run::records::validate_line(line)
+                .map_err(|e| Status::invalid_argument(format!("record {i} of the report: {e}")))?;
+            steps.push(record.step());
+        }
+        for (line, s) in records.into_iter().zip(steps) {
+            // A report resent after a lost answer repeats records already held.
+            let held = self
+                .records
+                .iter()
+                .rev()
+                .take_while(|(k, _)| *k >= s)
+                .any(|(_, l)| *l == line);
+            if held {
+                continue;
+            }
+            self.last_record = line.clone();
+            self.records.push((s, line));
+            self.dirty_metrics = true;
+        }
+        Ok(())
     }
 
     pub fn progress(&mut self, p: Progress, now: Instant) -> Result<Directive, Status> {
@@ -615,26 +655,7 @@ impl Core {
             )));
         }
         if rank == 0 {
-            for line in records {
-                let Some(s) = record_step(&line) else {
-                    return Err(Status::invalid_argument(
-                        "metrics record is not a JSON object with a `step`",
-                    ));
-                };
-                // A report resent after a lost answer repeats records already held.
-                let held = self
-                    .records
-                    .iter()
-                    .rev()
-                    .take_while(|(k, _)| *k >= s)
-                    .any(|(_, l)| *l == line);
-                if held {
-                    continue;
-                }
-                self.last_record = line.clone();
-                self.records.push((s, line));
-                self.dirty_metrics = true;
-            }
+            self.take_records(records)?;
         }
         if let Some(h) = param_hash {
             let world = self.ring.len();
@@ -741,5 +762,7 @@ impl Core {
     }
 }
 
+#[cfg(test)]
+mod record_lines;
 #[cfg(test)]
 mod tests;

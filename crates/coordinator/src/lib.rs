@@ -5,13 +5,14 @@
 //!
 //! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
 //! the loop that times out silent members and persists state; [`retention`] deletes old
-//! checkpoints.
+//! checkpoints and [`timeline`] those of an abandoned timeline.
 
 pub mod core;
 pub mod error;
 pub mod events;
 pub mod retention;
 pub mod service;
+pub mod timeline;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
 pub use error::CoordinatorError;

@@ -7,12 +7,13 @@ use crate::core::{
 use crate::error::CoordinatorError;
 use crate::events::Events;
 use crate::retention::Retention;
+use crate::timeline::{Timeline, Turn};
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
 use osrt_run::Location;
-use osrt_run::lease::{Holder, Lease, LeaseTiming};
+use osrt_run::lease::{self, Holder, Keeper, Lease, LeaseTiming};
 use osrt_run::retry::{Failing, RetryPolicy};
 use osrt_run::{
     CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
@@ -36,9 +37,9 @@ struct Shared {
     core: Mutex<Core>,
     changed: Notify,
     run: Location,
-    /// The run folder's lease, held from `open` until the job is over (`None` once
-    /// released).
-    lease: tokio::sync::Mutex<Option<Lease>>,
+    /// The run folder's lease, held and renewed from `open` until the job is over
+    /// (`None` once released).
+    lease: tokio::sync::Mutex<Option<Keeper>>,
     /// The records as TensorBoard events (only the monitor loop writes them).
     events: tokio::sync::Mutex<Events>,
 }
@@ -158,6 +159,9 @@ impl Coordinator {
             None => None,
         };
         let job_id = persisted.as_ref().map_or(&spec.job_id, |p| &p.job_id);
+        // A store that silently overwrites create-only or conditional writes would let
+        // two writers share the folder: refused before anything is taken or written.
+        lease::probe_store(&run).await?;
         let lease = Lease::acquire(
             &run,
             Holder::this_process(job_id),
@@ -186,7 +190,7 @@ impl Coordinator {
                 core: Mutex::new(core),
                 changed: Notify::new(),
                 run,
-                lease: tokio::sync::Mutex::new(Some(lease)),
+                lease: tokio::sync::Mutex::new(Some(Keeper::start(lease))),
                 events: tokio::sync::Mutex::new(events),
             }),
         })
@@ -380,15 +384,16 @@ impl Coordinator {
         let mut over_since: Option<Instant> = None;
         let mut store = StoreRetry::default();
         let can_append = self.local_metrics().is_some();
-        let mut last_renewal = Instant::now();
         let mut retention = Retention::default();
+        let mut timeline = Timeline::default();
         let keep_last = self.shared.with(|c, _| c.spec.cluster.keep_last);
         loop {
             tokio::select! {
                 _ = &mut shutdown => break,
                 _ = tokio::time::sleep(Duration::from_millis(100)) => {}
             }
-            self.renew_lease(&mut last_renewal).await?;
+            self.check_lease().await?;
+            self.discard_abandoned(&mut timeline).await;
             let write_now = store.due();
             let mut events = self.shared.events.lock().await;
             let (job, metrics, work, over) = self.shared.with(|c, now| {
@@ -503,26 +508,56 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Renews the run folder's lease when it is due. Losing the folder to another
-    /// coordinator ends this one with an error (it must not write there any more); a store
-    /// that fails to take a renewal is retried at the next turn.
-    async fn renew_lease(&self, last: &mut Instant) -> Result<(), CoordinatorError> {
+    /// Stops the coordinator (with the error) once its lease was lost or expired: it must
+    /// not drive the job or write the folder any more. The lease is renewed by a task of
+    /// its own, so no store write of this loop delays a renewal.
+    async fn check_lease(&self) -> Result<(), CoordinatorError> {
         let mut guard = self.shared.lease.lock().await;
-        let Some(lease) = guard.as_mut() else {
+        let Some(keeper) = guard.as_ref() else {
             return Ok(());
         };
-        if last.elapsed() < lease.timing.renew_every {
-            return Ok(());
-        }
-        match lease.renew().await {
-            Ok(()) => *last = Instant::now(),
-            Err(e @ RunError::LeaseLost { .. }) => {
-                guard.take();
-                return Err(e.into());
+        if let Err(e) = keeper.check() {
+            if let Some(k) = guard.take()
+                && let Err(r) = k.release().await
+            {
+                tracing::warn!(error = %r, "releasing the run folder's lease");
             }
-            Err(e) => tracing::warn!(error = %e, "renewing the run folder's lease"),
+            return Err(e.into());
         }
         Ok(())
+    }
+
+    /// Fences off older generations in the lease, then discards the checkpoints past the
+    /// new generation's starting point (verified first) before its plans go out; a
+    /// discard that cannot be made fails the job.
+    async fn discard_abandoned(&self, timeline: &mut Timeline) {
+        let (pending, resume_step, generation) = self.shared.with(|c, _| {
+            (
+                c.discard_pending && !c.is_over(),
+                c.resume_step,
+                c.generation,
+            )
+        });
+        if !pending {
+            return;
+        }
+        // The lease names the new generation first: from then on no rank of an older one
+        // can commit a checkpoint the discard would have to catch.
+        let token = match self.shared.lease.lock().await.as_ref() {
+            Some(k) if k.fence(generation) => k.token().to_string(),
+            _ => return,
+        };
+        match timeline.turn(&self.shared.run, &token, resume_step).await {
+            Turn::Pending => {}
+            Turn::Done => self.shared.with(|c, _| {
+                if c.resume_step == resume_step {
+                    c.discarded();
+                }
+            }),
+            Turn::Fatal(reason) => self
+                .shared
+                .with(|c, _| c.fail(format!("the generation could not start: {reason}"))),
+        }
     }
 
     /// `RUN/metrics.jsonl` as a local file, where the run folder is one.

@@ -20,8 +20,10 @@
 //! crash mid-write leaves no manifest, a corrupted file fails its hash, and either is
 //! skipped with a warning — never loaded.
 
-use crate::error::{Result, RunError};
+use crate::error::{Result, RunError, is_refusal};
+use crate::retry::RetryPolicy;
 use bytes::Bytes;
+use futures::StreamExt;
 use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload};
 use osrt_store::Location;
 use serde::{Deserialize, Serialize};
@@ -145,14 +147,38 @@ pub fn store_err(loc: &Location, path: &str, e: impl std::fmt::Display) -> RunEr
     }
 }
 
+/// A store error met while reading `path` of a checkpoint: an object that is not there
+/// is a missing part (the checkpoint is provably incomplete); anything else means the
+/// checkpoint could not be read, which says nothing about whether it is intact.
+fn read_err(loc: &Location, path: &str, e: object_store::Error) -> RunError {
+    match e {
+        object_store::Error::NotFound { .. } => store_err(loc, path, "missing"),
+        e => RunError::Unreadable {
+            path: loc.describe(&loc.path(path)),
+            transient: !is_refusal(&e),
+            reason: e.to_string(),
+        },
+    }
+}
+
+/// How long reads of a checkpoint may keep failing for a reason that may pass before a
+/// resume stops with the error (object stores' outages last seconds; a read of a large
+/// optimizer file can meet the client's own request timeout).
+pub const READ_BUDGET: std::time::Duration = std::time::Duration::from_secs(60);
+
 /// Writes `files` (name, bytes) of the checkpoint of `state`, then the manifest with `PutMode::Create`. A committed checkpoint
 /// at the same step is adopted only if it is this one (a replayed step after a
 /// restart produces the same weights and optimizer bytes under the same config);
 /// anything else there is an error, never overwritten.
+///
+/// With `fence` (the writer's generation), the manifest is written only while the run
+/// folder's lease names that generation or an older one ([`crate::lease::check_fence`]):
+/// a rank of an abandoned generation commits nothing the new timeline would meet.
 pub async fn commit(
     run: &Location,
     state: &CheckpointState,
     files: Vec<(&'static str, Bytes)>,
+    fence: Option<u64>,
 ) -> Result<u64> {
     let step = state.step;
     let dir = step_dir(step);
@@ -175,20 +201,19 @@ pub async fn commit(
             size: bytes.len() as u64,
             sha256: sha256_hex(bytes),
         });
-        run.store
-            .put_opts(
-                &run.path(&path),
-                PutPayload::from_bytes(bytes.clone()),
-                create(),
-            )
-            .await
-            .map_err(|e| store_err(run, &path, e))?;
+        put_file(run, &path, bytes).await?;
         torn_checkpoint_fault(step);
     }
     let manifest = Manifest {
         step,
         files: entries,
     };
+    if let Some(generation) = fence
+        && let Err(e) = crate::lease::check_fence(run, generation).await
+    {
+        delete_objects(run, &dir, &manifest).await;
+        return Err(e);
+    }
     let bytes = serde_json::to_vec_pretty(&manifest).expect("serialises");
     match run
         .store
@@ -198,18 +223,95 @@ pub async fn commit(
         Ok(_) => {}
         // Another writer committed this step meanwhile: its checkpoint stands; ours goes.
         Err(object_store::Error::AlreadyExists { .. }) => {
-            for e in &manifest.files {
-                let path = format!("{dir}/{}", e.object);
-                if let Err(err) = run.store.delete(&run.path(&path)).await {
-                    tracing::warn!(path, error = %err, "could not delete a losing writer's file");
+            return match adopt(run, state, &files).await {
+                Ok(step) => {
+                    // Another writer's checkpoint stands; unless the "other" is this
+                    // commit itself (a put answered `AlreadyExists` after it went through,
+                    // its retry finding it), its files go.
+                    if !manifest_is(run, &manifest_path, &manifest).await {
+                        delete_objects(run, &dir, &manifest).await;
+                    }
+                    Ok(step)
                 }
-            }
-            return adopt(run, state, &files).await;
+                Err(e) => {
+                    if !manifest_is(run, &manifest_path, &manifest).await {
+                        delete_objects(run, &dir, &manifest).await;
+                    }
+                    Err(e)
+                }
+            };
         }
         Err(e) => return Err(store_err(run, &manifest_path, e)),
     }
     tracing::info!(step, dir = %run.describe(&run.path(&dir)), "checkpoint committed");
     Ok(step)
+}
+
+/// Whether the manifest at `path` is `mine` (it lists my objects). Unknown (unreadable):
+/// taken as mine, so that nothing is deleted on a guess.
+async fn manifest_is(run: &Location, path: &str, mine: &Manifest) -> bool {
+    let Ok(got) = run.store.get(&run.path(path)).await else {
+        return true;
+    };
+    let Ok(bytes) = got.bytes().await else {
+        return true;
+    };
+    serde_json::from_slice::<Manifest>(&bytes).map_or(true, |there| there == *mine)
+}
+
+/// Deletes the objects `manifest` lists (a commit that lost or was refused); failures are
+/// logged (the objects are unreferenced).
+async fn delete_objects(run: &Location, dir: &str, manifest: &Manifest) {
+    for e in &manifest.files {
+        let path = format!("{dir}/{}", e.object());
+        if let Err(err) = run.store.delete(&run.path(&path)).await {
+            tracing::warn!(path, error = %err, "could not delete an uncommitted file");
+        }
+    }
+}
+
+/// Writes one data file of a commit create-only under its writer's name.
+async fn put_file(run: &Location, path: &str, bytes: &Bytes) -> Result<()> {
+    match run
+        .store
+        .put_opts(
+            &run.path(path),
+            PutPayload::from_bytes(bytes.clone()),
+            create(),
+        )
+        .await
+    {
+        Ok(_) => {}
+        // The name is this commit's own (a fresh writer tag): an object already there
+        // is this put's, found by a retry of a request that went through. Checked by
+        // size; the manifest's hash checks the rest at every read.
+        Err(object_store::Error::AlreadyExists { .. }) => {
+            let object = run.path(path);
+            let there = RetryPolicy::backoff(READ_BUDGET)
+                .run(
+                    "checking a file this commit wrote",
+                    |e: &object_store::Error| {
+                        !matches!(e, object_store::Error::NotFound { .. }) && !is_refusal(e)
+                    },
+                    || run.store.head(&object),
+                )
+                .await
+                .map_err(|e| read_err(run, path, e))?;
+            if there.size != bytes.len() as u64 {
+                return Err(store_err(
+                    run,
+                    path,
+                    format!(
+                        "a file of this writer's name is there with {} bytes, not {}",
+                        there.size,
+                        bytes.len()
+                    ),
+                ));
+            }
+        }
+        Err(e) => return Err(store_err(run, path, e)),
+    }
+    Ok(())
 }
 
 /// With the `fault-injection` feature, `OSRT_FAULT_TORN_CHECKPOINT=STEP:MARKER` makes the
@@ -250,7 +352,7 @@ fn torn_checkpoint_fault(_step: u64) {}
 async fn adopt(run: &Location, state: &CheckpointState, files: &[(&str, Bytes)]) -> Result<u64> {
     let step = state.step;
     let dir = step_dir(step);
-    let there = verify(run, step).await.map_err(|e| {
+    let there = verify_retrying(run, step).await.map_err(|e| {
         store_err(
             run,
             &dir,
@@ -304,7 +406,7 @@ pub async fn list_steps(run: &Location) -> Result<Vec<u64>> {
         .store
         .list_with_delimiter(Some(&prefix))
         .await
-        .map_err(|e| store_err(run, "checkpoints", e))?;
+        .map_err(|e| read_err(run, "checkpoints", e))?;
     let mut steps: Vec<u64> = listing
         .common_prefixes
         .iter()
@@ -342,10 +444,10 @@ pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>>
             .store
             .get(&run.path(&path))
             .await
-            .map_err(|err| store_err(run, &path, err))?
+            .map_err(|err| read_err(run, &path, err))?
             .bytes()
             .await
-            .map_err(|err| store_err(run, &path, err))?;
+            .map_err(|err| read_err(run, &path, err))?;
         if data.len() as u64 != e.size {
             return Err(store_err(
                 run,
@@ -375,13 +477,25 @@ pub async fn verify(run: &Location, step: u64) -> Result<HashMap<String, Bytes>>
     Ok(files)
 }
 
+/// [`verify`], retrying reads that fail for a reason that may pass within
+/// [`READ_BUDGET`] (a large file read can meet a store's request timeout).
+pub async fn verify_retrying(run: &Location, step: u64) -> Result<HashMap<String, Bytes>> {
+    RetryPolicy::backoff(READ_BUDGET)
+        .run(
+            &format!("reading checkpoint {step}"),
+            RunError::is_transient,
+            || verify(run, step),
+        )
+        .await
+}
+
 /// The manifest of the checkpoint at `step`, unverified; `None` where there is none.
 pub async fn read_manifest(run: &Location, step: u64) -> Result<Option<Manifest>> {
     let mpath = format!("{}/{MANIFEST}", step_dir(step));
     let bytes = match run.store.get(&run.path(&mpath)).await {
-        Ok(r) => r.bytes().await.map_err(|e| store_err(run, &mpath, e))?,
+        Ok(r) => r.bytes().await.map_err(|e| read_err(run, &mpath, e))?,
         Err(object_store::Error::NotFound { .. }) => return Ok(None),
-        Err(e) => return Err(store_err(run, &mpath, e)),
+        Err(e) => return Err(read_err(run, &mpath, e)),
     };
     serde_json::from_slice(&bytes)
         .map(Some)
@@ -403,19 +517,107 @@ pub async fn object_of(run: &Location, step: u64, name: &str) -> Result<String> 
     Ok(format!("{dir}/{}", entry.object()))
 }
 
-/// The newest checkpoint that verifies (torn or corrupt ones are skipped with a warning),
-/// optionally the newest at or below `at_most`.
+/// The newest checkpoint that verifies, optionally the newest at or below `at_most`.
+/// Missing or provably corrupt ones (torn, a size or SHA-256 mismatch) are skipped with
+/// a warning; one the store will not hand over is tried again under [`READ_BUDGET`], and
+/// if it stays unreadable the error stands: the caller must stop, not start over (an
+/// older checkpoint or none would discard the unreadable one and the records after it).
 pub async fn latest_verified(run: &Location, at_most: Option<u64>) -> Result<Option<u64>> {
-    for step in list_steps(run).await? {
+    latest_verified_with(run, at_most, RetryPolicy::backoff(READ_BUDGET)).await
+}
+
+/// [`latest_verified`] with its own retry policy (tests).
+pub async fn latest_verified_with(
+    run: &Location,
+    at_most: Option<u64>,
+    policy: RetryPolicy,
+) -> Result<Option<u64>> {
+    let steps = policy
+        .run("listing the checkpoints", RunError::is_transient, || {
+            list_steps(run)
+        })
+        .await?;
+    for step in steps {
         if at_most.is_some_and(|m| step > m) {
             continue;
         }
-        match verify(run, step).await {
-            Ok(_) => return Ok(Some(step)),
-            Err(e) => tracing::warn!(step, error = %e, "skipping checkpoint"),
+        let what = format!("verifying checkpoint {step}");
+        match policy
+            .run(&what, RunError::is_transient, || check(run, step))
+            .await
+        {
+            Ok(()) => return Ok(Some(step)),
+            Err(e @ RunError::Checkpoint { .. }) => {
+                tracing::warn!(step, error = %e, "skipping checkpoint")
+            }
+            Err(e) => return Err(e),
         }
     }
     Ok(None)
+}
+
+/// Checks the checkpoint at `step` as [`verify`] does, streaming each file through its
+/// hash instead of holding it (the coordinator verifies without a model's memory).
+pub async fn check(run: &Location, step: u64) -> Result<()> {
+    let dir = step_dir(step);
+    let mpath = format!("{dir}/{MANIFEST}");
+    let manifest = read_manifest(run, step).await?.ok_or_else(|| {
+        store_err(
+            run,
+            &dir,
+            "no MANIFEST.json: the checkpoint was not finished (torn)",
+        )
+    })?;
+    if manifest.step != step {
+        return Err(store_err(
+            run,
+            &mpath,
+            format!(
+                "manifest says step {}, folder is step {step}",
+                manifest.step
+            ),
+        ));
+    }
+    for want in [MODEL, OPTIMIZER, STATE] {
+        if !manifest.files.iter().any(|e| e.name == want) {
+            return Err(store_err(
+                run,
+                &mpath,
+                format!("manifest does not list {want}"),
+            ));
+        }
+    }
+    for e in &manifest.files {
+        let path = format!("{dir}/{}", e.object());
+        let mut stream = run
+            .store
+            .get(&run.path(&path))
+            .await
+            .map_err(|err| read_err(run, &path, err))?
+            .into_stream();
+        let (mut hash, mut len) = (Sha256::new(), 0u64);
+        while let Some(chunk) = stream.next().await {
+            let chunk = chunk.map_err(|err| read_err(run, &path, err))?;
+            len += chunk.len() as u64;
+            hash.update(&chunk);
+        }
+        if len != e.size {
+            return Err(store_err(
+                run,
+                &path,
+                format!("{len} bytes, the manifest lists {}", e.size),
+            ));
+        }
+        let h: String = hash.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        if h != e.sha256 {
+            return Err(store_err(
+                run,
+                &path,
+                format!("SHA-256 {h} does not match the manifest's {}", e.sha256),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Deletes every checkpoint folder (committed or torn) past `step` (`None`: all), the
@@ -487,21 +689,27 @@ pub async fn apply_retention(
         match run.store.head(&run.path(&manifest)).await {
             Ok(_) => steps.push(s),
             Err(object_store::Error::NotFound { .. }) => {}
-            Err(e) => return Err(store_err(run, &manifest, e)),
+            Err(e) => return Err(read_err(run, &manifest, e)),
         }
     }
     if steps.len() <= keep_last {
         return Ok(Vec::new());
     }
+    // The best must be known before anything goes: a state that cannot be read now
+    // could be the best's, so the pass stops (and is tried again later) rather than
+    // guess.
     let mut best: Option<(u64, (f64, f64))> = None;
     for &s in &steps {
-        let Ok(path) = object_of(run, s, STATE).await else {
-            continue;
+        let path = match object_of(run, s, STATE).await {
+            Ok(path) => path,
+            Err(e @ RunError::Unreadable { .. }) => return Err(e),
+            Err(_) => continue,
         };
-        let Ok(r) = run.store.get(&run.path(&path)).await else {
-            continue;
+        let bytes = match run.store.get(&run.path(&path)).await {
+            Ok(r) => r.bytes().await.map_err(|e| read_err(run, &path, e))?,
+            Err(object_store::Error::NotFound { .. }) => continue,
+            Err(e) => return Err(read_err(run, &path, e)),
         };
-        let Ok(bytes) = r.bytes().await else { continue };
         let Ok(st) = serde_json::from_slice::<CheckpointState>(&bytes) else {
             continue;
         };

@@ -4,6 +4,48 @@
 
 use crate::error::{Result, RunError};
 use serde::{Deserialize, Serialize};
+use std::time::Duration;
+
+/// The longest any duration of the job or the command line may be: a year. Longer than
+/// any wait a job means, and far inside what `Duration` and `Instant` arithmetic hold
+/// (`Duration::from_secs_f64(1e30)` panics).
+pub const MAX_DURATION_S: f64 = 365.0 * 86_400.0;
+
+/// The collective's largest chunk, 1 MiB of f32: `osrt_proto::MAX_CHUNK_FLOATS`, which
+/// this crate does not depend on (the coordinator's tests hold the two equal).
+pub const MAX_CHUNK_FLOATS: usize = 1 << 18;
+
+/// The smallest chunk (4 KiB of f32), and the smallest bucket (256 KiB). A rank receives
+/// `2 (W − 1)` segments of `bucket / W` floats per bucket, each in chunks, so one
+/// all-reduce of `n` floats holds fewer than `2 n / chunk + 2 W (n / bucket + 1)` hops in
+/// its schedule: with these floors and `W ≤` [`MAX_WORKERS`], under `n / 30 + 2 W`, where
+/// `bucket_floats = 1` made one hop per float and ran out of memory.
+pub const MIN_CHUNK_FLOATS: usize = 1 << 10;
+pub const MIN_BUCKET_FLOATS: usize = 1 << 16;
+
+/// The most workers a job may have: a ring of more would cut a bucket into segments too
+/// small to be worth a hop each.
+pub const MAX_WORKERS: usize = 1024;
+
+/// `v` seconds as a [`Duration`], or why it cannot be one: it must be finite, positive
+/// (`positive`) or non-negative, and at most [`MAX_DURATION_S`]. The reason leaves the
+/// setting's name to the caller, which knows it (a config field or a flag).
+pub fn duration_s(v: f64, positive: bool) -> std::result::Result<Duration, String> {
+    let least_ok = if positive { v > 0.0 } else { v >= 0.0 };
+    if v.is_finite() && least_ok && v <= MAX_DURATION_S {
+        return Ok(Duration::from_secs_f64(v));
+    }
+    let want = if positive { "positive" } else { "non-negative" };
+    Err(format!(
+        "must be a {want}, finite number of seconds, at most {MAX_DURATION_S} (a year); got {v:?}"
+    ))
+}
+
+/// A validated setting's duration; values outside [`duration_s`]'s range (a config not
+/// validated) saturate instead of panicking.
+fn saturating_duration(v: f64) -> Duration {
+    Duration::try_from_secs_f64(v.clamp(0.0, MAX_DURATION_S)).unwrap_or(Duration::ZERO)
+}
 
 /// How the job runs as a cluster: membership, the collective, checkpoints.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -15,7 +57,8 @@ pub struct ClusterConfig {
     pub max_workers: usize,
     /// Generation changes after a lost member or a failed round before the job fails.
     pub max_restarts: u32,
-    /// A member silent for this long is lost.
+    /// A member silent for this long is lost. Every duration here is at most
+    /// [`MAX_DURATION_S`].
     pub heartbeat_timeout_s: f64,
     /// Once `min_workers` are present, wait this long for more (up to `max_workers`).
     pub join_grace_s: f64,
@@ -23,8 +66,9 @@ pub struct ClusterConfig {
     pub wait_timeout_s: f64,
     /// Deadline of every collective RPC and wait: a dead peer fails the round this fast.
     pub rpc_timeout_s: f64,
-    /// All-reduce bucket size (floats) and chunk size (floats, at most 1 MiB of f32).
+    /// All-reduce bucket size (floats): at least [`MIN_BUCKET_FLOATS`] and `chunk_floats`.
     pub bucket_floats: usize,
+    /// All-reduce chunk size (floats): [`MIN_CHUNK_FLOATS`] to [`MAX_CHUNK_FLOATS`].
     pub chunk_floats: usize,
     /// Compare replicas' parameter hashes through the coordinator every this many steps.
     pub hash_every: u64,
@@ -45,9 +89,7 @@ impl Default for ClusterConfig {
             wait_timeout_s: 600.0,
             rpc_timeout_s: 10.0,
             bucket_floats: 1 << 22,
-            // The collective's largest chunk (`osrt_proto::MAX_CHUNK_FLOATS`, 1 MiB of
-            // f32), which the coordinator holds `chunk_floats` to.
-            chunk_floats: 1 << 18,
+            chunk_floats: MAX_CHUNK_FLOATS,
             hash_every: 10,
             checkpoint_every: 500,
             keep_last: 3,
@@ -95,15 +137,13 @@ impl ClusterConfig {
                 reason,
             })
         };
-        if c.min_workers == 0 || c.min_workers > c.max_workers {
+        if c.min_workers == 0 || c.min_workers > c.max_workers || c.max_workers > MAX_WORKERS {
             return bad(format!(
-                "cluster: need 1 <= min_workers ({}) <= max_workers ({})",
+                "need 1 <= cluster.min_workers ({}) <= cluster.max_workers ({}) <= {MAX_WORKERS}",
                 c.min_workers, c.max_workers
             ));
         }
         for (name, v) in [
-            ("bucket_floats", c.bucket_floats as u64),
-            ("chunk_floats", c.chunk_floats as u64),
             ("hash_every", c.hash_every),
             ("checkpoint_every", c.checkpoint_every),
             ("keep_last", c.keep_last as u64),
@@ -113,24 +153,52 @@ impl ClusterConfig {
                 return bad(format!("cluster.{name} must be positive"));
             }
         }
-        for (name, v) in [
-            ("heartbeat_timeout_s", c.heartbeat_timeout_s),
-            ("rpc_timeout_s", c.rpc_timeout_s),
-            ("wait_timeout_s", c.wait_timeout_s),
-        ] {
-            if !(v.is_finite() && v > 0.0) {
-                return bad(format!(
-                    "cluster.{name} must be positive and finite, got {v}"
-                ));
-            }
-        }
-        if !(c.join_grace_s.is_finite() && c.join_grace_s >= 0.0) {
+        if !(MIN_CHUNK_FLOATS..=MAX_CHUNK_FLOATS).contains(&c.chunk_floats) {
             return bad(format!(
-                "cluster.join_grace_s must be non-negative and finite, got {}",
-                c.join_grace_s
+                "cluster.chunk_floats must be in {MIN_CHUNK_FLOATS}..={MAX_CHUNK_FLOATS} \
+                 (4 KiB to 1 MiB of f32), got {}",
+                c.chunk_floats
             ));
         }
+        let least = MIN_BUCKET_FLOATS.max(c.chunk_floats);
+        if c.bucket_floats < least {
+            return bad(format!(
+                "cluster.bucket_floats must be at least {MIN_BUCKET_FLOATS} and at least \
+                 cluster.chunk_floats ({}), got {}",
+                c.chunk_floats, c.bucket_floats
+            ));
+        }
+        for (name, v, positive) in [
+            ("heartbeat_timeout_s", c.heartbeat_timeout_s, true),
+            ("rpc_timeout_s", c.rpc_timeout_s, true),
+            ("wait_timeout_s", c.wait_timeout_s, true),
+            ("join_grace_s", c.join_grace_s, false),
+        ] {
+            if let Err(why) = duration_s(v, positive) {
+                return bad(format!("cluster.{name} {why}"));
+            }
+        }
         Ok(())
+    }
+
+    /// `heartbeat_timeout_s`: a member silent for this long is lost.
+    pub fn heartbeat_timeout(&self) -> Duration {
+        saturating_duration(self.heartbeat_timeout_s)
+    }
+
+    /// `join_grace_s`: how long a generation waits for more than `min_workers`.
+    pub fn join_grace(&self) -> Duration {
+        saturating_duration(self.join_grace_s)
+    }
+
+    /// `wait_timeout_s`: how long the job waits for a generation to form.
+    pub fn wait_timeout(&self) -> Duration {
+        saturating_duration(self.wait_timeout_s)
+    }
+
+    /// `rpc_timeout_s`: the deadline of every collective RPC and wait.
+    pub fn rpc_timeout(&self) -> Duration {
+        saturating_duration(self.rpc_timeout_s)
     }
 }
 
@@ -181,6 +249,80 @@ mod tests {
         assert!(err.unwrap_err().to_string().contains("cluster.keep_last"));
         let wrong = ClusterConfig::from_job_toml("job.toml", "[cluster]\nmin_workers = \"x\"\n");
         assert!(wrong.unwrap_err().to_string().contains("job.toml"));
+    }
+
+    /// `Duration::from_secs_f64(1e30)` panics: a duration beyond a year, or not finite,
+    /// is refused by name, also where it comes from a stored config.toml (a restarted
+    /// coordinator reads that), and every valid one converts.
+    #[test]
+    fn durations_are_finite_and_at_most_a_year() {
+        for name in [
+            "heartbeat_timeout_s",
+            "join_grace_s",
+            "rpc_timeout_s",
+            "wait_timeout_s",
+        ] {
+            for v in ["1e30", "nan", "inf", "-1.0", "31536001.0"] {
+                let text = format!("[cluster]\n{name} = {v}\n");
+                let c = ClusterConfig::from_job_toml("config.toml", &text).unwrap();
+                let e = c.validate().unwrap_err().to_string();
+                assert!(e.contains(&format!("cluster.{name}")), "{name} = {v}: {e}");
+            }
+            let text = format!("[cluster]\n{name} = {MAX_DURATION_S:?}\n");
+            let c = ClusterConfig::from_job_toml("config.toml", &text).unwrap();
+            c.validate().unwrap();
+            for d in [
+                c.heartbeat_timeout(),
+                c.join_grace(),
+                c.rpc_timeout(),
+                c.wait_timeout(),
+            ] {
+                assert!(d <= Duration::from_secs_f64(MAX_DURATION_S));
+                assert!(std::time::Instant::now().checked_add(d).is_some());
+            }
+        }
+        let unchecked = ClusterConfig {
+            heartbeat_timeout_s: 1e30,
+            join_grace_s: f64::NAN,
+            ..ClusterConfig::default()
+        };
+        let year = Duration::from_secs_f64(MAX_DURATION_S);
+        assert_eq!(unchecked.heartbeat_timeout(), year);
+        assert_eq!(unchecked.join_grace(), Duration::ZERO);
+    }
+
+    /// `bucket_floats = 1` made one ring hop per float (tens of millions for a model)
+    /// and ran out of memory: buckets and chunks are bounded below, chunks above.
+    #[test]
+    fn buckets_and_chunks_are_bounded() {
+        type Edit = fn(&mut ClusterConfig);
+        let cases: [(&str, Edit); 6] = [
+            ("cluster.bucket_floats", |c| c.bucket_floats = 1),
+            ("cluster.bucket_floats", |c| {
+                c.bucket_floats = MIN_BUCKET_FLOATS - 1
+            }),
+            ("cluster.bucket_floats", |c| {
+                c.bucket_floats = c.chunk_floats - 1
+            }),
+            ("cluster.chunk_floats", |c| c.chunk_floats = 1),
+            ("cluster.chunk_floats", |c| {
+                c.chunk_floats = MAX_CHUNK_FLOATS + 1
+            }),
+            ("max_workers", |c| c.max_workers = MAX_WORKERS + 1),
+        ];
+        for (name, edit) in cases {
+            let mut c = ClusterConfig::default();
+            edit(&mut c);
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(name), "{name}: {e}");
+        }
+        let least = ClusterConfig {
+            bucket_floats: MIN_BUCKET_FLOATS,
+            chunk_floats: MIN_CHUNK_FLOATS,
+            max_workers: MAX_WORKERS,
+            ..ClusterConfig::default()
+        };
+        least.validate().unwrap();
     }
 
     #[test]

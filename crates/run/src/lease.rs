@@ -1,27 +1,33 @@
 //! The run folder's lease (`RUN/lease.json`): at most one coordinator drives a run folder.
 //!
 //! The holder writes the lease create-only when it starts, and renews it every
-//! [`LeaseTiming::renew_every`] by writing it again with its renewal count one higher,
-//! after checking that the lease is still its own (a holder that finds another's lease has
-//! lost the folder and must stop). A newcomer that finds a lease watches it for
-//! [`LeaseTiming::watch`]: if the count moves, the holder is alive and the newcomer is
-//! refused, with the holder's name and how long it has held the folder; if it does not
-//! move, the holder is dead (a crashed coordinator: the restart path) and the newcomer
-//! takes the lease over. A holder on the same machine whose process is gone is dead
-//! without watching (a local restart after a crash). Liveness is judged by a count seen to move, not by timestamps,
-//! so clocks of different machines need not agree. `take_over` skips the watch, for a
-//! holder known to be dead.
+//! [`LeaseTiming::renew_every`] by writing it again with its renewal count one higher, as
+//! a conditional write on the version it wrote last (`PutMode::Update`): a renewal can
+//! never overwrite a newcomer's lease, and one that fails because the lease changed tells
+//! the holder it has lost the folder. A newcomer that finds a lease watches it for
+//! [`LeaseTiming::watch`]: if it changes, the holder is alive and the newcomer is
+//! refused, with the holder's name and how long it has held the folder; if it does not,
+//! the holder is gone and the newcomer takes the lease over, again conditionally on the
+//! version it watched, so of two newcomers one wins. Liveness is judged only by renewals
+//! seen on the store, never by process ids (which mean nothing across PID namespaces or
+//! hosts sharing a name) nor by comparing clocks of different machines.
 //!
-//! Object stores offer create-only writes but no compare-and-swap on every backend, so
-//! two newcomers taking over a dead holder's lease at the same moment can both believe
-//! they hold it until the first renewal, when one of them finds the other's lease and
-//! stops.
+//! Fencing: a holder whose renewals fail stops driving the job once
+//! [`LeaseTiming::expiry`] has passed since the start of its last renewal that the store
+//! took, which is before any newcomer can have watched the lease unchanged for
+//! [`LeaseTiming::watch`] ([`Keeper`]). Deletions of checkpoints check the lease is still
+//! the deleter's ([`still_held`]).
+//!
+//! Local folders get conditional writes from `osrt_store` (a lock beside the file);
+//! object stores from the store itself. [`probe_store`] refuses a store that ignores
+//! create-only or conditional writes before a job runs on it.
 
+use crate::Location;
 use crate::error::{Result, RunError};
-use crate::{Location, read_file};
-use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload, PutResult, UpdateVersion};
 use serde::{Deserialize, Serialize};
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 pub const LEASE_FILE: &str = "lease.json";
 
@@ -78,31 +84,48 @@ struct LeaseFile {
     /// Renewals so far: a count that moves while the holder is alive.
     renewals: u64,
     renewed_unix_s: u64,
+    /// The job's generation the holder drives: checkpoint commits of an older
+    /// generation are refused ([`check_fence`]).
+    #[serde(default)]
+    generation: u64,
 }
 
-/// How often the holder renews, and how long a newcomer watches a lease for a renewal.
+/// How often the holder renews, how long a newcomer watches a lease for a renewal, and
+/// how long a holder goes on without a renewal the store took.
 #[derive(Debug, Clone, Copy)]
 pub struct LeaseTiming {
     pub renew_every: Duration,
     pub watch: Duration,
 }
 
+impl LeaseTiming {
+    /// A holder stops driving the job this long after the start of its last renewal the
+    /// store took: a renewal period before a newcomer's watch can have ended.
+    pub fn expiry(&self) -> Duration {
+        self.watch.saturating_sub(self.renew_every)
+    }
+}
+
 impl Default for LeaseTiming {
-    /// Renewed every 3 s, watched for 10 s: a live holder renews three times within the
-    /// watch, even with a slow store; a crashed coordinator's restart waits 10 s.
+    /// Renewed every 3 s, watched for 15 s: a live holder renews four times within the
+    /// watch, even with a slow store; a holder that cannot renew for 12 s stops; a
+    /// crashed coordinator's restart waits 15 s.
     fn default() -> Self {
         Self {
             renew_every: Duration::from_secs(3),
-            watch: Duration::from_secs(10),
+            watch: Duration::from_secs(15),
         }
     }
 }
 
-/// A held lease; renew it every [`LeaseTiming::renew_every`] and release it at the end.
+/// A held lease; renew it every [`LeaseTiming::renew_every`] (or let a [`Keeper`] do it)
+/// and release it at the end.
 #[derive(Debug)]
 pub struct Lease {
     run: Location,
     file: LeaseFile,
+    /// The version of the lease object this holder wrote last.
+    version: UpdateVersion,
     pub timing: LeaseTiming,
 }
 
@@ -113,38 +136,44 @@ fn lease_err(run: &Location, reason: impl std::fmt::Display) -> RunError {
     }
 }
 
-/// Whether process `pid` of this machine is running (Linux: `/proc/PID`); true where that
-/// cannot be told, so that the lease is watched instead.
-fn process_alive(pid: u32) -> bool {
-    let proc = std::path::Path::new("/proc");
-    !proc.is_dir() || proc.join(pid.to_string()).exists()
-}
-
 fn unix_now() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs())
 }
 
-async fn read_lease(run: &Location) -> Result<Option<LeaseFile>> {
-    match read_file(run, LEASE_FILE).await? {
-        None => Ok(None),
-        Some(b) => serde_json::from_slice(&b).map(Some).map_err(|e| {
-            lease_err(
-                run,
-                format!("unreadable ({e}); delete it if no job runs here"),
-            )
-        }),
-    }
+/// The lease there and the version of its object.
+async fn read_lease(run: &Location) -> Result<Option<(LeaseFile, UpdateVersion)>> {
+    let got = match run.store.get(&run.path(LEASE_FILE)).await {
+        Ok(got) => got,
+        Err(object_store::Error::NotFound { .. }) => return Ok(None),
+        Err(e) => return Err(lease_err(run, e)),
+    };
+    let version = UpdateVersion {
+        e_tag: got.meta.e_tag.clone(),
+        version: got.meta.version.clone(),
+    };
+    let bytes = got.bytes().await.map_err(|e| lease_err(run, e))?;
+    let file = serde_json::from_slice(&bytes).map_err(|e| {
+        lease_err(
+            run,
+            format!("unreadable ({e}); delete it if no job runs here"),
+        )
+    })?;
+    Ok(Some((file, version)))
 }
 
-async fn put(run: &Location, file: &LeaseFile, create_only: bool) -> Result<bool> {
+/// How a write of the lease came out.
+enum Put {
+    Written(UpdateVersion),
+    /// Create-only, and a lease is there.
+    Exists,
+    /// Conditional, and the lease is no longer the version it was conditioned on.
+    Changed,
+}
+
+async fn put(run: &Location, file: &LeaseFile, mode: PutMode) -> Result<Put> {
     let bytes = serde_json::to_vec_pretty(file).expect("serialises");
-    let mode = if create_only {
-        PutMode::Create
-    } else {
-        PutMode::Overwrite
-    };
     let opts = PutOptions {
         mode,
         ..Default::default()
@@ -154,9 +183,50 @@ async fn put(run: &Location, file: &LeaseFile, create_only: bool) -> Result<bool
         .put_opts(&run.path(LEASE_FILE), PutPayload::from(bytes), opts)
         .await
     {
-        Ok(_) => Ok(true),
-        Err(object_store::Error::AlreadyExists { .. }) => Ok(false),
+        Ok(PutResult { e_tag, version, .. }) => Ok(Put::Written(UpdateVersion { e_tag, version })),
+        Err(object_store::Error::AlreadyExists { .. }) => Ok(Put::Exists),
+        // S3 reports an `If-Match` on a missing object as a failed precondition too.
+        Err(object_store::Error::Precondition { .. } | object_store::Error::NotFound { .. }) => {
+            Ok(Put::Changed)
+        }
         Err(e) => Err(lease_err(run, e)),
+    }
+}
+
+/// The lease of `run` is still the one holding `token`: an error otherwise (checked
+/// before a deletion that only the holder may make).
+pub async fn still_held(run: &Location, token: &str) -> Result<()> {
+    match read_lease(run).await? {
+        Some((there, _)) if there.holder.token == token => Ok(()),
+        Some((there, _)) => Err(RunError::LeaseLost {
+            path: run.describe(&run.path(LEASE_FILE)),
+            holder: there.holder.to_string(),
+        }),
+        None => Err(RunError::LeaseLost {
+            path: run.describe(&run.path(LEASE_FILE)),
+            holder: "nobody (the lease file was deleted)".into(),
+        }),
+    }
+}
+
+/// Refuses a write of the job's `generation` where the run folder's lease says a newer
+/// generation (or nobody) drives it: a rank of an abandoned generation, or of a job whose
+/// coordinator was replaced, must not commit a checkpoint the new timeline would meet.
+pub async fn check_fence(run: &Location, generation: u64) -> Result<()> {
+    let path = run.describe(&run.path(LEASE_FILE));
+    match read_lease(run).await? {
+        Some((there, _)) if there.generation <= generation => Ok(()),
+        Some((there, _)) => Err(RunError::Fenced {
+            path,
+            reason: format!(
+                "generation {} of {} drives the run folder; this is generation {generation}",
+                there.generation, there.holder
+            ),
+        }),
+        None => Err(RunError::Fenced {
+            path,
+            reason: "no coordinator holds the run folder".into(),
+        }),
     }
 }
 
@@ -170,98 +240,102 @@ impl Lease {
         timing: LeaseTiming,
         take_over: bool,
     ) -> Result<Self> {
-        let mine = LeaseFile {
+        let file = LeaseFile {
             holder,
             renewals: 0,
             renewed_unix_s: unix_now(),
+            generation: 0,
         };
-        let lease = Self {
-            run: run.clone(),
-            file: mine,
-            timing,
-        };
-        if put(run, &lease.file, true).await? {
-            return Ok(lease);
-        }
-        if !take_over {
-            lease.watch_existing().await?;
-        }
-        // The holder is gone: its lease is replaced by ours.
-        put(run, &lease.file, false).await?;
-        tracing::warn!(run = %run.describe(&run.path(LEASE_FILE)), "took over the run folder's lease");
-        Ok(lease)
-    }
-
-    /// Watches the lease there for a renewal; an error naming the holder if one comes.
-    async fn watch_existing(&self) -> Result<()> {
-        let run = &self.run;
-        let Some(first) = read_lease(run).await? else {
-            return Ok(());
-        };
-        if first.holder.host == self.file.holder.host && !process_alive(first.holder.pid) {
-            // A holder on this machine whose process is gone (a restart after a crash):
-            // nothing to watch.
-            tracing::warn!(holder = %first.holder, "the run folder's holder is no longer running");
-            return Ok(());
-        }
-        tracing::info!(
-            holder = %first.holder,
-            watch_s = self.timing.watch.as_secs_f64(),
-            "the run folder has a lease: watching it for a renewal"
-        );
-        let deadline = tokio::time::Instant::now() + self.timing.watch;
-        let step = (self.timing.renew_every / 3).max(Duration::from_millis(50));
-        while tokio::time::Instant::now() < deadline {
-            tokio::time::sleep(step).await;
-            match read_lease(run).await? {
-                // Released meanwhile: the folder is free.
-                None => return Ok(()),
-                Some(now) if now.holder != first.holder || now.renewals != first.renewals => {
-                    let held_s = unix_now().saturating_sub(now.holder.started_unix_s);
-                    return Err(lease_err(
-                        run,
-                        format!(
-                            "another coordinator drives this run folder: {} since {held_s} s, \
-                             renewing its lease (renewal {}). Wait for it to end, choose another \
-                             --run, or pass --take-over if that process is known to be dead",
-                            now.holder, now.renewals
-                        ),
-                    ));
+        loop {
+            if let Put::Written(version) = put(run, &file, PutMode::Create).await? {
+                return Ok(Self {
+                    run: run.clone(),
+                    file,
+                    version,
+                    timing,
+                });
+            }
+            let Some((there, version)) = read_lease(run).await? else {
+                // Released between the two calls: try again.
+                continue;
+            };
+            if there.holder.token == file.holder.token {
+                // This create went through and a retry of it was answered `AlreadyExists`.
+                return Ok(Self {
+                    run: run.clone(),
+                    file,
+                    version,
+                    timing,
+                });
+            }
+            let version = if take_over {
+                version
+            } else {
+                match watch(run, there, version, timing).await? {
+                    Some(v) => v,
+                    None => continue,
                 }
-                Some(_) => {}
+            };
+            // The holder is gone: its lease is replaced by ours, unless it changed since
+            // it was watched (it renewed at the last moment, or another newcomer won).
+            match put(run, &file, PutMode::Update(version)).await? {
+                Put::Written(version) => {
+                    tracing::warn!(run = %run.describe(&run.path(LEASE_FILE)), "took over the run folder's lease");
+                    return Ok(Self {
+                        run: run.clone(),
+                        file,
+                        version,
+                        timing,
+                    });
+                }
+                Put::Exists | Put::Changed => {
+                    let now = read_lease(run).await?;
+                    return Err(refusal(run, now.map(|(f, _)| f)));
+                }
             }
         }
-        tracing::warn!(holder = %first.holder, "the run folder's lease was not renewed: its holder is gone");
-        Ok(())
     }
 
     pub fn holder(&self) -> &Holder {
         &self.file.holder
     }
 
-    /// Renews the lease; an error where another holder's lease is there (this process
-    /// has lost the run folder and must stop writing to it).
+    /// Renews the lease; [`RunError::LeaseLost`] where it is no longer the version this
+    /// holder wrote (another holder's, or deleted: this process must stop writing).
     pub async fn renew(&mut self) -> Result<()> {
-        match read_lease(&self.run).await? {
-            Some(there) if there.holder.token == self.file.holder.token => {}
-            Some(there) => {
-                return Err(RunError::LeaseLost {
-                    path: self.run.describe(&self.run.path(LEASE_FILE)),
-                    holder: there.holder.to_string(),
-                });
+        let generation = self.file.generation;
+        self.renew_for(generation).await
+    }
+
+    /// [`Lease::renew`], recording that the holder now drives `generation`.
+    pub async fn renew_for(&mut self, generation: u64) -> Result<()> {
+        let mut next = self.file.clone();
+        next.generation = generation;
+        next.renewals += 1;
+        next.renewed_unix_s = unix_now();
+        match put(&self.run, &next, PutMode::Update(self.version.clone())).await? {
+            Put::Written(version) => {
+                self.file = next;
+                self.version = version;
+                Ok(())
             }
-            // Deleted by hand: taken back.
-            None => {}
+            Put::Exists | Put::Changed => {
+                let holder = match read_lease(&self.run).await {
+                    Ok(Some((there, _))) => there.holder.to_string(),
+                    Ok(None) => "nobody (the lease file was deleted)".into(),
+                    Err(e) => format!("an unreadable lease ({e})"),
+                };
+                Err(RunError::LeaseLost {
+                    path: self.run.describe(&self.run.path(LEASE_FILE)),
+                    holder,
+                })
+            }
         }
-        self.file.renewals += 1;
-        self.file.renewed_unix_s = unix_now();
-        put(&self.run, &self.file, false).await?;
-        Ok(())
     }
 
     /// Removes the lease where it is still this holder's.
     pub async fn release(self) -> Result<()> {
-        if let Some(there) = read_lease(&self.run).await?
+        if let Some((there, _)) = read_lease(&self.run).await?
             && there.holder.token == self.file.holder.token
         {
             match self.run.store.delete(&self.run.path(LEASE_FILE)).await {
@@ -271,6 +345,265 @@ impl Lease {
         }
         Ok(())
     }
+}
+
+/// Watches the lease `first` (object version `version`) for a change: `Ok(Some(v))` with
+/// the version to take over where none came, `Ok(None)` where it was released, an error
+/// naming the holder where it was renewed.
+async fn watch(
+    run: &Location,
+    first: LeaseFile,
+    version: UpdateVersion,
+    timing: LeaseTiming,
+) -> Result<Option<UpdateVersion>> {
+    tracing::info!(
+        holder = %first.holder,
+        watch_s = timing.watch.as_secs_f64(),
+        "the run folder has a lease: watching it for a renewal"
+    );
+    let deadline = tokio::time::Instant::now() + timing.watch;
+    let step = (timing.renew_every / 3).max(Duration::from_millis(50));
+    while tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(step).await;
+        match read_lease(run).await? {
+            None => return Ok(None),
+            Some((now, v))
+                if v != version || now.holder != first.holder || now.renewals != first.renewals =>
+            {
+                return Err(refusal(run, Some(now)));
+            }
+            Some(_) => {}
+        }
+    }
+    tracing::warn!(holder = %first.holder, "the run folder's lease was not renewed: its holder is gone");
+    Ok(Some(version))
+}
+
+fn refusal(run: &Location, now: Option<LeaseFile>) -> RunError {
+    let Some(now) = now else {
+        return lease_err(run, "the lease changed while it was taken over; try again");
+    };
+    let held_s = unix_now().saturating_sub(now.holder.started_unix_s);
+    lease_err(
+        run,
+        format!(
+            "another coordinator drives this run folder: {} since {held_s} s, \
+             renewing its lease (renewal {}). Wait for it to end, choose another \
+             --run, or pass --take-over if that process is known to be dead",
+            now.holder, now.renewals
+        ),
+    )
+}
+
+/// A lease renewed by a task of its own, so that no other store traffic delays a
+/// renewal, and that knows when its holder must stop: at once when the lease was lost,
+/// and once [`LeaseTiming::expiry`] has passed since the start of the last renewal the
+/// store took.
+pub struct Keeper {
+    lease: Arc<tokio::sync::Mutex<Option<Lease>>>,
+    state: Arc<Mutex<KeeperState>>,
+    task: tokio::task::JoinHandle<()>,
+    path: String,
+    token: String,
+    wake: Arc<tokio::sync::Notify>,
+}
+
+struct KeeperState {
+    valid_until: Instant,
+    last_ok: Instant,
+    lost: Option<String>,
+    /// The generation to record in the lease, and the newest one the store took.
+    want_generation: u64,
+    written_generation: u64,
+}
+
+impl Keeper {
+    /// Starts renewing `lease` (just acquired or renewed: valid from now).
+    pub fn start(lease: Lease) -> Self {
+        let timing = lease.timing;
+        let path = lease.run.describe(&lease.run.path(LEASE_FILE));
+        let token = lease.file.holder.token.clone();
+        let now = Instant::now();
+        let state = Arc::new(Mutex::new(KeeperState {
+            valid_until: now + timing.expiry(),
+            last_ok: now,
+            lost: None,
+            want_generation: lease.file.generation,
+            written_generation: lease.file.generation,
+        }));
+        let lease = Arc::new(tokio::sync::Mutex::new(Some(lease)));
+        let wake = Arc::new(tokio::sync::Notify::new());
+        let task = tokio::spawn(renewals(lease.clone(), state.clone(), wake.clone(), timing));
+        Self {
+            lease,
+            state,
+            task,
+            path,
+            token,
+            wake,
+        }
+    }
+
+    /// Records `generation` in the lease at once (a renewal out of turn); true once a
+    /// renewal carrying it (or a newer one) was taken by the store, from when on ranks
+    /// of older generations cannot commit ([`check_fence`]).
+    pub fn fence(&self, generation: u64) -> bool {
+        let mut s = self.state.lock().expect("lease state");
+        if s.written_generation >= generation {
+            return true;
+        }
+        if s.want_generation < generation {
+            s.want_generation = generation;
+            self.wake.notify_one();
+        }
+        false
+    }
+
+    /// The holder's token (for [`still_held`]).
+    pub fn token(&self) -> &str {
+        &self.token
+    }
+
+    /// Whether this holder may still drive the job: an error once the lease was lost or
+    /// has expired without a renewal the store took.
+    pub fn check(&self) -> Result<()> {
+        let s = self.state.lock().expect("lease state");
+        if let Some(holder) = &s.lost {
+            return Err(RunError::LeaseLost {
+                path: self.path.clone(),
+                holder: holder.clone(),
+            });
+        }
+        if Instant::now() >= s.valid_until {
+            return Err(RunError::Run {
+                path: self.path.clone(),
+                reason: format!(
+                    "the lease could not be renewed for {:.1} s: stopping, so that no two \
+                     coordinators drive the folder (a newcomer may take it over now)",
+                    s.last_ok.elapsed().as_secs_f64()
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Stops renewing and removes the lease where it is still this holder's.
+    pub async fn release(self) -> Result<()> {
+        self.task.abort();
+        let _ = self.task.await;
+        match self.lease.lock().await.take() {
+            Some(lease) => lease.release().await,
+            None => Ok(()),
+        }
+    }
+}
+
+async fn renewals(
+    lease: Arc<tokio::sync::Mutex<Option<Lease>>>,
+    state: Arc<Mutex<KeeperState>>,
+    wake: Arc<tokio::sync::Notify>,
+    timing: LeaseTiming,
+) {
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(timing.renew_every) => {}
+            _ = wake.notified() => {}
+        }
+        let started = Instant::now();
+        let generation = state.lock().expect("lease state").want_generation;
+        let mut guard = lease.lock().await;
+        let Some(l) = guard.as_mut() else { return };
+        match l.renew_for(generation).await {
+            Ok(()) => {
+                let mut s = state.lock().expect("lease state");
+                s.valid_until = started + timing.expiry();
+                s.last_ok = started;
+                s.written_generation = s.written_generation.max(generation);
+            }
+            Err(RunError::LeaseLost { holder, .. }) => {
+                state.lock().expect("lease state").lost = Some(holder);
+                // Never released: it is another holder's now.
+                guard.take();
+                return;
+            }
+            Err(e) => tracing::warn!(error = %e, "renewing the run folder's lease"),
+        }
+    }
+}
+
+/// Checks that `run`'s store honours create-only and conditional writes, which keep one
+/// writer per run folder: a probe object is written create-only twice (the second must
+/// be refused), then updated on a version it does not have (must be refused); refused
+/// with the store's name and the remedy otherwise.
+pub async fn probe_store(run: &Location) -> Result<()> {
+    let name = format!(".osrt-probe-{:016x}", rand::random::<u64>());
+    let path = run.path(&name);
+    let err = |what: &str| {
+        lease_err(
+            run,
+            format!(
+                "the store {} {what}: osrt keeps one writer per run folder and every \
+                 checkpoint file by create-only and conditional writes. Use a store that \
+                 honours If-None-Match and If-Match (AWS S3, MinIO, Cloudflare R2, Google \
+                 Cloud Storage) with AWS_CONDITIONAL_PUT=etag (the default)",
+                run.store
+            ),
+        )
+    };
+    let create = || PutOptions {
+        mode: PutMode::Create,
+        ..Default::default()
+    };
+    let io = |e: object_store::Error| lease_err(run, format!("probing the store: {e}"));
+    let first = run
+        .store
+        .put_opts(&path, PutPayload::from_static(b"1"), create())
+        .await;
+    let outcome = async {
+        match first {
+            Ok(_) => {}
+            Err(object_store::Error::NotImplemented { .. }) => {
+                return Err(err("does not offer create-only writes"));
+            }
+            Err(e) => return Err(io(e)),
+        }
+        match run
+            .store
+            .put_opts(&path, PutPayload::from_static(b"2"), create())
+            .await
+        {
+            Err(object_store::Error::AlreadyExists { .. }) => {}
+            Ok(_) => return Err(err("overwrote an object written create-only")),
+            Err(e) => return Err(io(e)),
+        }
+        let stale = UpdateVersion {
+            e_tag: Some("\"osrt-probe-no-such-version\"".into()),
+            version: None,
+        };
+        let opts = PutOptions {
+            mode: PutMode::Update(stale),
+            ..Default::default()
+        };
+        match run
+            .store
+            .put_opts(&path, PutPayload::from_static(b"3"), opts)
+            .await
+        {
+            Err(object_store::Error::Precondition { .. }) => Ok(()),
+            Ok(_) => Err(err(
+                "took a conditional write on a version it does not hold",
+            )),
+            Err(object_store::Error::NotImplemented { .. }) => {
+                Err(err("does not offer conditional writes"))
+            }
+            Err(e) => Err(io(e)),
+        }
+    }
+    .await;
+    if let Err(e) = run.store.delete(&path).await {
+        tracing::debug!(error = %e, "removing the store probe");
+    }
+    outcome
 }
 
 #[cfg(test)]
@@ -320,33 +653,99 @@ mod tests {
         assert_eq!(d.holder().job_id, "d");
     }
 
+    /// A holder whose process id names no process here may live in another PID
+    /// namespace or on another host of the same name: it is watched like any other, and
+    /// refused while it renews.
     #[tokio::test]
-    async fn a_holder_on_this_machine_whose_process_is_gone_is_replaced_at_once() {
+    async fn a_holder_is_judged_by_its_renewals_not_by_its_process_id() {
         let dir = tempfile::tempdir().unwrap();
         let run = Location::parse(dir.path().to_str().unwrap()).unwrap();
         let mut child = std::process::Command::new("true").spawn().unwrap();
         let dead = child.id();
         child.wait().unwrap();
-        let mut gone = holder("a");
-        gone.pid = dead;
-        let file = LeaseFile {
-            holder: gone,
-            renewals: 7,
-            renewed_unix_s: 0,
+        let mut elsewhere = holder("a");
+        elsewhere.pid = dead;
+        let mut a = Lease::acquire(&run, elsewhere, quick(), false)
+            .await
+            .unwrap();
+        let renewing = async {
+            for _ in 0..12 {
+                tokio::time::sleep(Duration::from_millis(60)).await;
+                a.renew().await.unwrap();
+            }
         };
-        assert!(put(&run, &file, true).await.unwrap());
-        let slow = LeaseTiming {
-            renew_every: Duration::from_secs(3),
-            watch: Duration::from_secs(3600),
+        let (e, ()) = tokio::join!(Lease::acquire(&run, holder("b"), quick(), false), renewing);
+        let e = e.unwrap_err().to_string();
+        assert!(
+            e.contains("job a") && e.contains("another coordinator"),
+            "{e}"
+        );
+    }
+
+    /// A renewal is conditional on the version its holder wrote: once a newcomer took the
+    /// lease over, a late renewal fails and leaves the newcomer's lease as it is.
+    #[tokio::test]
+    async fn a_late_renewal_never_overwrites_a_newcomers_lease() {
+        for url in ["memory://lease-late/run", ""] {
+            let dir = tempfile::tempdir().unwrap();
+            let run = if url.is_empty() {
+                Location::parse(dir.path().to_str().unwrap()).unwrap()
+            } else {
+                Location::parse(url).unwrap()
+            };
+            let mut a = Lease::acquire(&run, holder("a"), quick(), false)
+                .await
+                .unwrap();
+            let b = Lease::acquire(&run, holder("b"), quick(), true)
+                .await
+                .unwrap();
+            let e = a.renew().await.unwrap_err().to_string();
+            assert!(e.contains("taken over by job b"), "{url}: {e}");
+            still_held(&run, &b.holder().token).await.unwrap();
+            assert!(still_held(&run, &a.holder().token).await.is_err());
+        }
+    }
+
+    /// A keeper whose renewals the store does not take stops its holder once the expiry
+    /// has passed, before a newcomer's watch can end.
+    #[tokio::test]
+    async fn a_keeper_that_cannot_renew_expires() {
+        let run = Location::parse("memory://lease-keeper/run").unwrap();
+        let timing = LeaseTiming {
+            renew_every: Duration::from_millis(50),
+            watch: Duration::from_millis(300),
         };
-        let b = tokio::time::timeout(
-            Duration::from_secs(5),
-            Lease::acquire(&run, holder("b"), slow, false),
-        )
-        .await
-        .expect("no watch")
-        .unwrap();
-        assert_eq!(b.holder().job_id, "b");
+        let lease = Lease::acquire(&run, holder("a"), timing, false)
+            .await
+            .unwrap();
+        let keeper = Keeper::start(lease);
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        keeper.check().unwrap();
+        // Another holder takes over by force: the keeper learns at its next renewal.
+        let _b = Lease::acquire(&run, holder("b"), timing, true)
+            .await
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let e = keeper.check().unwrap_err().to_string();
+        assert!(e.contains("taken over by job b"), "{e}");
+        keeper.release().await.unwrap();
+        still_held(&run, &_b.holder().token).await.unwrap();
+    }
+
+    /// Local folders and memory stores honour create-only and conditional writes.
+    #[tokio::test]
+    async fn the_stores_osrt_opens_pass_the_probe() {
+        let dir = tempfile::tempdir().unwrap();
+        let local = Location::parse(dir.path().to_str().unwrap()).unwrap();
+        probe_store(&local).await.unwrap();
+        probe_store(&Location::parse("memory://lease-probe/run").unwrap())
+            .await
+            .unwrap();
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "no probe left"
+        );
     }
 
     #[tokio::test]

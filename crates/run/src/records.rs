@@ -132,6 +132,41 @@ impl MetricsRecord {
     }
 }
 
+/// Why a line cannot be stored as a line of `metrics.jsonl`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LineError {
+    /// Stored, it would split into lines that are no records, and a restarted coordinator
+    /// reading the file back would lose the record and the steps it bounds.
+    #[error("the metrics record holds a line break at byte {at}: a record is one line")]
+    LineBreak { at: usize },
+    #[error(
+        "the metrics record is not one JSON object with a `step` and a `loss` or `psnr`: {reason}"
+    )]
+    NotARecord { reason: String },
+}
+
+/// Characters that some reader of `metrics.jsonl` ends a line at: JSON whitespace
+/// between tokens may be `\n` or `\r`, and string values may hold the rest raw (Python's
+/// `str.splitlines` splits at all of them).
+fn is_line_break(c: char) -> bool {
+    matches!(
+        c,
+        '\n' | '\r' | '\u{0b}' | '\u{0c}' | '\u{1c}'
+            ..='\u{1e}' | '\u{85}' | '\u{2028}' | '\u{2029}'
+    )
+}
+
+/// `line` as a line of `metrics.jsonl`, checked before it is stored: one JSON object of a
+/// record's kind, on one line.
+pub fn validate_line(line: &str) -> Result<MetricsRecord, LineError> {
+    if let Some(at) = line.find(is_line_break) {
+        return Err(LineError::LineBreak { at });
+    }
+    serde_json::from_str(line).map_err(|e| LineError::NotARecord {
+        reason: e.to_string(),
+    })
+}
+
 impl From<TrainRecord> for MetricsRecord {
     fn from(r: TrainRecord) -> Self {
         Self::Train(r)
@@ -236,6 +271,39 @@ mod tests {
         };
         assert_eq!(e.by_objects[0].objects, 3);
         assert_eq!(MetricsRecord::Eval(e).to_line(), eval);
+    }
+
+    /// A record split over lines (JSON allows a line break between tokens) would split
+    /// `metrics.jsonl`: refused before it is stored, as is anything but one record.
+    #[test]
+    fn a_line_to_store_is_one_record_on_one_line() {
+        let one = r#"{"loss":0.5,"step":3}"#;
+        assert_eq!(validate_line(one).unwrap().step(), 3);
+        for (line, at) in [
+            ("{\"loss\":0.5,\n\"step\":3}", 12),
+            ("{\"loss\":0.5,\"step\":3}\n", 21),
+            ("{\"loss\":0.5,\r\"step\":3}", 12),
+            ("{\"loss\":0.5,\"step\":3,\"note\":\"a\u{2028}b\"}", 30),
+        ] {
+            assert!(
+                MetricsRecord::parse(line).is_some(),
+                "{line:?} parses as JSON"
+            );
+            assert_eq!(
+                validate_line(line),
+                Err(LineError::LineBreak { at }),
+                "{line:?}"
+            );
+        }
+        for line in [
+            r#"{"step":3}"#,
+            "[]",
+            "",
+            r#"{"loss":0.5,"step":3}{"step":4}"#,
+        ] {
+            let e = validate_line(line).unwrap_err();
+            assert!(matches!(e, LineError::NotARecord { .. }), "{line:?}: {e}");
+        }
     }
 
     #[test]

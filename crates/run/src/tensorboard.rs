@@ -64,30 +64,80 @@ fn frame(payload: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(&masked_crc(payload).to_le_bytes());
 }
 
-/// The events of an event file's bytes, each with the end offset of its frame. Reading
-/// stops at the first frame that is torn (a write cut short) or fails its checksums:
-/// what follows it cannot be framed.
-pub fn read_events(bytes: &[u8]) -> Vec<(Event, usize)> {
+/// Where and why an event file stops being readable.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BadRecord {
+    /// The offset of the frame that cannot be read.
+    pub offset: usize,
+    pub reason: String,
+}
+
+/// The events of an event file's bytes, each with the end offset of its frame, and the
+/// frame reading stopped at (`None`: the bytes end with a whole frame). A torn frame (a
+/// write cut short), a failed checksum or a payload that is no `Event` ends the read:
+/// what follows cannot be framed. A frame's declared length is compared with the bytes
+/// there before anything is sliced, so no length, however crafted, sizes an allocation
+/// or reaches past the end.
+pub fn scan_events(bytes: &[u8]) -> (Vec<(Event, usize)>, Option<BadRecord>) {
     let mut out = Vec::new();
     let mut at = 0usize;
-    while bytes.len() - at >= 12 {
+    while at < bytes.len() {
+        let rest = bytes.len() - at;
+        let bad = |reason: String| Some(BadRecord { offset: at, reason });
+        if rest < 12 {
+            let reason = format!("a torn frame: {rest} bytes of its 12-byte header");
+            return (out, bad(reason));
+        }
         let head = &bytes[at..at + 12];
         let len = u64::from_le_bytes(head[..8].try_into().expect("8 bytes"));
         let crc = u32::from_le_bytes(head[8..].try_into().expect("4 bytes"));
-        let room = (bytes.len() - at - 12).saturating_sub(4) as u64;
-        if masked_crc(&head[..8]) != crc || len > room {
-            break;
+        if masked_crc(&head[..8]) != crc {
+            return (out, bad("the length's checksum does not match".into()));
         }
-        let body = &bytes[at + 12..at + 12 + len as usize];
-        let tail = &bytes[at + 12 + len as usize..at + 16 + len as usize];
+        // The header, the record, its 4-byte checksum.
+        let fits = |l: &usize| rest.checked_sub(16).is_some_and(|room| *l <= room);
+        let Some(len) = usize::try_from(len).ok().filter(fits) else {
+            let reason = format!(
+                "its header declares a record of {len} bytes and its 4-byte checksum, {} \
+                 bytes follow",
+                rest - 12
+            );
+            return (out, bad(reason));
+        };
+        let body = &bytes[at + 12..at + 12 + len];
+        let tail = &bytes[at + 12 + len..at + 16 + len];
         if masked_crc(body).to_le_bytes() != tail {
-            break;
+            return (out, bad("the record's checksum does not match".into()));
         }
-        let Ok(e) = Event::decode(body) else { break };
-        at += 16 + len as usize;
-        out.push((e, at));
+        match Event::decode(body) {
+            Ok(e) => {
+                at += 16 + len;
+                out.push((e, at));
+            }
+            Err(e) => return (out, bad(format!("the record is no tensorflow.Event: {e}"))),
+        }
     }
-    out
+    (out, None)
+}
+
+/// The events of the event file `path` (as shown in errors) whose bytes are `bytes`,
+/// each with the end offset of its frame; a file that is not whole frames throughout is
+/// an error naming it.
+pub fn read_events(path: &str, bytes: &[u8]) -> Result<Vec<(Event, usize)>> {
+    match scan_events(bytes) {
+        (events, None) => Ok(events),
+        (_, Some(bad)) => Err(malformed(path, &bad)),
+    }
+}
+
+fn malformed(path: &str, bad: &BadRecord) -> RunError {
+    RunError::Run {
+        path: path.to_string(),
+        reason: format!(
+            "event file unreadable from byte {}: {}",
+            bad.offset, bad.reason
+        ),
+    }
 }
 
 fn scalar(tag: &str, v: f64) -> Option<summary::Value> {
@@ -193,6 +243,8 @@ pub struct EventLog {
     cut: Option<Option<u64>>,
     /// Files replaced by a cut, deleted once their replacement is written.
     to_delete: Vec<String>,
+    /// The files [`EventLog::open`] read that end in a frame it could not read.
+    damaged: Vec<RunError>,
 }
 
 impl EventLog {
@@ -208,10 +260,18 @@ impl EventLog {
             open: None,
             cut: None,
             to_delete: Vec::new(),
+            damaged: Vec::new(),
         };
         let mut last = None;
         for i in (0..files.len()).rev() {
-            let events = read_events(&log.get(&files[i].0).await?);
+            let (events, bad) = scan_events(&log.get(&files[i].0).await?);
+            if let Some(bad) = bad {
+                // Its whole frames count; new events go to a file of their own, and a cut
+                // that reaches it writes its readable part again without the rest.
+                let e = malformed(&log.dir.describe(&log.dir.path(&files[i].0)), &bad);
+                tracing::warn!(error = %e, "an event file is damaged: events go to a new file");
+                log.damaged.push(e);
+            }
             if let Some(s) = events.iter().rev().find_map(|(e, _)| data_step(e)) {
                 files[i].1 = Some(s);
                 last = Some(s);
@@ -220,6 +280,12 @@ impl EventLog {
         }
         log.files = files;
         Ok((log, last))
+    }
+
+    /// The files [`EventLog::open`] found damaged (a torn or malformed frame), each an
+    /// error naming the file: their readable events count, new ones go to a new file.
+    pub fn damaged(&self) -> &[RunError] {
+        &self.damaged
     }
 
     /// Cuts out every event past `keep` (all of them for `None`): at once from the open
@@ -269,7 +335,7 @@ impl EventLog {
                 break;
             }
             let bytes = self.get(&name).await?;
-            let events = read_events(&bytes);
+            let (events, _) = scan_events(&bytes);
             let kept: Vec<&Event> = events
                 .iter()
                 .map(|(e, _)| e)
@@ -473,7 +539,8 @@ impl EventLog {
 
 /// Bytes of a file before its first data event (its file-version event).
 fn header_len(bytes: &[u8]) -> usize {
-    read_events(bytes)
+    scan_events(bytes)
+        .0
         .first()
         .filter(|(e, _)| data_step(e).is_none())
         .map_or(0, |(_, end)| *end)

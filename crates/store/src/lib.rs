@@ -1,12 +1,18 @@
 //! Where a dataset (or a run) lives: a URL or local path resolved to an object store and
 //! a prefix inside it.
 //!
-//! - a plain path or `file://` URL → [`LocalFileSystem`] (the directory is created);
+//! - a plain path or `file://` URL → [`LocalFileSystem`] with conditional writes
+//!   ([`LocalFolder`]; the directory is created);
 //! - `memory://NAME/...` → a process-wide [`InMemory`] store per `NAME`, so that every
 //!   open of the same URL in one process sees the same objects (tests);
 //! - `s3://BUCKET/prefix` → [`AmazonS3Builder::from_env`], configured by the standard
 //!   `AWS_*` variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, `AWS_ACCESS_KEY_ID`, …).
 
+#[cfg(feature = "fault-injection")]
+pub mod chaos;
+mod local;
+
+pub use local::LocalFolder;
 use thiserror::Error;
 
 /// A location that names no store this build opens, or a store that cannot be opened.
@@ -55,8 +61,27 @@ impl Location {
         }
     }
 
-    /// Parses a local path or a `file://`, `memory://` or `s3://` URL.
+    /// Parses a local path or a `file://`, `memory://` or `s3://` URL. In builds with the
+    /// `fault-injection` feature, [`chaos::ENV`] wraps the store in a [`chaos::ChaosStore`].
     pub fn parse(location: &str) -> Result<Self> {
+        let loc = Self::parse_plain(location)?;
+        #[cfg(feature = "fault-injection")]
+        if let Ok(spec) = std::env::var(chaos::ENV) {
+            let random = chaos::Random::parse(&spec).map_err(|reason| LocationError {
+                location: location.to_string(),
+                reason,
+            })?;
+            let store = chaos::ChaosStore::new(loc.store.clone());
+            store.faults(|f| f.random = Some(random));
+            return Ok(Self {
+                store: Arc::new(store),
+                ..loc
+            });
+        }
+        Ok(loc)
+    }
+
+    fn parse_plain(location: &str) -> Result<Self> {
         let err = |reason: String| LocationError {
             location: location.to_string(),
             reason,
@@ -121,8 +146,12 @@ impl Location {
             .map_err(|e| err(e.to_string()))?
             .with_automatic_cleanup(true)
             .with_fsync(true);
+        // Conditional writes (the run folder's lease) as object stores have them.
+        let root = dir
+            .canonicalize()
+            .map_err(|e| err(format!("cannot resolve directory: {e}")))?;
         Ok(Self {
-            store: Arc::new(fs),
+            store: Arc::new(LocalFolder::new(fs, root)),
             prefix: Path::default(),
             display: display.to_string(),
             local_root: Some(dir.to_path_buf()),

@@ -74,16 +74,17 @@ impl Snapshot {
         ])
     }
 
-    /// Serialises the snapshot and commits it (`osrt_run::checkpoint::commit`).
-    pub async fn commit(self, run: &Location) -> Result<u64> {
+    /// Serialises the snapshot and commits it (`osrt_run::checkpoint::commit`), fenced
+    /// by the writer's generation where it has one.
+    pub async fn commit(self, run: &Location, fence: Option<u64>) -> Result<u64> {
         let files = self.serialise()?;
-        Ok(osrt_run::checkpoint::commit(run, &self.state, files).await?)
+        Ok(osrt_run::checkpoint::commit(run, &self.state, files, fence).await?)
     }
 }
 
 /// Loads checkpoint `step` (verified) into `trainer`; returns its state.
 pub async fn load(run: &Location, step: u64, trainer: &mut Trainer) -> Result<CheckpointState> {
-    let files = verify(run, step).await?;
+    let files = verify_retrying(run, step).await?;
     let dir = step_dir(step);
     let bad = |name: &str, reason: String| {
         TrainError::from(store_err(run, &format!("{dir}/{name}"), reason))

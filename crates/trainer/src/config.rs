@@ -7,9 +7,34 @@ use crate::error::{Result, TrainError};
 use osrt_dataset::{InputSelection, Manifest, RayFrame, TargetViews};
 use osrt_model::decoder::Config as DecoderConfig;
 use osrt_model::encoder::Poses;
+use osrt_model::nn::TransformerConfig;
 use osrt_model::{Kernels, Precision};
 pub use osrt_run::{ClusterConfig, ClusterOverrides};
 use serde::{Deserialize, Serialize};
+use std::ops::RangeInclusive;
+
+/// Upper bounds of the job's counts and sizes: far above any setting that trains (the
+/// paper's widest layer has 3,072 units, its batch 256 scenes), and low enough that the
+/// products of sizes the model, the batch builder and the memory estimate form in `usize`
+/// stay inside it at ordinary image sizes. A model or step too large for the machine is
+/// the memory check's to refuse.
+const MAX_BATCH: usize = 1 << 16;
+const MAX_RAYS_PER_SCENE: usize = 1 << 20;
+const MAX_VIEWS: usize = 64;
+const MAX_EVAL_SCENES: usize = 1 << 20;
+const MAX_WIDTH: usize = 1 << 15;
+const MAX_HEADS: usize = 256;
+const MAX_LAYERS: usize = 256;
+const MAX_SLOTS: usize = 1024;
+const MAX_ITERATIONS: usize = 64;
+/// Each block halves the feature map: 8 make a stride of 256.
+const MAX_CONV_BLOCKS: usize = 8;
+const MAX_GRID: usize = 4096;
+const MAX_SAMPLES: usize = 4096;
+/// Octave frequencies `2^o · π`, `o` from the start octave on: with starts in -32..=32
+/// and at most 32 octaves, `o` stays within ±64, finite in f32 (and `start + o` in i32).
+const MAX_OCTAVES: usize = 32;
+const START_OCTAVES: RangeInclusive<i32> = -32..=32;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
@@ -41,7 +66,8 @@ pub struct TrainConfig {
     pub clip_norm: Option<f64>,
     /// Consecutive skipped (non-finite) steps that stop the job.
     pub max_consecutive_skips: u64,
-    /// Evaluate on the validation subset every this many wall-clock seconds.
+    /// Evaluate on the validation subset every this many wall-clock seconds (at most a
+    /// year, `osrt_run::cluster::MAX_DURATION_S`).
     pub eval_every_s: f64,
     /// Size of the fixed validation subset (its first scenes).
     pub eval_scenes: usize,
@@ -300,25 +326,33 @@ impl JobConfig {
         Ok(())
     }
 
-    /// Rejects settings that cannot train.
+    /// Rejects settings that cannot train, naming the field.
     pub fn validate(&self) -> Result<()> {
-        let t = &self.train;
-        let bad = |reason: String| {
-            Err(TrainError::Config {
+        self.validate_train()
+            .and_then(|()| validate_model(&self.model))
+            .map_err(|reason| TrainError::Config {
                 path: "job config".into(),
                 reason,
-            })
-        };
+            })?;
+        Ok(self.cluster.validate()?)
+    }
+
+    fn validate_train(&self) -> std::result::Result<(), String> {
+        let t = &self.train;
+        for (name, v, most) in [
+            ("batch_size", t.batch_size, MAX_BATCH),
+            ("rays_per_scene", t.rays_per_scene, MAX_RAYS_PER_SCENE),
+            ("input_views", t.input_views, MAX_VIEWS),
+            ("eval_scenes", t.eval_scenes, MAX_EVAL_SCENES),
+        ] {
+            within(&format!("train.{name}"), v, 1..=most)?;
+        }
         for (name, v) in [
-            ("batch_size", t.batch_size as u64),
-            ("rays_per_scene", t.rays_per_scene as u64),
-            ("input_views", t.input_views as u64),
             ("log_every", t.log_every),
             ("max_consecutive_skips", t.max_consecutive_skips),
-            ("eval_scenes", t.eval_scenes as u64),
         ] {
             if v == 0 {
-                return bad(format!("train.{name} must be positive"));
+                return Err(format!("train.{name} must be positive"));
             }
         }
         for (name, v, positive) in [
@@ -326,22 +360,23 @@ impl JobConfig {
             ("decay_steps", t.decay_steps, true),
             ("decay_rate", t.decay_rate, true),
             ("adam_eps", t.adam_eps, true),
-            ("eval_every_s", t.eval_every_s, true),
             ("weight_decay", t.weight_decay, false),
             ("salient_fraction", f64::from(t.salient_fraction), false),
         ] {
             if !v.is_finite() || v < 0.0 || (positive && v == 0.0) {
                 let want = if positive { "positive" } else { "non-negative" };
-                return bad(format!("train.{name} must be {want} and finite, got {v}"));
+                return Err(format!("train.{name} must be {want} and finite, got {v:?}"));
             }
         }
+        osrt_run::cluster::duration_s(t.eval_every_s, true)
+            .map_err(|why| format!("train.eval_every_s {why}"))?;
         for (name, v) in [("beta1", t.beta1), ("beta2", t.beta2)] {
             if !(0.0..1.0).contains(&v) {
-                return bad(format!("train.{name} must be in [0, 1), got {v}"));
+                return Err(format!("train.{name} must be in [0, 1), got {v}"));
             }
         }
         if t.salient_fraction > 1.0 {
-            return bad(format!(
+            return Err(format!(
                 "train.salient_fraction must be at most 1, got {}",
                 t.salient_fraction
             ));
@@ -349,38 +384,151 @@ impl JobConfig {
         if let Some(c) = t.clip_norm
             && !(c.is_finite() && c > 0.0)
         {
-            return bad(format!(
+            return Err(format!(
                 "train.clip_norm must be positive and finite, got {c}"
             ));
         }
         // The GPU's graph runs on the CPU too (kernels = "device"), to measure it there.
         if t.precision == Precision::Bf16 && !t.device.is_cuda() && t.kernels != Kernels::Device {
-            return bad(
-                "precision bf16 runs on a GPU only (device = \"cuda\"), or on the CPU with \
-                 kernels = \"device\" (the GPU's graph, for measuring it): the CPU's fused \
-                 kernels are f32"
+            return Err(
+                "train.precision bf16 runs on a GPU only (train.device = \"cuda\"), or on the \
+                 CPU with train.kernels = \"device\" (the GPU's graph, for measuring it): the \
+                 CPU's fused kernels are f32"
                     .into(),
             );
         }
-        if self.model.encoder.poses == Poses::Unposed
-            && matches!(self.model.decoder, DecoderConfig::Volumetric(_))
-        {
-            return bad(
-                "an unposed encoder (Up-OSRT) sees rays relative to its first input camera, \
-                 the volumetric decoder's box is in world coordinates: use one or the other"
-                    .into(),
-            );
-        }
-        if let DecoderConfig::Volumetric(v) = &self.model.decoder
-            && v.samples == 0
-        {
-            return bad("model.decoder.samples must be positive".into());
-        }
-        if self.model.slot_attention.num_slots == 0 {
-            return bad("num_slots must be positive".into());
-        }
-        Ok(self.cluster.validate()?)
+        Ok(())
     }
+}
+
+/// `v` in `range`, or why not, naming the field.
+fn within(name: &str, v: usize, range: RangeInclusive<usize>) -> std::result::Result<(), String> {
+    if range.contains(&v) {
+        return Ok(());
+    }
+    Err(format!(
+        "{name} must be in {}..={}, got {v}",
+        range.start(),
+        range.end()
+    ))
+}
+
+fn validate_transformer(name: &str, t: &TransformerConfig) -> std::result::Result<(), String> {
+    within(&format!("{name}.layers"), t.layers, 0..=MAX_LAYERS)?;
+    within(&format!("{name}.heads"), t.heads, 1..=MAX_HEADS)?;
+    within(&format!("{name}.head_dim"), t.head_dim, 1..=MAX_WIDTH)?;
+    within(&format!("{name}.mlp_hidden"), t.mlp_hidden, 1..=MAX_WIDTH)
+}
+
+/// The widths of an MLP's hidden layers: `at_least_one` where the decoder reads the first.
+fn validate_widths(name: &str, w: &[usize], at_least_one: bool) -> std::result::Result<(), String> {
+    let least = usize::from(at_least_one);
+    within(&format!("{name} (its length)"), w.len(), least..=MAX_LAYERS)?;
+    for (i, &v) in w.iter().enumerate() {
+        within(&format!("{name}[{i}]"), v, 1..=MAX_WIDTH)?;
+    }
+    Ok(())
+}
+
+/// Every size of the model in range, and the combinations a model cannot be built with.
+fn validate_model(m: &osrt_model::Config) -> std::result::Result<(), String> {
+    let r = &m.ray_encoding;
+    for (name, octaves, start) in [
+        ("origin", r.origin_octaves, r.origin_start_octave),
+        ("direction", r.direction_octaves, r.direction_start_octave),
+    ] {
+        within(
+            &format!("model.ray_encoding.{name}_octaves"),
+            octaves,
+            0..=MAX_OCTAVES,
+        )?;
+        if !START_OCTAVES.contains(&start) {
+            return Err(format!(
+                "model.ray_encoding.{name}_start_octave must be in {}..={}, got {start}",
+                START_OCTAVES.start(),
+                START_OCTAVES.end()
+            ));
+        }
+    }
+    let e = &m.encoder;
+    within(
+        "model.encoder.conv_channels (its length)",
+        e.conv_channels.len(),
+        0..=MAX_CONV_BLOCKS,
+    )?;
+    for (i, &c) in e.conv_channels.iter().enumerate() {
+        within(
+            &format!("model.encoder.conv_channels[{i}]"),
+            c,
+            1..=MAX_WIDTH,
+        )?;
+    }
+    within("model.encoder.dim", e.dim, 1..=MAX_WIDTH)?;
+    within("model.encoder.max_grid", e.max_grid, 1..=MAX_GRID)?;
+    validate_transformer("model.encoder.transformer", &e.transformer)?;
+    let sa = &m.slot_attention;
+    within(
+        "model.slot_attention.num_slots",
+        sa.num_slots,
+        1..=MAX_SLOTS,
+    )?;
+    within("model.slot_attention.slot_dim", sa.slot_dim, 1..=MAX_WIDTH)?;
+    within(
+        "model.slot_attention.mlp_hidden",
+        sa.mlp_hidden,
+        1..=MAX_WIDTH,
+    )?;
+    within(
+        "model.slot_attention.iterations",
+        sa.iterations,
+        1..=MAX_ITERATIONS,
+    )?;
+    if !(sa.eps.is_finite() && sa.eps > 0.0) {
+        return Err(format!(
+            "model.slot_attention.eps must be positive and finite, got {}",
+            sa.eps
+        ));
+    }
+    let d = "model.decoder";
+    match &m.decoder {
+        DecoderConfig::SlotMixer(c) => {
+            within(&format!("{d}.query_hidden"), c.query_hidden, 1..=MAX_WIDTH)?;
+            validate_transformer(&format!("{d}.allocation"), &c.allocation)?;
+            validate_widths(&format!("{d}.render_hidden"), &c.render_hidden, false)?;
+        }
+        DecoderConfig::SpatialBroadcast(c) => {
+            validate_widths(&format!("{d}.hidden"), &c.hidden, true)?;
+        }
+        DecoderConfig::Transformer(c) => {
+            within(&format!("{d}.query_hidden"), c.query_hidden, 1..=MAX_WIDTH)?;
+            validate_transformer(&format!("{d}.transformer"), &c.transformer)?;
+            validate_widths(&format!("{d}.render_hidden"), &c.render_hidden, false)?;
+        }
+        DecoderConfig::Volumetric(c) => {
+            within(&format!("{d}.samples"), c.samples, 1..=MAX_SAMPLES)?;
+            within(&format!("{d}.query_hidden"), c.query_hidden, 1..=MAX_WIDTH)?;
+            validate_transformer(&format!("{d}.allocation"), &c.allocation)?;
+            validate_widths(&format!("{d}.render_hidden"), &c.render_hidden, false)?;
+            if let Some([lo, hi]) = c.bounds
+                && !(0..3).all(|k| lo[k].is_finite() && hi[k].is_finite() && lo[k] < hi[k])
+            {
+                return Err(format!(
+                    "{d}.bounds must be finite with min < max on every axis, got {:?}",
+                    [lo, hi]
+                ));
+            }
+            if m.encoder.poses == Poses::Unposed {
+                return Err(
+                    "an unposed encoder (model.encoder.poses = \"unposed\", Up-OSRT) sees rays \
+                     relative to its first input camera, the volumetric decoder's box \
+                     (model.decoder.kind = \"volumetric\") is in world coordinates: use one or \
+                     the other"
+                        .into(),
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -406,7 +554,7 @@ mod tests {
     #[test]
     fn settings_that_cannot_run_are_refused_by_name() {
         type Edit = fn(&mut JobConfig);
-        let cases: [(&str, Edit); 14] = [
+        let cases: [(&str, Edit); 22] = [
             ("train.log_every", |j| j.train.log_every = 0),
             ("train.decay_steps", |j| j.train.decay_steps = 0.0),
             ("train.decay_steps", |j| j.train.decay_steps = f64::NAN),
@@ -424,6 +572,27 @@ mod tests {
             ("cluster.wait_timeout_s", |j| j.cluster.wait_timeout_s = 0.0),
             ("cluster.rpc_timeout_s", |j| {
                 j.cluster.rpc_timeout_s = f64::INFINITY
+            }),
+            // `Duration::from_secs_f64` panics on these.
+            ("cluster.heartbeat_timeout_s", |j| {
+                j.cluster.heartbeat_timeout_s = 1e30
+            }),
+            ("train.eval_every_s", |j| j.train.eval_every_s = 1e30),
+            // One ring hop per float.
+            ("cluster.bucket_floats", |j| j.cluster.bucket_floats = 1),
+            // Sizes whose products overflow or exhaust memory.
+            ("train.batch_size", |j| j.train.batch_size = usize::MAX),
+            ("model.encoder.dim", |j| j.model.encoder.dim = 1 << 40),
+            ("model.slot_attention.num_slots", |j| {
+                j.model.slot_attention.num_slots = 0
+            }),
+            ("model.ray_encoding.origin_start_octave", |j| {
+                j.model.ray_encoding.origin_start_octave = i32::MAX
+            }),
+            ("model.decoder.render_hidden[1]", |j| {
+                if let DecoderConfig::SlotMixer(c) = &mut j.model.decoder {
+                    c.render_hidden[1] = 0;
+                }
             }),
         ];
         for (name, edit) in cases {

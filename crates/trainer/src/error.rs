@@ -55,6 +55,14 @@ impl From<osrt_run::RunError> for TrainError {
             R::Config { path, reason } => Self::Config { path, reason },
             R::Run { path, reason } => Self::Run { path, reason },
             R::Checkpoint { path, reason } => Self::Checkpoint { path, reason },
+            R::Unreadable { path, reason, .. } => Self::Checkpoint {
+                path,
+                reason: format!("could not be read ({reason})"),
+            },
+            R::Fenced { path, reason } => Self::Run {
+                path,
+                reason: format!("refused, the writer is fenced off: {reason}"),
+            },
             R::LeaseLost { path, holder } => Self::Run {
                 path,
                 reason: format!("the run folder was taken over by {holder}"),

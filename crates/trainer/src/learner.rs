@@ -113,18 +113,11 @@ pub struct Learner {
 
 impl Learner {
     /// Builds the model and opens the generation's starting point, this rank's first
-    /// epoch and the validation scenes. Rank 0 first discards checkpoints past the
-    /// starting point: they belong to an abandoned timeline (committed just before a
-    /// generation ended, too late to count), and this generation replays those steps,
-    /// maybe with another world size.
+    /// epoch and the validation scenes. Checkpoints past the starting point (an abandoned
+    /// timeline's) were discarded by the coordinator, the run folder's lease holder,
+    /// before this generation's plans went out; workers never delete.
     pub async fn open(job: JobConfig, device: Device, s: Start) -> Result<Self> {
         let (rank, world) = (s.rank, s.world);
-        if rank == 0 {
-            let discarded = checkpoint::discard_after(&s.run, s.resume_step).await?;
-            if !discarded.is_empty() {
-                tracing::info!(?discarded, resume_step = ?s.resume_step, "checkpoints of an abandoned timeline discarded");
-            }
-        }
         let mut trainer = tokio::task::block_in_place(|| Trainer::new(job.clone(), device))?;
         if rank == 0
             && let Err(e) = osrt_run::record_parameters(&s.run, trainer.num_parameters()).await

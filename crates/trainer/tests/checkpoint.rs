@@ -32,12 +32,16 @@ fn trainer() -> Trainer {
 
 /// Commits `t`'s weights as a checkpoint with `state` to `run`.
 async fn commit(t: &Trainer, run: &Location, state: CheckpointState) {
-    Snapshot::take(t, state).unwrap().commit(run).await.unwrap();
+    Snapshot::take(t, state)
+        .unwrap()
+        .commit(run, None)
+        .await
+        .unwrap();
 }
 
 /// The error of committing `t`'s weights with `state` to `run`.
 async fn commit_error(t: &Trainer, run: &Location, state: CheckpointState) -> String {
-    let e = Snapshot::take(t, state).unwrap().commit(run).await;
+    let e = Snapshot::take(t, state).unwrap().commit(run, None).await;
     e.unwrap_err().to_string()
 }
 
@@ -58,7 +62,7 @@ async fn a_checkpoint_round_trips_exactly() {
     let v: Vec<f32> = (0..n).map(|i| i as f32 * 1e-6).collect();
     t.opt.restore(m.clone(), v.clone(), 7).unwrap();
     let snap = Snapshot::take(&t, state(7, Some(0.5))).unwrap();
-    snap.commit(&run).await.unwrap();
+    snap.commit(&run, None).await.unwrap();
     let mut u = trainer_with_seed(99);
     assert_ne!(u.params.flatten().unwrap(), t.params.flatten().unwrap());
     let st = checkpoint::load(&run, 7, &mut u).await.unwrap();
@@ -272,8 +276,12 @@ async fn two_writers_at_one_step_never_overwrite_each_other() {
         let (a, b) = (trainer(), trainer_with_seed(99 + round));
         let step = 10 + round;
         let (ra, rb) = tokio::join!(
-            Snapshot::take(&a, state(step, None)).unwrap().commit(&run),
-            Snapshot::take(&b, state(step, None)).unwrap().commit(&run),
+            Snapshot::take(&a, state(step, None))
+                .unwrap()
+                .commit(&run, None),
+            Snapshot::take(&b, state(step, None))
+                .unwrap()
+                .commit(&run, None),
         );
         assert!(ra.is_ok() != rb.is_ok(), "round {round}: {ra:?} / {rb:?}");
         let loser = ra.as_ref().err().or(rb.as_ref().err()).unwrap().to_string();
@@ -295,8 +303,12 @@ async fn two_writers_at_one_step_never_overwrite_each_other() {
     }
     let t = trainer();
     let (ra, rb) = tokio::join!(
-        Snapshot::take(&t, state(40, None)).unwrap().commit(&run),
-        Snapshot::take(&t, state(40, None)).unwrap().commit(&run),
+        Snapshot::take(&t, state(40, None))
+            .unwrap()
+            .commit(&run, None),
+        Snapshot::take(&t, state(40, None))
+            .unwrap()
+            .commit(&run, None),
     );
     assert_eq!((ra.unwrap(), rb.unwrap()), (40, 40));
     checkpoint::verify(&run, 40).await.unwrap();

@@ -484,7 +484,14 @@ async fn run_generation(
             });
         }
         if let Some(snap) = end.snapshot {
-            let save = commit_and_report(snap, run.clone(), link.clone(), unsent.clone(), end.last);
+            let save = commit_and_report(
+                snap,
+                run.clone(),
+                link.clone(),
+                unsent.clone(),
+                end.last,
+                plan.generation,
+            );
             save_in_background(&mut pending_save, save, end.last).await?;
         }
         if end.last {
@@ -697,8 +704,11 @@ async fn commit_and_report(
     link: CoordinatorLink,
     unsent: Vec<MetricsRecord>,
     last: bool,
+    generation: u64,
 ) -> Result<u64> {
-    let step = snap.commit(&run).await?;
+    // Fenced by the generation: once the coordinator moved on (and recorded that in the
+    // run folder's lease), this rank's commit is refused.
+    let step = snap.commit(&run, Some(generation)).await?;
     if !unsent.is_empty() {
         link.held_records(step, &unsent).await?;
     }

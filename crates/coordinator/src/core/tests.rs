@@ -55,6 +55,14 @@ fn registration(protocol_version: u32, name: &str, addr: &str) -> Registration {
     }
 }
 
+/// A tick, and the service's discard of an abandoned timeline done at once.
+fn tick(c: &mut Core, now: Instant) {
+    c.tick(now);
+    if c.discard_pending {
+        c.discarded();
+    }
+}
+
 fn reg(c: &mut Core, now: Instant) -> u64 {
     c.register(registration(PROTOCOL_VERSION, "w", "http://x:1"), now)
         .unwrap()
@@ -65,12 +73,16 @@ fn a_generation_forms_at_min_workers_and_ranks_follow_registration() {
     let t = Instant::now();
     let mut c = Core::new(spec(2, 2, 3), t);
     let a = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     assert!(matches!(c.phase, Phase::Waiting { .. }));
     assert_eq!(c.plan(a, 0, t).unwrap(), PlanState::Waiting);
     let b = reg(&mut c, t);
     c.tick(t);
     assert_eq!(c.phase, Phase::Running);
+    // No plan before the abandoned timeline's checkpoints are gone.
+    assert!(c.discard_pending);
+    assert_eq!(c.plan(b, 0, t).unwrap(), PlanState::Waiting);
+    c.discarded();
     let PlanState::Running(p) = c.plan(b, 0, t).unwrap() else {
         panic!()
     };
@@ -88,7 +100,7 @@ fn a_lost_member_restarts_survivors_from_the_last_checkpoint() {
     let mut c = Core::new(spec(1, 2, 3), t);
     let a = reg(&mut c, t);
     let b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     c.checkpoint(a, 1, 5, false, t).unwrap();
     for s in [0, 5, 6] {
         let line = format!("{{\"loss\":0.5,\"step\":{s}}}");
@@ -96,11 +108,11 @@ fn a_lost_member_restarts_survivors_from_the_last_checkpoint() {
     }
     let later = t + Duration::from_secs(4);
     assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Continue);
-    c.tick(later);
+    tick(&mut c, later);
     assert!(!c.members.contains_key(&b), "b timed out");
     assert_eq!(c.restarts, 1);
     assert_eq!(c.heartbeat(a, 1, 6, later).unwrap().0, Directive::Restart);
-    c.tick(later);
+    tick(&mut c, later);
     let PlanState::Running(p) = c.plan(a, 1, later).unwrap() else {
         panic!()
     };
@@ -128,7 +140,7 @@ fn a_failed_round_does_not_re_admit_a_silent_peer() {
     let mut c = Core::new(spec(1, 2, 3), t);
     let a = reg(&mut c, t);
     let b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     c.checkpoint(a, 1, 5, false, t).unwrap();
     // b died; a's round fails and a reports it at once, long before b times out.
     let t1 = t + Duration::from_millis(500);
@@ -136,7 +148,7 @@ fn a_failed_round_does_not_re_admit_a_silent_peer() {
         .unwrap();
     let t2 = t1 + Duration::from_millis(1100);
     c.plan(a, 1, t2).unwrap();
-    c.tick(t2);
+    tick(&mut c, t2);
     let PlanState::Running(p) = c.plan(a, 1, t2).unwrap() else {
         panic!("{:?}", c.phase)
     };
@@ -184,11 +196,11 @@ fn waiting_for_too_few_workers_fails_after_the_wait_timeout() {
     let a = reg(&mut c, t);
     let before = t + Duration::from_secs_f64(limit * 0.9);
     c.heartbeat(a, 0, 0, before).unwrap();
-    c.tick(before);
+    tick(&mut c, before);
     assert!(matches!(c.phase, Phase::Waiting { .. }));
     let after = t + Duration::from_secs_f64(limit + 1.0);
     c.heartbeat(a, 0, 0, after).unwrap();
-    c.tick(after);
+    tick(&mut c, after);
     let Phase::Failed(m) = &c.phase else {
         panic!("{:?}", c.phase)
     };
@@ -199,7 +211,7 @@ fn waiting_for_too_few_workers_fails_after_the_wait_timeout() {
     assert_eq!(c.heartbeat(a, 0, 0, after).unwrap().0, Directive::Stop);
     // With nobody at all (a finished job resumed with no workers) as well.
     let mut c = Core::new(spec(1, 2, 3), t);
-    c.tick(after);
+    tick(&mut c, after);
     assert!(matches!(c.phase, Phase::Failed(_)), "{:?}", c.phase);
 }
 
@@ -214,7 +226,7 @@ fn a_resumed_job_gets_a_fresh_restart_budget() {
         p.restarts = 1;
         c.restore(&p, vec![], Some(5), resume, t);
         let a = reg(&mut c, t);
-        c.tick(t);
+        tick(&mut c, t);
         c.fault(a, c.generation, "boom", false, false, t).unwrap();
         assert_eq!(c.restarts, 2);
         assert_eq!(
@@ -232,7 +244,7 @@ fn metrics_are_appended_until_records_are_dropped() {
     let t = Instant::now();
     let mut c = Core::new(spec(1, 2, 3), t);
     let a = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     let line = |s: u64| format!("{{\"loss\":0.5,\"step\":{s}}}");
     let report = |c: &mut Core, g: u64, steps: std::ops::RangeInclusive<u64>| {
         let lines = steps.clone().map(line).collect();
@@ -254,7 +266,7 @@ fn metrics_are_appended_until_records_are_dropped() {
     // A new generation from checkpoint 2 drops records 3 and 4: whole.
     c.checkpoint(a, 1, 2, false, t).unwrap();
     c.fault(a, 1, "boom", false, false, t).unwrap();
-    c.tick(t);
+    tick(&mut c, t);
     assert_eq!(c.metrics_write(true), MetricsWrite::Whole(both));
 }
 
@@ -266,14 +278,14 @@ fn a_leaving_worker_is_dropped_at_once() {
     let mut c = Core::new(spec(2, 3, 5), t);
     let a = reg(&mut c, t);
     let b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     assert_eq!(c.phase, Phase::Running);
     c.fault(b, 1, "stopped by a signal", false, true, t)
         .unwrap();
     assert!(!c.members.contains_key(&b));
     assert_eq!(c.restarts, 1);
     let d = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
         panic!("{:?}", c.phase)
     };
@@ -286,7 +298,7 @@ fn a_report_may_carry_a_bounded_number_of_records() {
     let t = Instant::now();
     let mut c = Core::new(spec(1, 1, 1), t);
     let a = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     let many = vec!["{\"loss\":0.5,\"step\":1}".to_string(); MAX_RECORDS_PER_REPORT + 1];
     let e = c.progress(prog(a, 1, 0, 1, None, many), t).unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument);
@@ -322,7 +334,7 @@ fn diverged_hashes_restart_from_the_checkpoint_and_equal_ones_count() {
     let mut c = Core::new(spec(2, 2, 1), t);
     let a = reg(&mut c, t);
     let b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     c.checkpoint(a, 1, 1, false, t).unwrap();
     c.progress(prog(a, 1, 0, 1, Some("aa"), vec![]), t).unwrap();
     c.progress(prog(b, 1, 1, 1, Some("aa"), vec![]), t).unwrap();
@@ -331,7 +343,7 @@ fn diverged_hashes_restart_from_the_checkpoint_and_equal_ones_count() {
     let d = c.progress(prog(b, 1, 1, 2, Some("bb"), vec![]), t).unwrap();
     assert_eq!(d, Directive::Restart);
     assert_eq!(c.restarts, 1);
-    c.tick(t);
+    tick(&mut c, t);
     let PlanState::Running(p) = c.plan(a, 1, t).unwrap() else {
         panic!("{:?}", c.phase)
     };
@@ -357,10 +369,10 @@ fn restarts_are_bounded_and_bad_registrations_refused() {
         .register(registration(PROTOCOL_VERSION, "w", "http://y:1"), t)
         .unwrap_err();
     assert_eq!(e.code(), tonic::Code::ResourceExhausted);
-    c.tick(t);
+    tick(&mut c, t);
     c.fault(a, 1, "boom", false, false, t).unwrap();
     assert_eq!(c.restarts, 1);
-    c.tick(t);
+    tick(&mut c, t);
     c.fault(a, 2, "boom again", false, false, t).unwrap();
     let Phase::Failed(m) = &c.phase else { panic!() };
     assert!(m.contains("gave up after 1 restarts"), "{m}");
@@ -368,7 +380,7 @@ fn restarts_are_bounded_and_bad_registrations_refused() {
     // A final checkpoint of the current generation finishes a job.
     let mut c = Core::new(spec(1, 1, 1), t);
     let a = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     c.checkpoint(a, 1, 10, true, t).unwrap();
     assert_eq!(c.phase, Phase::Done);
     assert_eq!(c.plan(a, 1, t).unwrap(), PlanState::Done);
@@ -385,13 +397,13 @@ fn the_ring_is_capped_at_the_global_batch() {
     let mut c = Core::new(s, t);
     assert_eq!(c.batch, Some(2));
     reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     assert!(
         matches!(c.phase, Phase::Waiting { .. }),
         "one worker waits for the grace"
     );
     reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     assert_eq!(
         c.phase,
         Phase::Running,
@@ -433,7 +445,7 @@ fn hashes_of_steps_that_can_no_longer_complete_are_dropped() {
     let mut c = Core::new(spec(2, 2, 1), t);
     let a = reg(&mut c, t);
     let b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     for step in 1..=100 {
         c.progress(prog(a, 1, 0, step, Some("h"), vec![]), t)
             .unwrap();
@@ -458,7 +470,7 @@ fn hashes_a_rank_never_reports_stay_bounded() {
     let mut c = Core::new(spec(2, 2, 1), t);
     let a = reg(&mut c, t);
     let _b = reg(&mut c, t);
-    c.tick(t);
+    tick(&mut c, t);
     for step in 1..=1000 {
         c.progress(prog(a, 1, 0, step, Some("h"), vec![]), t)
             .unwrap();
@@ -483,7 +495,7 @@ fn a_repeated_registration_of_one_instance_is_one_member() {
     let a = c.register(r.clone(), t).unwrap();
     assert_eq!(c.register(r.clone(), t).unwrap(), a);
     assert_eq!(c.members.len(), 1);
-    c.tick(t + Duration::from_secs(2));
+    tick(&mut c, t + Duration::from_secs(2));
     assert_eq!(c.phase, Phase::Running);
     assert_eq!(c.ring, vec![a]);
     let generation = c.generation;

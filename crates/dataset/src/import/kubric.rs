@@ -84,10 +84,10 @@ impl KubricSource {
         for split in ["train", "val", "test"] {
             let start = records.len() as u64;
             let files = shards(dir, split)?;
-            let indexed = files
-                .par_iter()
-                .map(|f| index_file(f))
-                .collect::<Result<Vec<_>>>()?;
+            // The first bad shard in name order is the one named, however the threads ran.
+            let indexed: Vec<Result<Vec<RecordRef>>> =
+                files.par_iter().map(|f| index_file(f)).collect();
+            let indexed = indexed.into_iter().collect::<Result<Vec<_>>>()?;
             records.extend(indexed.into_iter().flatten());
             bounds.push(start..records.len() as u64);
         }

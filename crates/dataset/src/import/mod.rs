@@ -19,6 +19,7 @@ pub mod npy;
 pub mod obsurf;
 pub mod tfrecord;
 
+use crate::codec::{check_decoded_bytes, image_error, image_limits};
 use crate::error::{DatasetError, Result};
 use crate::manifest::{Manifest, SplitInfo};
 use crate::reader::SplitReader;
@@ -188,46 +189,39 @@ pub trait Source: Send + Sync {
     fn view_origin(&self, index: u64, view: usize) -> String;
 }
 
-/// The most memory one image of a release may decode to (its pixels, and each
-/// conversion's): 64 MiB holds a 4K RGBA frame, some 200 times the releases' images. A
-/// header announcing more, a decompression bomb among them, is an error before anything
-/// is allocated.
-const MAX_IMAGE_BYTES: u64 = 64 << 20;
-
-fn image_limits() -> image::Limits {
-    let mut limits = image::Limits::default();
-    limits.max_alloc = Some(MAX_IMAGE_BYTES);
-    limits
-}
-
-/// What went wrong decoding an image, the limit named where it was the limit.
-fn image_error(e: image::ImageError) -> String {
-    match e {
-        image::ImageError::Limits(_) => format!(
-            "{e}: it would decode to more than the {} MiB one image may take",
-            MAX_IMAGE_BYTES >> 20
-        ),
-        e => e.to_string(),
-    }
-}
-
-/// Decodes the image file at `path` within [`MAX_IMAGE_BYTES`], streaming it from disk.
-pub(crate) fn open_image(
+/// A reader of the image file at `path`, its format guessed from its bytes, bounded by
+/// [`crate::codec::MAX_IMAGE_BYTES`].
+fn image_reader(
     path: &std::path::Path,
-) -> std::result::Result<image::DynamicImage, String> {
+) -> std::result::Result<image::ImageReader<std::io::BufReader<std::fs::File>>, String> {
     let mut reader = image::ImageReader::open(path)
         .and_then(|r| r.with_guessed_format())
         .map_err(|e| e.to_string())?;
     reader.limits(image_limits());
-    reader.decode().map_err(image_error)
+    Ok(reader)
 }
 
-/// Decodes a PNG held in memory within [`MAX_IMAGE_BYTES`].
+/// Decodes the image file at `path` within the limit, streaming it from disk.
+pub(crate) fn open_image(
+    path: &std::path::Path,
+) -> std::result::Result<image::DynamicImage, String> {
+    image_reader(path)?.decode().map_err(image_error)
+}
+
+/// The `[width, height]` the image file at `path` declares, from its header alone. A
+/// header announcing more than the limit is refused before its size is taken
+/// for the dataset's: believed, it would make every well-formed view the odd one out.
+pub(crate) fn image_dimensions(path: &std::path::Path) -> std::result::Result<[u32; 2], String> {
+    use image::ImageDecoder;
+    let decoder = image_reader(path)?.into_decoder().map_err(image_error)?;
+    let (w, h) = decoder.dimensions();
+    check_decoded_bytes(w, h, decoder.total_bytes())?;
+    Ok([w, h])
+}
+
+/// Decodes a PNG held in memory within the limit.
 pub(crate) fn decode_png(bytes: &[u8]) -> std::result::Result<image::DynamicImage, String> {
-    let mut reader =
-        image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::Png);
-    reader.limits(image_limits());
-    reader.decode().map_err(image_error)
+    crate::codec::decode_png(bytes, None).map_err(|e| e.to_string())
 }
 
 /// The scene indices of a split: its range within the source, filtered by object count,
@@ -332,7 +326,10 @@ pub async fn import(
             }
             let (src, part) = (src.clone(), part.to_vec());
             let scenes: Vec<Scene> = tokio::task::spawn_blocking(move || {
-                part.par_iter()
+                // Every scene's outcome, then the first error in scene order: a part
+                // with several bad scenes names the same one however the threads ran.
+                let decoded: Vec<Result<Scene>> = part
+                    .par_iter()
                     .map(|&i| {
                         let scene = same_size(src.scene(i)?, src.as_ref(), i, size)?;
                         Ok(match resize {
@@ -340,7 +337,8 @@ pub async fn import(
                             None => scene,
                         })
                     })
-                    .collect::<Result<Vec<_>>>()
+                    .collect();
+                decoded.into_iter().collect::<Result<Vec<_>>>()
             })
             .await
             .map_err(|e| DatasetError::Import {
@@ -423,6 +421,53 @@ async fn split_info(loc: &Location, indices: &[u64], src: &dyn Source) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Eight scenes, each failing with an error naming it; scene 0's comes last in time.
+    struct Failing;
+
+    impl Source for Failing {
+        fn num_scenes(&self) -> u64 {
+            8
+        }
+        fn counts(&self, _: u64) -> (usize, Option<usize>) {
+            (1, Some(1))
+        }
+        fn scene(&self, index: u64) -> Result<Scene> {
+            if index == 0 {
+                std::thread::sleep(std::time::Duration::from_millis(300));
+            }
+            Err(DatasetError::Import {
+                path: self.view_origin(index, 0),
+                reason: "unreadable".into(),
+            })
+        }
+        fn image_size(&self) -> Result<[u32; 2]> {
+            Ok([4, 4])
+        }
+        fn has_masks(&self) -> bool {
+            false
+        }
+        fn view_origin(&self, index: u64, _: usize) -> String {
+            format!("scene-{index}.png")
+        }
+    }
+
+    /// A part with several bad scenes names the first of them, whichever thread failed
+    /// first: the error a user (or a test) sees does not depend on scheduling.
+    #[tokio::test]
+    async fn the_first_bad_scene_in_order_is_named_however_the_threads_ran() {
+        let mut opts = ImportOptions::new(Format::Clevr3d);
+        opts.splits = Splits::parse("train=0..8,val=0..0,test=0..0", opts.splits).unwrap();
+        opts.scenes_per_part = 8;
+        for run in 0..3 {
+            let out = Location::parse(&format!("memory://order-{run}/ds")).unwrap();
+            let e = import(Arc::new(Failing), &out, &opts, false)
+                .await
+                .unwrap_err()
+                .to_string();
+            assert_eq!(e, "import scene-0.png: unreadable", "run {run}");
+        }
+    }
 
     #[test]
     fn split_ranges_parse_over_the_defaults() {

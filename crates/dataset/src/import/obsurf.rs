@@ -228,8 +228,7 @@ impl Source for ObsurfSource {
 
     fn image_size(&self) -> Result<[u32; 2]> {
         let first = self.root.join("images/img_0_0.png");
-        let (w, h) = image::image_dimensions(&first).map_err(|e| bad(&first, e.to_string()))?;
-        Ok([w, h])
+        super::image_dimensions(&first).map_err(|e| bad(&first, format!("scene 0, view 0: {e}")))
     }
 
     fn has_masks(&self) -> bool {
@@ -241,5 +240,51 @@ impl Source for ObsurfSource {
             .join(format!("images/img_{index}_{view}.png"))
             .display()
             .to_string()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::import::npy::Values;
+
+    /// One scene of one view whose image files are those in `root`.
+    fn source(root: &Path) -> ObsurfSource {
+        ObsurfSource {
+            root: root.to_path_buf(),
+            camera_pos: Array {
+                shape: vec![1, 1, 3],
+                values: Values::Numbers(vec![1.0, 2.0, 3.0]),
+            },
+            shape: Array {
+                shape: vec![1, 1],
+                values: Values::Numbers(vec![1.0]),
+            },
+            metadata: BTreeMap::new(),
+            views: 1,
+            has_masks: false,
+        }
+    }
+
+    /// The dataset's view size comes from the first image's header: a header announcing
+    /// more than one image may decode to is refused there, naming that file, before its
+    /// size is believed.
+    #[test]
+    fn the_view_size_is_not_taken_from_a_header_past_the_decode_limit() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("images")).unwrap();
+        let first = dir.path().join("images/img_0_0.png");
+        std::fs::write(&first, crate::codec::tests::png_header_only(32, 24)).unwrap();
+        assert_eq!(source(dir.path()).image_size().unwrap(), [32, 24]);
+        std::fs::write(
+            &first,
+            crate::codec::tests::png_header_only(100_000, 100_000),
+        )
+        .unwrap();
+        let e = source(dir.path()).image_size().unwrap_err().to_string();
+        assert!(
+            e.contains(&first.display().to_string()) && e.contains("more than the 64 MiB"),
+            "{e}"
+        );
     }
 }

@@ -44,12 +44,7 @@ async fn steps_by_file(run: &Location) -> Vec<(String, Vec<u64>)> {
             .bytes()
             .await
             .unwrap();
-        let events = read_events(&bytes);
-        assert_eq!(
-            events.last().map_or(0, |l| l.1),
-            bytes.len(),
-            "{name} is whole"
-        );
+        let events = read_events(&name, &bytes).unwrap();
         assert!(
             matches!(&events[0].0.what, Some(event::What::FileVersion(v)) if v == FILE_VERSION),
             "{name} starts with its version"
@@ -79,22 +74,165 @@ fn frames_read_back_and_a_torn_or_corrupt_tail_ends_the_read() {
         };
         frame(&e.encode_to_vec(), &mut bytes);
     }
-    let events = read_events(&bytes);
+    let events = read_events("f", &bytes).unwrap();
     assert_eq!(events.len(), 3);
     assert_eq!(events[2].1, bytes.len());
     assert_eq!(value_of(&events[1].0, "train/loss"), Some(0.25));
     // Cut inside the last frame, and a flipped payload byte in the second.
-    assert_eq!(read_events(&bytes[..bytes.len() - 3]).len(), 2);
-    let mut bad = bytes.clone();
-    bad[events[0].1 + 14] ^= 1;
-    assert_eq!(read_events(&bad).len(), 1);
+    let (torn, bad) = scan_events(&bytes[..bytes.len() - 3]);
+    assert_eq!((torn.len(), bad.map(|b| b.offset)), (2, Some(events[1].1)));
+    let mut flipped = bytes.clone();
+    flipped[events[0].1 + 14] ^= 1;
+    let (read, bad) = scan_events(&flipped);
+    assert_eq!(read.len(), 1);
+    assert!(bad.unwrap().reason.contains("checksum"));
     // A length near 2⁶⁴ with a valid checksum is no frame, not an overflow.
-    let mut huge = Vec::new();
-    let len = u64::MAX.to_le_bytes();
-    huge.extend_from_slice(&len);
-    huge.extend_from_slice(&masked_crc(&len).to_le_bytes());
-    huge.extend_from_slice(&[0; 8]);
-    assert!(read_events(&huge).is_empty());
+    let huge = length_only(u64::MAX, &[0; 8]);
+    let (read, bad) = scan_events(&huge);
+    assert!(read.is_empty() && bad.is_some());
+}
+
+/// A frame header declaring `len` bytes, with its valid checksum, then `rest`.
+fn length_only(len: u64, rest: &[u8]) -> Vec<u8> {
+    let mut out = len.to_le_bytes().to_vec();
+    out.extend_from_slice(&masked_crc(&len.to_le_bytes()).to_le_bytes());
+    out.extend_from_slice(rest);
+    out
+}
+
+/// Malformed files (a zero-length record two bytes short of its checksum, lengths past
+/// the end, a header torn short, garbage) are errors naming the file, never a panic or
+/// an allocation of the declared length.
+#[test]
+fn malformed_frames_are_errors_naming_the_file() {
+    let mut whole = Vec::new();
+    let e = Event {
+        wall_time: 1.0,
+        step: 3,
+        what: Some(event::What::Summary(Summary {
+            value: scalars(&train(3, 0.5, 1.0), None),
+        })),
+    };
+    frame(&e.encode_to_vec(), &mut whole);
+    let mut garbage_after = whole.clone();
+    garbage_after.extend_from_slice(&[0xa5; 40]);
+    let cases: [(&str, Vec<u8>, usize, &str); 6] = [
+        (
+            "zero-length",
+            length_only(0, &[0, 0]),
+            0,
+            "record of 0 bytes",
+        ),
+        (
+            "huge-length",
+            length_only(1 << 62, &[1; 64]),
+            0,
+            "record of 4611686018427387904 bytes",
+        ),
+        (
+            "past-the-end",
+            length_only(100, &[1; 50]),
+            0,
+            "50 bytes follow",
+        ),
+        (
+            "torn-header",
+            whole[..7].to_vec(),
+            0,
+            "7 bytes of its 12-byte header",
+        ),
+        (
+            "truncated",
+            whole[..whole.len() - 1].to_vec(),
+            0,
+            "bytes follow",
+        ),
+        (
+            "garbage-after",
+            garbage_after,
+            whole.len(),
+            "checksum does not match",
+        ),
+    ];
+    for (name, bytes, offset, want) in cases {
+        let err = read_events(name, &bytes).unwrap_err().to_string();
+        assert!(
+            err.contains(name)
+                && err.contains(&format!("from byte {offset}:"))
+                && err.contains(want),
+            "{name}: {err}"
+        );
+    }
+    // The 14-byte file as found in a run folder.
+    assert_eq!(length_only(0, &[0, 0]).len(), 14);
+}
+
+/// A run folder whose newest event file is malformed opens: the damage is reported
+/// naming the file, its readable events count, and new events go to a fresh file beside
+/// it.
+#[tokio::test]
+async fn a_malformed_event_file_is_reported_and_a_fresh_one_begun() {
+    let dir = tempfile::tempdir().unwrap();
+    let tb = dir.path().join(TB_DIR);
+    std::fs::create_dir_all(&tb).unwrap();
+    let empty = format!("{NAME_PREFIX}{:016}{NAME_SUFFIX}", 1);
+    std::fs::write(tb.join(&empty), length_only(0, &[0, 0])).unwrap();
+    let run = Location::parse(dir.path().to_str().unwrap()).unwrap();
+    let (mut log, last) = EventLog::open(&run, true).await.unwrap();
+    assert_eq!(last, None);
+    let damaged: Vec<String> = log.damaged().iter().map(|e| e.to_string()).collect();
+    assert_eq!(damaged.len(), 1, "{damaged:?}");
+    assert!(
+        damaged[0].contains(&empty) && damaged[0].contains("record of 0 bytes"),
+        "{damaged:?}"
+    );
+    log.add(1, 1.0, scalars(&train(1, 0.1, 1.0), None));
+    log.flush().await.unwrap();
+    let names = list(&run.join(TB_DIR)).await.unwrap();
+    assert_eq!(names.len(), 2, "{names:?}");
+    assert_eq!(
+        names[0], empty,
+        "the damaged file is left beside the new one"
+    );
+    let fresh = std::fs::read(tb.join(&names[1])).unwrap();
+    let steps: Vec<u64> = read_events(&names[1], &fresh)
+        .unwrap()
+        .iter()
+        .filter_map(|(e, _)| data_step(e))
+        .collect();
+    assert_eq!(steps, [1]);
+    drop(log);
+
+    // A file whose whole frames are followed by a garbage length: its steps count, and
+    // the cut a restarted coordinator makes (its last step's events may be short) takes
+    // the damaged files with it.
+    let newest = tb.join(&names[1]);
+    let mut bytes = fresh.clone();
+    bytes.extend_from_slice(&length_only(u64::MAX / 3, &[7; 20]));
+    std::fs::write(&newest, bytes).unwrap();
+    let (mut log, last) = EventLog::open(&run, true).await.unwrap();
+    assert_eq!(last, Some(1));
+    assert!(
+        log.damaged()[0].to_string().contains(&names[1]),
+        "{:?}",
+        log.damaged()
+    );
+    log.cut_after(Some(0));
+    for step in 1..=2 {
+        log.add(step, 2.0, scalars(&train(step, 0.1, 2.0), None));
+    }
+    log.flush().await.unwrap();
+    let files = steps_by_file(&run).await;
+    assert_eq!(all_steps(&files), [1, 2]);
+    assert_eq!(files.len(), 1, "{files:?}");
+    assert!(
+        EventLog::open(&run, true)
+            .await
+            .unwrap()
+            .0
+            .damaged()
+            .is_empty()
+    );
 }
 
 #[test]
