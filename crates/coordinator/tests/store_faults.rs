@@ -2,18 +2,18 @@
 //! writes `job.json` once the store answers again, and never exits on one failed put.
 
 use object_store::ObjectStoreExt;
+use object_store::memory::InMemory;
 use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
-use osrt_dataset::Location;
-use osrt_dataset::faulty::FaultyStore;
 use osrt_proto::auth::Token;
-use osrt_run::ClusterConfig;
+use osrt_run::{ClusterConfig, Location};
+use osrt_store::chaos::ChaosStore;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
-    let store = Arc::new(FaultyStore::default());
+    let inner = Arc::new(InMemory::new());
+    let store = Arc::new(ChaosStore::new(inner.clone()));
     let run = Location::new(store.clone(), "run");
     let spec = JobSpec {
         job_id: "job-flaky".into(),
@@ -29,7 +29,7 @@ async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
         .await
         .unwrap();
     // Every write of the monitor fails for a while: the first five puts.
-    store.fail_puts.store(5, Ordering::SeqCst);
+    store.faults(|f| f.fail_puts = 5);
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let serving = tokio::spawn(coord.serve(
@@ -43,7 +43,7 @@ async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
     ));
     let job_json = run.path("job.json");
     let t = Instant::now();
-    while store.inner.head(&job_json).await.is_err() {
+    while inner.head(&job_json).await.is_err() {
         assert!(
             !serving.is_finished(),
             "the coordinator exited on a failed put"
@@ -54,15 +54,8 @@ async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    assert_eq!(store.failed.load(Ordering::SeqCst), 5);
-    let bytes = store
-        .inner
-        .get(&job_json)
-        .await
-        .unwrap()
-        .bytes()
-        .await
-        .unwrap();
+    assert_eq!(store.served(), 5);
+    let bytes = inner.get(&job_json).await.unwrap().bytes().await.unwrap();
     let p: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
     assert_eq!(p["state"], "waiting", "{p}");
     stop.send(()).unwrap();

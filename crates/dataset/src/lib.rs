@@ -14,8 +14,6 @@ pub mod bench;
 pub mod camera;
 pub mod codec;
 pub mod error;
-#[cfg(feature = "test-support")]
-pub mod faulty;
 pub mod generator;
 pub mod import;
 pub mod inspect;

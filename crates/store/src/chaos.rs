@@ -29,6 +29,8 @@ pub struct Faults {
     /// Reads (gets and heads) of objects whose path contains the pattern fail, the next
     /// `count` times (`usize::MAX`: until changed).
     pub reads: Vec<(String, ReadFault, usize)>,
+    /// The next this many puts fail as a dropped connection does (`Error::Generic`).
+    pub fail_puts: usize,
     /// Every put waits this long first.
     pub put_delay: Duration,
     /// The next this many create-only puts are written and then answered with
@@ -183,6 +185,15 @@ impl ObjectStore for ChaosStore {
     ) -> object_store::Result<PutResult> {
         let (delay, lie) = {
             let mut f = self.faults.lock().expect("faults");
+            if f.fail_puts > 0 {
+                f.fail_puts -= 1;
+                self.served
+                    .fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                return Err(object_store::Error::Generic {
+                    store: "chaos",
+                    source: format!("{location}: connection reset by peer (injected)").into(),
+                });
+            }
             let create = matches!(opts.mode, PutMode::Create);
             let mut lie = create && f.exists_after_create > 0;
             if lie {

@@ -184,9 +184,9 @@ async fn checkpoints_past_the_starting_point_are_discarded() {
 /// commit: it never leads to writing over a committed checkpoint's files.
 #[tokio::test]
 async fn a_transient_error_before_a_commit_never_overwrites() {
-    use osrt_dataset::faulty::FaultyStore;
-    use std::sync::atomic::Ordering;
-    let store = std::sync::Arc::new(FaultyStore::default());
+    use osrt_store::chaos::{ChaosStore, ReadFault};
+    let inner = std::sync::Arc::new(object_store::memory::InMemory::new());
+    let store = std::sync::Arc::new(ChaosStore::new(inner));
     let run = Location::new(store.clone(), "run");
     let t = trainer();
     commit(&t, &run, state(5, None)).await;
@@ -196,11 +196,11 @@ async fn a_transient_error_before_a_commit_never_overwrites() {
             .unwrap(),
     );
     let before = run.store.get(&model).await.unwrap().bytes().await.unwrap();
-    store.fail_heads.store(1, Ordering::SeqCst);
+    store.faults(|f| f.reads = vec![("step-000000005/MANIFEST".into(), ReadFault::Transient, 1)]);
     let other = trainer_with_seed(7);
     let e = commit_error(&other, &run, state(5, None)).await;
-    assert!(e.contains("connection reset"), "{e}");
-    assert_eq!(store.failed.load(Ordering::SeqCst), 1);
+    assert!(e.contains("timed out (injected)"), "{e}");
+    assert_eq!(store.served(), 1);
     let after = run.store.get(&model).await.unwrap().bytes().await.unwrap();
     assert_eq!(before, after);
     checkpoint::verify(&run, 5).await.unwrap();
