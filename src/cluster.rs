@@ -208,6 +208,9 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     if a.max_steps.is_none() && a.max_minutes.is_none() && !a.resume {
         bail!("give the job a limit: --max-steps N and/or --max-minutes M");
     }
+    // Probes see a live process from the start: opening the run folder may watch a lease
+    // for 15 s and verify checkpoints for a while before the main port is served.
+    health_listener(a.health_listen).await?;
     // The workers' machines are not known here: the figure only, at one thread each.
     let world = job.cluster.min_workers.max(1);
     memory_check(&job, &a.data, (0, world), 1, true).await?;
@@ -227,7 +230,6 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
         coord.job_id(),
         listener.local_addr()?
     );
-    health_listener(a.health_listen).await?;
     let status = coord
         .serve(
             listener,

@@ -565,3 +565,50 @@ fn the_pods_command_lines_run_the_job_against_s3() {
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(r["psnr"].as_f64().unwrap().is_finite());
 }
+
+/// The liveness probe's plaintext health port answers from the coordinator's start, not
+/// only once the run folder is open: a restart that watches a lease (here one whose
+/// holder is gone: 15 s) or verifies large checkpoints must not be killed by its probe.
+#[test]
+fn the_health_port_answers_while_the_run_folder_is_being_opened() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 16);
+    let run = dir.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let lease = r#"{"holder":{"host":"gone","pid":1,"job_id":"job-gone","token":"gone-1",
+        "started_unix_s":0},"renewals":3,"renewed_unix_s":0}"#;
+    std::fs::write(run.join("lease.json"), lease).unwrap();
+    let health = free_port();
+    let health_addr = format!("127.0.0.1:{health}");
+    let args = ["--max-steps", "10", "--health-listen", health_addr.as_str()];
+    let mut coord = coordinator(free_port(), &data, &run, &args);
+    let t = std::time::Instant::now();
+    let answered = loop {
+        let out = Command::new("python3")
+            .arg(python_helper("check_health.py"))
+            .args([health_addr.as_str(), ""])
+            .output()
+            .expect("python3");
+        if out.status.success() {
+            break t.elapsed();
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "no health answer while the lease is watched: {}",
+            output_text(&out)
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(
+        std::fs::read_to_string(run.join("lease.json"))
+            .unwrap()
+            .contains("job-gone"),
+        "the lease was taken before the watch ended"
+    );
+    eprintln!(
+        "health answered {:.1} s after the start",
+        answered.as_secs_f64()
+    );
+    let _ = coord.0.kill();
+    let _ = coord.0.wait();
+}
