@@ -162,11 +162,15 @@ impl Coordinator {
         // A store that silently overwrites create-only or conditional writes would let
         // two writers share the folder: refused before anything is taken or written.
         lease::probe_store(&run).await?;
-        let lease = Lease::acquire(
+        // The next generation this coordinator forms is the persisted one's successor:
+        // ranks of the persisted one (a previous holder's) are fenced off at once.
+        let fence = persisted.as_ref().map_or(0, |p| p.generation + 1);
+        let lease = Lease::acquire_fencing(
             &run,
             Holder::this_process(job_id),
             opts.lease,
             opts.take_over,
+            fence,
         )
         .await?;
         // A refusal below leaves the folder free at once.

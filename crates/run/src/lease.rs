@@ -240,11 +240,24 @@ impl Lease {
         timing: LeaseTiming,
         take_over: bool,
     ) -> Result<Self> {
+        Self::acquire_fencing(run, holder, timing, take_over, 0).await
+    }
+
+    /// [`Lease::acquire`], naming `generation` in the lease from the first write: a
+    /// coordinator continuing a job whose persisted generation is `g` fences off every
+    /// rank of `g` and older (a previous holder's) as soon as it holds the folder.
+    pub async fn acquire_fencing(
+        run: &Location,
+        holder: Holder,
+        timing: LeaseTiming,
+        take_over: bool,
+        generation: u64,
+    ) -> Result<Self> {
         let file = LeaseFile {
             holder,
             renewals: 0,
             renewed_unix_s: unix_now(),
-            generation: 0,
+            generation,
         };
         loop {
             if let Put::Written(version) = put(run, &file, PutMode::Create).await? {

@@ -205,3 +205,40 @@ async fn a_commit_of_an_abandoned_generation_is_refused() {
     );
     keeper.release().await.unwrap();
 }
+
+/// A coordinator continuing a job fences off the persisted generation's ranks from its
+/// first write of the lease: a rank of a previous holder cannot commit while the new one
+/// is still starting.
+#[tokio::test]
+async fn a_new_holder_fences_off_the_previous_holders_ranks_at_once() {
+    use osrt_run::lease::{Holder, Lease, LeaseTiming};
+    let (_chaos, run) = run_with_checkpoints(&[]).await;
+    let lease = Lease::acquire_fencing(
+        &run,
+        Holder::this_process("j"),
+        LeaseTiming::default(),
+        false,
+        5,
+    )
+    .await
+    .unwrap();
+    let st = state(11);
+    let files = || {
+        vec![
+            (MODEL, Bytes::from(vec![1u8; 64])),
+            (OPTIMIZER, Bytes::from(vec![1u8; 128])),
+            (STATE, Bytes::from(serde_json::to_vec(&st).unwrap())),
+        ]
+    };
+    let e = checkpoint::commit(&run, &st, files(), Some(4))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("generation 5"), "{e}");
+    assert_eq!(
+        checkpoint::commit(&run, &st, files(), Some(5))
+            .await
+            .unwrap(),
+        11
+    );
+    lease.release().await.unwrap();
+}
