@@ -89,10 +89,11 @@ async fn pass(run: &Location, keep_last: usize, bound: u64) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    async fn commit_manifests(run: &Location, steps: &[u64]) {
+    /// Bare manifests at `steps`: folders that count as committed without files.
+    pub(crate) async fn commit_manifests(run: &Location, steps: &[u64]) {
         for s in steps {
             let path = format!("{}/{}", checkpoint::step_dir(*s), checkpoint::MANIFEST);
             osrt_run::write_file(run, &path, b"{}".to_vec())

@@ -132,6 +132,7 @@ async fn discard(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::retention::tests::commit_manifests;
     use osrt_run::lease::{Holder, Lease, LeaseTiming};
 
     async fn until_done(t: &mut Timeline, run: &Location, token: &str, step: Option<u64>) -> Turn {
@@ -142,15 +143,6 @@ mod tests {
             }
         }
         panic!("the discard did not finish")
-    }
-
-    async fn manifests(run: &Location, steps: &[u64]) {
-        for s in steps {
-            let path = format!("{}/{}", checkpoint::step_dir(*s), checkpoint::MANIFEST);
-            osrt_run::write_file(run, &path, b"{}".to_vec())
-                .await
-                .unwrap();
-        }
     }
 
     /// A starting checkpoint that does not verify is never the reason to delete the ones
@@ -166,7 +158,7 @@ mod tests {
         )
         .await
         .unwrap();
-        manifests(&run, &[5, 10, 15]).await;
+        commit_manifests(&run, &[5, 10, 15]).await;
         let mut t = Timeline::default();
         let turn = until_done(&mut t, &run, &lease.holder().token, Some(5)).await;
         assert!(

@@ -31,17 +31,23 @@ fn state(step: u64) -> CheckpointState {
     }
 }
 
+/// The files of a checkpoint of `st`, their bytes drawn from `fill`.
+fn files_of(st: &CheckpointState, fill: u8) -> Vec<(&'static str, Bytes)> {
+    vec![
+        (MODEL, Bytes::from(vec![fill; 64])),
+        (OPTIMIZER, Bytes::from(vec![fill; 128])),
+        (STATE, Bytes::from(serde_json::to_vec(st).unwrap())),
+    ]
+}
+
 async fn run_with_checkpoints(steps: &[u64]) -> (Arc<ChaosStore>, Location) {
     let chaos = Arc::new(ChaosStore::new(Arc::new(InMemory::new())));
     let run = Location::new(chaos.clone(), "run");
     for &s in steps {
         let st = state(s);
-        let files = vec![
-            (MODEL, Bytes::from(vec![s as u8; 64])),
-            (OPTIMIZER, Bytes::from(vec![s as u8; 128])),
-            (STATE, Bytes::from(serde_json::to_vec(&st).unwrap())),
-        ];
-        checkpoint::commit(&run, &st, files, None).await.unwrap();
+        checkpoint::commit(&run, &st, files_of(&st, s as u8), None)
+            .await
+            .unwrap();
     }
     (chaos, run)
 }
@@ -151,11 +157,7 @@ async fn a_create_answered_already_exists_after_it_went_through_is_kept() {
     let (chaos, run) = run_with_checkpoints(&[]).await;
     chaos.faults(|f| f.exists_after_create = 4);
     let st = state(7);
-    let files = vec![
-        (MODEL, Bytes::from(vec![7u8; 64])),
-        (OPTIMIZER, Bytes::from(vec![7u8; 128])),
-        (STATE, Bytes::from(serde_json::to_vec(&st).unwrap())),
-    ];
+    let files = files_of(&st, 7);
     assert_eq!(checkpoint::commit(&run, &st, files, None).await.unwrap(), 7);
     assert_eq!(chaos.served(), 4);
     checkpoint::check(&run, 7).await.unwrap();
@@ -180,13 +182,7 @@ async fn a_commit_of_an_abandoned_generation_is_refused() {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     let st = state(9);
-    let files = || {
-        vec![
-            (MODEL, Bytes::from(vec![9u8; 64])),
-            (OPTIMIZER, Bytes::from(vec![9u8; 128])),
-            (STATE, Bytes::from(serde_json::to_vec(&st).unwrap())),
-        ]
-    };
+    let files = || files_of(&st, 9);
     let e = checkpoint::commit(&run, &st, files(), Some(2))
         .await
         .unwrap_err();
@@ -223,13 +219,7 @@ async fn a_new_holder_fences_off_the_previous_holders_ranks_at_once() {
     .await
     .unwrap();
     let st = state(11);
-    let files = || {
-        vec![
-            (MODEL, Bytes::from(vec![1u8; 64])),
-            (OPTIMIZER, Bytes::from(vec![1u8; 128])),
-            (STATE, Bytes::from(serde_json::to_vec(&st).unwrap())),
-        ]
-    };
+    let files = || files_of(&st, 1);
     let e = checkpoint::commit(&run, &st, files(), Some(4))
         .await
         .unwrap_err();
