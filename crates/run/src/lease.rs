@@ -634,6 +634,18 @@ mod tests {
         Holder::this_process(job)
     }
 
+    /// The error a newcomer ("b") gets while `a` renews its lease.
+    async fn refused_while_renewing(run: &Location, a: &mut Lease) -> String {
+        let renewing = async {
+            for _ in 0..12 {
+                tokio::time::sleep(Duration::from_millis(60)).await;
+                a.renew().await.unwrap();
+            }
+        };
+        let (e, ()) = tokio::join!(Lease::acquire(run, holder("b"), quick(), false), renewing);
+        e.unwrap_err().to_string()
+    }
+
     #[tokio::test]
     async fn a_live_holder_keeps_the_folder_and_a_dead_one_is_taken_over() {
         let dir = tempfile::tempdir().unwrap();
@@ -642,14 +654,7 @@ mod tests {
             .await
             .unwrap();
         // A second holder while the first renews: refused, naming the first.
-        let renewing = async {
-            for _ in 0..12 {
-                tokio::time::sleep(Duration::from_millis(60)).await;
-                a.renew().await.unwrap();
-            }
-        };
-        let (e, ()) = tokio::join!(Lease::acquire(&run, holder("b"), quick(), false), renewing);
-        let e = e.unwrap_err().to_string();
+        let e = refused_while_renewing(&run, &mut a).await;
         assert!(e.contains("job a") && e.contains("--take-over"), "{e}");
         // The first stops renewing (a crash): the next one takes over after the watch,
         // and the first, renewing late, learns it has lost the folder.
@@ -681,14 +686,7 @@ mod tests {
         let mut a = Lease::acquire(&run, elsewhere, quick(), false)
             .await
             .unwrap();
-        let renewing = async {
-            for _ in 0..12 {
-                tokio::time::sleep(Duration::from_millis(60)).await;
-                a.renew().await.unwrap();
-            }
-        };
-        let (e, ()) = tokio::join!(Lease::acquire(&run, holder("b"), quick(), false), renewing);
-        let e = e.unwrap_err().to_string();
+        let e = refused_while_renewing(&run, &mut a).await;
         assert!(
             e.contains("job a") && e.contains("another coordinator"),
             "{e}"
