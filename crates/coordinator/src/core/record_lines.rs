@@ -1,37 +1,14 @@
 //! Rank 0's record lines as the state machine takes them: one record per line, so
 //! `metrics.jsonl` reads back as it was written.
 
+use super::tests::{reg, spec, tick};
 use super::*;
 
 /// A running one-worker job; returns the core and its worker's id.
 fn running(t: Instant) -> (Core, u64) {
-    let cluster = ClusterConfig {
-        min_workers: 1,
-        max_workers: 1,
-        join_grace_s: 0.0,
-        ..Default::default()
-    };
-    let spec = JobSpec {
-        job_id: "j".into(),
-        job_toml: "[cluster]\n".into(),
-        cluster,
-        data: "data".into(),
-        run: "run".into(),
-        max_steps: Some(10),
-        deadline_unix_s: None,
-        cluster_overrides: ClusterOverrides::default(),
-    };
-    let mut c = Core::new(spec, t);
-    let registration = Registration {
-        protocol_version: PROTOCOL_VERSION,
-        name: "w".into(),
-        addr: "http://x:1".into(),
-        threads: 1,
-        instance: 0,
-    };
-    let id = c.register(registration, t).unwrap();
-    c.tick(t);
-    c.discarded();
+    let mut c = Core::new(spec(1, 1, 3), t);
+    let id = reg(&mut c, t);
+    tick(&mut c, t);
     assert_eq!(c.phase, Phase::Running);
     (c, id)
 }

@@ -2,7 +2,7 @@
 
 use super::*;
 
-fn spec(min: usize, max: usize, restarts: u32) -> JobSpec {
+pub(super) fn spec(min: usize, max: usize, restarts: u32) -> JobSpec {
     // The `tiny` preset's cluster table: short timeouts, frequent hashes and checkpoints.
     let cluster = ClusterConfig {
         min_workers: min,
@@ -56,14 +56,14 @@ fn registration(protocol_version: u32, name: &str, addr: &str) -> Registration {
 }
 
 /// A tick, and the service's discard of an abandoned timeline done at once.
-fn tick(c: &mut Core, now: Instant) {
+pub(super) fn tick(c: &mut Core, now: Instant) {
     c.tick(now);
     if c.discard_pending {
         c.discarded();
     }
 }
 
-fn reg(c: &mut Core, now: Instant) -> u64 {
+pub(super) fn reg(c: &mut Core, now: Instant) -> u64 {
     c.register(registration(PROTOCOL_VERSION, "w", "http://x:1"), now)
         .unwrap()
 }
