@@ -344,10 +344,10 @@ pub async fn train(a: TrainArgs) -> Result<()> {
 /// checkpoints are, and its last validation.
 async fn print_outcome(run: &str, status: &osrt_coordinator::StatusSnapshot) -> Result<()> {
     let loc = Location::parse(run)?;
-    let metrics = osrt_run::read_file(&loc, osrt_run::METRICS_FILE)
+    let metrics = osrt_run::metrics_log::read_all(&loc)
         .await?
         .unwrap_or_default();
-    let last_eval = String::from_utf8_lossy(&metrics)
+    let last_eval = metrics
         .lines()
         .filter_map(MetricsRecord::parse)
         .filter_map(|r| match r {

@@ -59,9 +59,8 @@ pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
 
 /// One page from what the run folder holds now; returns where the job stands.
 async fn write_page(loc: &osrt_run::Location, out: &Path, label: &str, every: u64) -> Result<Live> {
-    let metrics = read_file(loc, METRICS_FILE).await?;
-    let text = metrics
-        .map(|b| String::from_utf8_lossy(&b).into_owned())
+    let text = osrt_run::metrics_log::read_all(loc)
+        .await?
         .unwrap_or_default();
     let job: JobView = match read_file(loc, JOB_FILE).await? {
         Some(b) => serde_json::from_slice(&b)

@@ -66,18 +66,27 @@ pub fn encode_request(tag: &ChunkTag, data: Bytes) -> [Bytes; 2] {
     [head.freeze(), data]
 }
 
-/// Bytes received as a list of frames, read front to back across frame boundaries.
+/// Bytes received as a list of frames, read front to back across frame boundaries. Each
+/// part remembers the length of the DATA frame it was cut from: a slice keeps its whole
+/// frame alive.
 #[derive(Default)]
 struct Frames {
-    parts: VecDeque<Bytes>,
+    parts: VecDeque<(Bytes, usize)>,
     remaining: usize,
 }
 
 impl Frames {
-    fn push(&mut self, part: Bytes) {
+    /// A received DATA frame.
+    fn push(&mut self, frame: Bytes) {
+        let len = frame.len();
+        self.push_cut(frame, len);
+    }
+
+    /// A part cut from a frame of `frame_len` bytes.
+    fn push_cut(&mut self, part: Bytes, frame_len: usize) {
         self.remaining += part.len();
         if !part.is_empty() {
-            self.parts.push_back(part);
+            self.parts.push_back((part, frame_len));
         }
     }
 
@@ -88,12 +97,12 @@ impl Frames {
         }
         let mut out = Frames::default();
         while n > 0 {
-            let front = self
+            let (front, frame_len) = self
                 .parts
                 .front_mut()
                 .expect("remaining counts these bytes");
             let k = n.min(front.len());
-            out.push(front.split_to(k));
+            out.push_cut(front.split_to(k), *frame_len);
             if front.is_empty() {
                 self.parts.pop_front();
             }
@@ -108,12 +117,30 @@ impl Frames {
         let mut f = self.split(n)?;
         Some(match f.parts.len() {
             0 => Bytes::new(),
-            1 => f.parts.pop_front().expect("one part"),
+            1 => f.parts.pop_front().expect("one part").0,
             _ => {
                 let mut out = BytesMut::with_capacity(n);
-                f.parts.iter().for_each(|p| out.extend_from_slice(p));
+                f.parts.iter().for_each(|(p, _)| out.extend_from_slice(p));
                 out.freeze()
             }
+        })
+    }
+
+    /// [`Frames::take`] for a payload that may be kept a while (a mailbox's early chunk):
+    /// a slice less than half of the frame it lies in is copied out, so what it keeps
+    /// alive is at most twice its length. A peer that pads a small payload with unknown
+    /// fields (or packs it beside other bytes) cannot make a counted byte hold a frame.
+    fn take_payload(&mut self, n: usize) -> Option<Bytes> {
+        let frame_len = match self.parts.front() {
+            Some((front, len)) if front.len() >= n => *len,
+            // Spread over frames: `take` copies it into an allocation of its own.
+            _ => return self.take(n),
+        };
+        let data = self.take(n)?;
+        Some(if frame_len > 2 * n {
+            Bytes::copy_from_slice(&data)
+        } else {
+            data
         })
     }
 
@@ -123,7 +150,7 @@ impl Frames {
             return None;
         }
         let mut out = [0u8; N];
-        let bytes = self.parts.iter().flat_map(|p| p.iter());
+        let bytes = self.parts.iter().flat_map(|(p, _)| p.iter());
         out.iter_mut().zip(bytes).for_each(|(o, b)| *o = *b);
         Some(out)
     }
@@ -190,7 +217,12 @@ fn decode_chunk(mut f: Frames) -> Result<Chunk, Status> {
         match (field, wire) {
             (1 | 2, 2) => {
                 let n = f.length().ok_or_else(truncated)?;
-                let bytes = f.take(n).ok_or_else(truncated)?;
+                let bytes = if field == 1 {
+                    f.take(n)
+                } else {
+                    f.take_payload(n)
+                }
+                .ok_or_else(truncated)?;
                 if field == 1 {
                     // Repeated occurrences of a message field merge (protobuf's rule).
                     chunk

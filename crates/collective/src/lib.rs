@@ -22,6 +22,7 @@
 //! sender that is not its ring predecessor, an unknown bucket and a wrong length. Every RPC
 //! and every wait has a deadline, so a dead peer fails the round in seconds.
 
+mod budget;
 pub mod chunk_wire;
 mod loan;
 mod mailbox;
@@ -48,6 +49,8 @@ use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 
+use budget::Budget;
+pub use budget::{MIN_RING_BYTES_PER_S, STRAGGLER_TIMEOUTS, all_reduce_budget};
 pub use osrt_proto::{KEEP_ALIVE_INTERVAL, KEEP_ALIVE_TIMEOUT, MAX_CHUNK_FLOATS};
 
 /// HTTP/2 flow-control window of collective connections (several chunks in flight).
@@ -75,6 +78,16 @@ pub enum CollectiveError {
         phase: Phase,
         round: usize,
         timeout: Duration,
+    },
+    #[error(
+        "rank {rank}: rank {from} sent {received} of {expected} chunks in {budget:?}, the most an all-reduce of this size may take ({STRAGGLER_TIMEOUTS} timeouts and {MIN_RING_BYTES_PER_S} bytes/s): peer too slow"
+    )]
+    Straggler {
+        rank: usize,
+        from: usize,
+        received: usize,
+        expected: usize,
+        budget: Duration,
     },
     #[error("rank {rank}: round failed: {0}", rank = .1)]
     Peer(String, usize),
@@ -376,16 +389,16 @@ impl Ring {
         let mut fill = Fill::new(stage, &layout, self.cfg.rank, self.cfg.timeout);
         self.mailbox.begin_step(step, layout.clone());
         let rank = self.cfg.rank;
-        let next = (rank + 1) % w;
         let send_error = |status| CollectiveError::Send {
             rank,
-            to: next,
+            to: (rank + 1) % w,
             status,
         };
         let inject = self.fault == Some((rank, step)) && self.cfg.generation == 1;
         let schedule = receive_schedule(&layout, rank);
         // Sends that may go out now, by the order the successor consumes them.
         let mut ready = first_sends(&layout, rank);
+        let mut budget = Budget::new(&self.cfg, &schedule);
         let (sender, mut call) = self.open_call(schedule.len()).map_err(send_error)?;
         let mut first = true;
         let cfg = &self.cfg;
@@ -427,6 +440,7 @@ impl Ring {
                 .first_key_value()
                 .is_some_and(|(id, _)| fill.has(id.bucket as usize));
             let can_receive = hop.is_some_and(|h| fill.has(h.id.bucket as usize));
+            let staging = fill.pending();
             tokio::select! {
                 biased;
                 status = call.ended() => return Err(send_error(status)),
@@ -444,9 +458,9 @@ impl Ring {
                     let (id, out) = ready.pop_first().expect("ready is not empty");
                     send(shared, permit, id, out);
                 }
-                data = self.mailbox.take(key, self.cfg.timeout), if can_receive => {
+                data = budget.take(&self.mailbox, key, staging, received), if can_receive => {
                     let hop = hop.expect("enabled only with a chunk to receive");
-                    let data = hop.check(data, rank, w, self.cfg.timeout)?;
+                    let data = hop.check(data?, rank, w, self.cfg.timeout)?;
                     let to = (&mut *shared, &mut call, &mut ready);
                     hop.take_in(data, to, (rank, self.cfg.timeout), &send_error).await?;
                     received += 1;
@@ -471,8 +485,9 @@ impl Ring {
         &self,
         chunks: usize,
     ) -> Result<(chunk_wire::ChunkSender, chunk_wire::ChunkCall), Status> {
-        // The call's deadline allows each chunk the per-chunk timeout; a dead peer is
-        // noticed much sooner, by the ring's waits.
+        // The call's deadline allows each chunk the per-chunk timeout (staging may
+        // overlap a long backward pass); a dead peer is noticed much sooner, by the
+        // ring's waits, and a slow one by the receiver's budget (`all_reduce_budget`).
         let chunks = u32::try_from(chunks + 1).unwrap_or(u32::MAX);
         let deadline = self.cfg.timeout.saturating_mul(chunks);
         chunk_wire::open_stream(self.next.clone(), &self.auth, deadline, self.in_flight())
@@ -691,6 +706,10 @@ fn receive_schedule(layout: &Layout, rank: usize) -> Vec<Hop> {
     hops
 }
 
+/// The longest a `PushChunks` call may last when its client names no deadline (ours
+/// always do: the per-chunk timeout for every chunk of the all-reduce).
+pub const CALL_LIMIT: Duration = Duration::from_secs(3600);
+
 /// Serves a collective mailbox on `listener` until `shutdown` resolves, with the standard
 /// gRPC health service beside it; every collective call must carry `token`; with `tls`,
 /// connections are mutual TLS.
@@ -701,26 +720,14 @@ pub async fn serve(
     tls: Option<Tls>,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    let (health, health_service) = tonic_health::server::health_reporter();
-    health
-        .set_service_status(
-            osrt_proto::v1::collective_server::SERVICE_NAME,
-            tonic_health::ServingStatus::Serving,
-        )
-        .await;
+    let health_service =
+        osrt_proto::server::CheckOnly::server(&[osrt_proto::v1::collective_server::SERVICE_NAME]);
     let accept = move |chunk| mailbox.accept(chunk);
     let service = PushChunkServer::new(accept, MAX_CHUNK_FLOATS * 4 + 4096);
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = &tls {
-        builder = builder.tls_config(tls.server())?;
-    }
-    builder
+    osrt_proto::server::builder(tls.as_ref(), CALL_LIMIT)?
         .initial_stream_window_size(WINDOW_BYTES)
         .initial_connection_window_size(WINDOW_BYTES)
         .max_frame_size(FRAME_BYTES)
-        .http2_keepalive_interval(Some(KEEP_ALIVE_INTERVAL))
-        .http2_keepalive_timeout(Some(KEEP_ALIVE_TIMEOUT))
-        .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(InterceptedService::new(
             service,

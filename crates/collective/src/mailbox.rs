@@ -73,7 +73,9 @@ struct MailboxState {
     /// fails at once instead of running into its deadline.
     aborted: Option<String>,
     /// Bytes of the chunks kept before they could be checked (a peer already in the next
-    /// generation, or in this one before this rank's first step, or one step ahead).
+    /// generation, or in this one before this rank's first step, or one step ahead). A
+    /// payload holds at most twice its length (`chunk_wire` copies one that is a small
+    /// slice of its HTTP/2 frame), so the memory they hold is at most twice this.
     early_bytes: usize,
     /// Bytes of the last gradient this mailbox saw reduced, and the most chunks of it
     /// this rank receives in one all-reduce (together they bound `early_bytes`).

@@ -839,3 +839,50 @@ async fn tonics_generated_stream_client_talks_to_the_ring_server() {
     assert!(e.message().contains("malformed chunk"), "{e}");
     the_round_fails_at_once_on_the_malformed_chunk(waiting, t).await;
 }
+
+/// A predecessor that sends each chunk just inside the per-chunk timeout (a straggler)
+/// fails the all-reduce once the transfer's budget is spent, instead of holding the
+/// ring for a timeout per chunk.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_peer_that_drips_its_chunks_fails_the_round_as_a_straggler() {
+    let nodes = start(2, "test-job").await;
+    nodes[0].mailbox.set_generation(1, 0, 3);
+    let timeout = Duration::from_secs(2);
+    // Chunks of 1 float: rank 1 receives 4 reduce-scatter and 4 all-gather chunks.
+    let ring = Ring::new(
+        config(&nodes, 1, 1000, 1, timeout),
+        nodes[1].mailbox.clone(),
+    )
+    .unwrap();
+    let t = Instant::now();
+    let waiting = all_reduce_in_background(ring, 3);
+    let mut client = client_of(&nodes[1]).await;
+    let gap = timeout.mul_f64(0.6);
+    for (phase, c) in [Phase::ReduceScatter, Phase::AllGather]
+        .into_iter()
+        .flat_map(|p| (0..4).map(move |c| (p, c)))
+    {
+        tokio::time::sleep(gap).await;
+        if waiting.is_finished() {
+            break;
+        }
+        let mut ch = chunk("test-job", 1, 3, 0, vec![1.0]);
+        let tag = ch.tag.as_mut().unwrap();
+        tag.phase = phase as i32;
+        tag.chunk = c;
+        if push_one(&mut client, ch).await.is_err() {
+            break;
+        }
+    }
+    let err = waiting.await.unwrap().0.unwrap_err();
+    let budget = osrt_collective::all_reduce_budget(timeout, 8 * 4);
+    assert!(
+        matches!(err, CollectiveError::Straggler { from: 0, expected: 8, received, .. } if received < 8),
+        "{err}"
+    );
+    assert!(
+        t.elapsed() < budget + timeout,
+        "failed after {:?}, budget {budget:?}",
+        t.elapsed()
+    );
+}

@@ -137,20 +137,31 @@ pub struct Core {
     pub hash_checks: u64,
     /// step → rank → parameter hash, until every rank has reported.
     hashes: BTreeMap<u64, BTreeMap<usize, String>>,
-    /// `(step, JSON line)` of metrics.jsonl.
+    /// `(step, JSON line)` of the records not yet handed to both `metrics.jsonl` and the
+    /// event log: the others live in the run folder only, so memory stays bounded however
+    /// long the job runs.
     pub records: Vec<(u64, String)>,
+    /// The newest step taken (whether still in `records` or not), and its lines: a report
+    /// resent after a lost answer repeats them. Closed: the step is a checkpoint a
+    /// generation starts from, so no line of it is new.
+    last_step: Option<u64>,
+    newest: Vec<String>,
+    newest_closed: bool,
     pub last_record: String,
     /// Something persisted changed since the last save.
     pub dirty_job: bool,
     pub dirty_metrics: bool,
-    /// Records `metrics.jsonl` holds (a prefix of `records`), and whether the file must be
-    /// written whole (records were dropped, or an append may have failed half-way).
+    /// Records handed to `metrics.jsonl` (a prefix of `records`), at most what step it
+    /// holds, and the cut it must make first (records it holds were dropped).
     flushed: usize,
-    rewrite: bool,
-    /// Records the TensorBoard event log holds (a prefix of `records`), and the step it
-    /// must first be cut back to (records it holds were dropped).
+    metrics_last: Option<u64>,
+    metrics_cut: Option<Option<u64>>,
+    /// The same for the TensorBoard event log, and the training record last sent to it
+    /// (step times are differences).
     events_sent: usize,
+    events_last: Option<u64>,
     events_cut: Option<Option<u64>>,
+    previous_train: Option<(u64, String)>,
 }
 
 /// What the TensorBoard event log must do to match `records`.
@@ -165,12 +176,20 @@ pub struct EventsWork {
 }
 
 /// How to bring `metrics.jsonl` up to date.
-#[derive(Debug, Clone, PartialEq)]
-pub enum MetricsWrite {
-    /// Append these lines (the file holds the ones before).
-    Append(String),
-    /// Write the file whole.
-    Whole(String),
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct MetricsWrite {
+    /// Cut out the records past this step (`Some(None)`: all of them) first.
+    pub cut_after: Option<Option<u64>>,
+    /// `(step, line)` to append, in order.
+    pub lines: Vec<(u64, String)>,
+}
+
+/// The smaller of two cuts (`None` inside: cut everything).
+fn earlier_cut(a: Option<Option<u64>>, keep: Option<u64>) -> Option<Option<u64>> {
+    Some(match a {
+        Some(earlier) => earlier.min(keep),
+        None => keep,
+    })
 }
 
 /// The `step` of a metrics record line (`None`: not a record).
@@ -202,79 +221,116 @@ impl Core {
             hash_checks: 0,
             hashes: BTreeMap::new(),
             records: Vec::new(),
+            last_step: None,
+            newest: Vec::new(),
+            newest_closed: false,
             last_record: String::new(),
             dirty_job: true,
             dirty_metrics: false,
             flushed: 0,
-            rewrite: false,
+            metrics_last: None,
+            metrics_cut: None,
             events_sent: 0,
+            events_last: None,
             events_cut: None,
+            previous_train: None,
         }
     }
 
-    /// Takes what the event log must do to match `records`.
+    /// Takes what the event log must do to match the records.
     pub fn events_work(&mut self) -> EventsWork {
         let sent = self.events_sent.min(self.records.len());
-        let previous_train = self.records[..sent]
+        let new = &self.records[sent..];
+        let work = EventsWork {
+            cut_after: self.events_cut.take(),
+            records: new.iter().map(|(_, l)| l.clone()).collect(),
+            previous_train: self.previous_train.as_ref().map(|(_, l)| l.clone()),
+        };
+        if let Some((s, l)) = new
             .iter()
             .rev()
             .find(|(_, l)| matches!(MetricsRecord::parse(l), Some(MetricsRecord::Train(_))))
-            .map(|(_, l)| l.clone());
-        self.events_sent = self.records.len();
-        EventsWork {
-            cut_after: self.events_cut.take(),
-            records: self.records[sent..]
-                .iter()
-                .map(|(_, l)| l.clone())
-                .collect(),
-            previous_train,
+        {
+            self.previous_train = Some((*s, l.clone()));
         }
+        if let Some((s, _)) = new.last() {
+            self.events_last = Some(*s);
+        }
+        self.events_sent = self.records.len();
+        self.forget_delivered();
+        work
     }
 
-    /// Whether the event log lags `records`.
+    /// Whether the event log lags the records.
     pub fn events_pending(&self) -> bool {
         self.events_cut.is_some() || self.events_sent != self.records.len()
     }
 
-    /// The event log (just opened) holds events of the records before step `from`.
-    pub fn events_resume(&mut self, from: u64) {
-        self.events_sent = self.records.iter().take_while(|(s, _)| *s < from).count();
+    /// The event log (just opened) lacks `backlog`, records `metrics.jsonl` holds (from
+    /// the step its events end at up to the checkpoint); `previous_train` is the training
+    /// record before them.
+    pub fn events_resume(
+        &mut self,
+        backlog: Vec<(u64, String)>,
+        previous_train: Option<(u64, String)>,
+    ) {
+        self.records = backlog;
+        self.flushed = self.records.len();
+        self.events_sent = 0;
         self.events_cut = None;
+        self.events_last = None;
+        self.previous_train = previous_train;
     }
 
-    /// The write that brings `metrics.jsonl` up to date; `can_append`: the store appends
-    /// in place (a local folder). Counts the records as written: call
-    /// [`Core::metrics_write_failed`] if the write fails.
-    pub fn metrics_write(&mut self, can_append: bool) -> MetricsWrite {
-        let lines = |records: &[(u64, String)]| {
-            let mut text = String::new();
-            for (_, l) in records {
-                text.push_str(l);
-                text.push('\n');
-            }
-            text
+    /// The write that brings `metrics.jsonl` up to date; counts the records as handed
+    /// over (the writer keeps what it could not write yet).
+    pub fn metrics_write(&mut self) -> MetricsWrite {
+        let write = MetricsWrite {
+            cut_after: self.metrics_cut.take(),
+            lines: self.records[self.flushed.min(self.records.len())..].to_vec(),
         };
-        let append = can_append && !self.rewrite && self.flushed <= self.records.len();
-        let write = if append {
-            MetricsWrite::Append(lines(&self.records[self.flushed..]))
-        } else {
-            MetricsWrite::Whole(lines(&self.records))
-        };
+        if let Some((s, _)) = write.lines.last() {
+            self.metrics_last = Some(*s);
+        }
         self.flushed = self.records.len();
-        self.rewrite = false;
         self.dirty_metrics = false;
+        self.forget_delivered();
         write
     }
 
-    /// The newest step of the records (what `metrics.jsonl` holds once written).
-    pub fn last_record_step(&self) -> Option<u64> {
-        self.records.iter().map(|(s, _)| *s).max()
+    /// Drops the records both the metrics and the event log have taken.
+    fn forget_delivered(&mut self) {
+        let n = self.flushed.min(self.events_sent).min(self.records.len());
+        self.records.drain(..n);
+        self.flushed -= n;
+        self.events_sent -= n;
     }
 
-    /// A metrics write failed: the next one writes the file whole.
-    pub fn metrics_write_failed(&mut self) {
-        self.rewrite = true;
-        self.dirty_metrics = true;
+    /// Drops the records past `keep` (`None`: all) wherever they are: in memory, and by a
+    /// cut in `metrics.jsonl` and the event log where they may have reached them.
+    fn drop_records_after(&mut self, keep: Option<u64>) {
+        let past = |s: u64| keep.is_none_or(|k| s > k);
+        // Records are in step order: those kept are a prefix.
+        self.records.retain(|(s, _)| !past(*s));
+        self.flushed = self.flushed.min(self.records.len());
+        self.events_sent = self.events_sent.min(self.records.len());
+        if self.metrics_last.is_some_and(past) {
+            self.metrics_cut = earlier_cut(self.metrics_cut, keep);
+            self.metrics_last = keep;
+            self.dirty_metrics = true;
+        }
+        if self.events_last.is_some_and(past) {
+            self.events_cut = earlier_cut(self.events_cut, keep);
+            self.events_last = keep;
+        }
+        if self.previous_train.as_ref().is_some_and(|(s, _)| past(*s)) {
+            self.previous_train = None;
+        }
+        if self.last_step.is_some_and(past) {
+            self.last_step = keep;
+            self.newest.clear();
+            self.newest_closed = true;
+        }
     }
 
     /// Continues a job from its persisted state and records (a restarted coordinator, or
@@ -283,7 +339,7 @@ impl Core {
     pub fn restore(
         &mut self,
         p: &Persisted,
-        records: Vec<String>,
+        last_record: Option<u64>,
         checkpoint: Option<u64>,
         resume: bool,
         now: Instant,
@@ -293,17 +349,17 @@ impl Core {
         self.restarts_before = if resume { p.restarts } else { 0 };
         self.hash_checks = p.hash_checks;
         self.last_checkpoint = checkpoint;
-        // Without a checkpoint the job starts over, and so does its record.
-        self.records = records
-            .into_iter()
-            .filter_map(|l| record_step(&l).map(|s| (s, l)))
-            .filter(|(s, _)| checkpoint.is_some_and(|k| *s <= k))
-            .collect();
+        // The file may hold records past the checkpoint (or a line a crash cut short): cut
+        // once. Without a checkpoint the job starts over, and so does its record.
+        self.records.clear();
+        self.last_step = last_record.min(checkpoint);
+        self.newest.clear();
+        self.newest_closed = true;
+        self.metrics_last = last_record;
+        self.metrics_cut = Some(checkpoint);
         self.phase = Phase::Waiting { since: now };
         self.dirty_job = true;
         self.dirty_metrics = true;
-        // The file may hold records past the checkpoint: written whole once.
-        self.rewrite = true;
     }
 
     pub fn persisted(&self) -> Persisted {
@@ -571,22 +627,7 @@ impl Core {
         self.discard_pending = true;
         self.phase = Phase::Running;
         self.hashes.clear();
-        let keep = self.last_checkpoint;
-        let before = self.records.len();
-        self.records.retain(|(s, _)| keep.is_some_and(|k| *s <= k));
-        if self.records.len() != before {
-            self.dirty_metrics = true;
-            if self.records.len() < self.flushed {
-                self.rewrite = true;
-            }
-            if self.records.len() < self.events_sent {
-                self.events_sent = self.records.len();
-                self.events_cut = Some(match self.events_cut {
-                    Some(earlier) => earlier.min(keep),
-                    None => keep,
-                });
-            }
-        }
+        self.drop_records_after(self.last_checkpoint);
         self.dirty_job = true;
         tracing::info!(
             generation = self.generation,
@@ -608,16 +649,24 @@ impl Core {
             steps.push(record.step());
         }
         for (line, s) in records.into_iter().zip(steps) {
-            // A report resent after a lost answer repeats records already held.
-            let held = self
-                .records
-                .iter()
-                .rev()
-                .take_while(|(k, _)| *k >= s)
-                .any(|(_, l)| *l == line);
-            if held {
-                continue;
+            // A report resent after a lost answer repeats records already taken: rank 0
+            // sends them in step order, so they are older than the newest step, or among
+            // its lines.
+            match self.last_step {
+                Some(l) if s < l => continue,
+                Some(l) if s == l && (self.newest_closed || self.newest.contains(&line)) => {
+                    continue;
+                }
+                Some(l) if s == l => {}
+                _ => {
+                    self.newest.clear();
+                    self.newest_closed = false;
+                }
             }
+            if self.newest.len() < MAX_RECORDS_PER_REPORT {
+                self.newest.push(line.clone());
+            }
+            self.last_step = Some(s);
             self.last_record = line.clone();
             self.records.push((s, line));
             self.dirty_metrics = true;

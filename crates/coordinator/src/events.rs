@@ -37,7 +37,22 @@ impl Events {
         if last.is_some() {
             log.cut_after(from.checked_sub(1));
         }
-        core.events_resume(from);
+        // The records the event log lacks, read back from the run folder: those from
+        // `from` up to the checkpoint (past it they are about to be cut), and the
+        // training record before them.
+        let mut backlog = Vec::new();
+        let mut previous = None;
+        if let Some(k) = core.last_checkpoint {
+            osrt_run::metrics_log::for_each_line(run, |l| match MetricsRecord::parse(l) {
+                Some(r) if (from..=k).contains(&r.step()) => backlog.push((r.step(), l.into())),
+                Some(MetricsRecord::Train(t)) if t.step < from => {
+                    previous = Some((t.step, l.to_string()))
+                }
+                _ => {}
+            })
+            .await?;
+        }
+        core.events_resume(backlog, previous);
         Ok(Self {
             log,
             run: run.clone(),

@@ -4,16 +4,18 @@
 //! with the records as TensorBoard events ([`events`]).
 //!
 //! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
-//! the loop that times out silent members and persists state; [`retention`] deletes old
-//! checkpoints and [`timeline`] those of an abandoned timeline.
+//! the loop that times out silent members; beside it, `persist` writes the run folder;
+//! [`retention`] deletes old checkpoints and [`timeline`] those of an abandoned timeline.
 
 pub mod core;
 pub mod error;
 pub mod events;
+mod persist;
 pub mod retention;
 pub mod service;
 pub mod timeline;
 
 pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
 pub use error::CoordinatorError;
+pub use persist::STORE_RETRY_BUDGET;
 pub use service::{Coordinator, JOB_FILE, OpenOptions, StatusSnapshot};

@@ -2,11 +2,11 @@
 //!
 //! A coordinator restarted after a crash continues from the newest checkpoint at or
 //! before [`checkpoint::resume_bound`] of what `job.json` and `metrics.jsonl` hold *on
-//! the store*, which lags what workers have committed (records are flushed once a
-//! second). Retention must never delete that checkpoint. Only the run folder's lease
-//! holder knows what it has written, so it deletes; workers never do (a worker paused
-//! past its coordinator's restart would otherwise wake up and delete, by the old
-//! timeline's count, the checkpoint the new coordinator had chosen).
+//! the store*, which lags what workers have committed (records are flushed every
+//! second, every 5 s on object stores). Retention must never delete that checkpoint.
+//! Only the run folder's lease holder knows what it has written, so it deletes; workers
+//! never do (a worker paused past its coordinator's restart would otherwise wake up and
+//! delete, by the old timeline's count, the checkpoint the new coordinator had chosen).
 
 use osrt_run::{Location, checkpoint};
 use tokio::task::JoinHandle;

@@ -1,20 +1,17 @@
 //! The Coordinator gRPC service over a shared [`Core`], the monitor loop (heartbeat
 //! timeouts, generation formation) and persistence of `job.json` and `metrics.jsonl`.
 
-use crate::core::{
-    Core, JobSpec, MetricsWrite, Persisted, Phase, Progress, Registration, record_step,
-};
+use crate::core::{Core, JobSpec, Persisted, Phase, Progress, Registration};
 use crate::error::CoordinatorError;
 use crate::events::Events;
-use crate::retention::Retention;
-use crate::timeline::{Timeline, Turn};
+use crate::persist::Persister;
 use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
 use osrt_run::Location;
 use osrt_run::lease::{self, Holder, Keeper, Lease, LeaseTiming};
-use osrt_run::retry::{Failing, RetryPolicy};
+use osrt_run::metrics_log::MetricsLog;
 use osrt_run::{
     CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
     write_file,
@@ -30,18 +27,23 @@ pub use osrt_run::JOB_FILE;
 /// Largest message the coordinator takes or sends.
 const MAX_MESSAGE_BYTES: usize = 16 << 20;
 
+/// The longest a call to the coordinator may last (a plan's long poll takes 2 s).
+const CALL_LIMIT: Duration = Duration::from_secs(60);
+
 /// How long a plan request waits for a change before answering `Waiting`.
 const PLAN_POLL: Duration = Duration::from_secs(2);
 
-struct Shared {
-    core: Mutex<Core>,
+pub(crate) struct Shared {
+    pub core: Mutex<Core>,
     changed: Notify,
-    run: Location,
+    pub run: Location,
     /// The run folder's lease, held and renewed from `open` until the job is over
     /// (`None` once released).
-    lease: tokio::sync::Mutex<Option<Keeper>>,
-    /// The records as TensorBoard events (only the monitor loop writes them).
-    events: tokio::sync::Mutex<Events>,
+    pub lease: tokio::sync::Mutex<Option<Keeper>>,
+    /// The records as written to the run folder, and as TensorBoard events (only the
+    /// [`Persister`] writes them).
+    pub metrics: tokio::sync::Mutex<MetricsLog>,
+    pub events: tokio::sync::Mutex<Events>,
 }
 
 /// How a coordinator opens its run folder.
@@ -56,7 +58,7 @@ pub struct OpenOptions {
 }
 
 impl Shared {
-    fn with<T>(&self, f: impl FnOnce(&mut Core, Instant) -> T) -> T {
+    pub fn with<T>(&self, f: impl FnOnce(&mut Core, Instant) -> T) -> T {
         let out = f(
             &mut self.core.lock().expect("coordinator state"),
             Instant::now(),
@@ -175,12 +177,12 @@ impl Coordinator {
         .await?;
         // A refusal below leaves the folder free at once.
         let opened = async {
-            let mut core = Self::open_core(spec, &run, resume).await?;
-            let can_append = run.local_file(&run.path(METRICS_FILE)).is_some();
-            let events = Events::open(&run, &mut core, can_append).await?;
-            Ok::<_, CoordinatorError>((core, events))
+            let log = MetricsLog::open(&run).await?;
+            let mut core = Self::open_core(spec, &run, resume, log.last_step()).await?;
+            let events = Events::open(&run, &mut core, log.appends_in_place()).await?;
+            Ok::<_, CoordinatorError>((core, log, events))
         };
-        let (core, events) = match opened.await {
+        let (core, log, events) = match opened.await {
             Ok(opened) => opened,
             Err(e) => {
                 if let Err(r) = lease.release().await {
@@ -195,17 +197,20 @@ impl Coordinator {
                 changed: Notify::new(),
                 run,
                 lease: tokio::sync::Mutex::new(Some(Keeper::start(lease))),
+                metrics: tokio::sync::Mutex::new(log),
                 events: tokio::sync::Mutex::new(events),
             }),
         })
     }
 
     /// The job's state from the run folder (read again under the lease: the folder's
-    /// previous holder may have written last), or a new job's.
+    /// previous holder may have written last), or a new job's; `last_record`: the newest
+    /// step of the folder's metrics records.
     async fn open_core(
         mut spec: JobSpec,
         run: &Location,
         resume: bool,
+        last_record: Option<u64>,
     ) -> Result<Core, CoordinatorError> {
         let run = run.clone();
         let persisted: Option<Persisted> = match read_file(&run, JOB_FILE).await? {
@@ -224,7 +229,7 @@ impl Coordinator {
                     "--resume: no job to resume in this run folder",
                 ));
             }
-            None => Self::create(spec, &run, now).await?,
+            None => Self::create(spec, &run, last_record, now).await?,
             Some(p) => {
                 let finished = p.state == "done" || p.state == "failed";
                 if finished && !resume {
@@ -256,21 +261,11 @@ impl Coordinator {
                     spec.max_steps = p.max_steps;
                     spec.deadline_unix_s = p.deadline_unix_s;
                 }
-                let records: Vec<String> = read_file(&run, METRICS_FILE)
-                    .await?
-                    .map(|b| {
-                        String::from_utf8_lossy(&b)
-                            .lines()
-                            .map(str::to_string)
-                            .collect()
-                    })
-                    .unwrap_or_default();
                 // The job continues from the checkpoint `job.json` recorded (or the newest
                 // older one that verifies), and never from past the last step whose records
-                // reached `metrics.jsonl` (they are flushed once a second): the steps after
+                // reached the store (flushed every 1 s, 5 s on object stores): the steps after
                 // it are replayed and their records sent again, so none is missing.
                 // No record at all: the job starts over.
-                let last_record = records.iter().filter_map(|l| record_step(l)).max();
                 let at_most = checkpoint::resume_bound(last_record, p.last_checkpoint);
                 let checkpoint = checkpoint::latest_verified(&run, Some(at_most)).await?;
                 tracing::info!(
@@ -280,7 +275,7 @@ impl Coordinator {
                     "continuing the job in the run folder"
                 );
                 let mut core = Core::new(spec, now);
-                core.restore(&p, records, checkpoint, resume, now);
+                core.restore(&p, last_record, checkpoint, resume, now);
                 core
             }
         };
@@ -289,9 +284,14 @@ impl Coordinator {
 
     /// A new job in an empty run folder: refused before anything is written if it cannot
     /// run; then its config and run info are written.
-    async fn create(spec: JobSpec, run: &Location, now: Instant) -> Result<Core, CoordinatorError> {
+    async fn create(
+        spec: JobSpec,
+        run: &Location,
+        last_record: Option<u64>,
+        now: Instant,
+    ) -> Result<Core, CoordinatorError> {
         let metrics = read_file(run, METRICS_FILE).await?;
-        if metrics.is_some_and(|m| !m.is_empty()) {
+        if last_record.is_some() || metrics.is_some_and(|m| !m.is_empty()) {
             return Err(run_err(
                 run,
                 METRICS_FILE,
@@ -341,8 +341,9 @@ impl Coordinator {
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<StatusSnapshot, CoordinatorError> {
-        let (health, health_service) = tonic_health::server::health_reporter();
-        health.set_serving::<CoordinatorServer<Service>>().await;
+        let health_service = osrt_proto::server::CheckOnly::server(&[
+            osrt_proto::v1::coordinator_server::SERVICE_NAME,
+        ]);
         let service = InterceptedService::new(
             CoordinatorServer::new(Service {
                 shared: self.shared.clone(),
@@ -353,17 +354,11 @@ impl Coordinator {
             CheckToken::new(token, "coordinator"),
         );
         let (mut stop_server, stopped) = osrt_proto::Shutdown::new();
-        let mut builder = tonic::transport::Server::builder();
-        if let Some(tls) = &tls {
-            builder = builder.tls_config(tls.server()).map_err(|e| {
-                CoordinatorError::Cluster(format!("coordinator TLS configuration: {e}"))
-            })?;
-        }
+        let mut builder = osrt_proto::server::builder(tls.as_ref(), CALL_LIMIT).map_err(|e| {
+            CoordinatorError::Cluster(format!("coordinator TLS configuration: {e}"))
+        })?;
         let server = tokio::spawn(
             builder
-                .http2_keepalive_interval(Some(osrt_proto::KEEP_ALIVE_INTERVAL))
-                .http2_keepalive_timeout(Some(osrt_proto::KEEP_ALIVE_TIMEOUT))
-                .tcp_nodelay(true)
                 .add_service(health_service)
                 .add_service(service)
                 .serve_with_incoming_shutdown(
@@ -377,144 +372,35 @@ impl Coordinator {
         result
     }
 
-    /// Times out members, forms generations, persists state; returns when the job is over.
+    /// Times out members and forms generations every 100 ms, beside the run folder's
+    /// writer ([`Persister`]), until the job is over and written; stops at once (with
+    /// the error) if the lease was lost.
     async fn monitor(
         &self,
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()>,
     ) -> Result<StatusSnapshot, CoordinatorError> {
-        tokio::pin!(shutdown);
-        let mut last_flush = Instant::now();
-        let mut over_since: Option<Instant> = None;
-        let mut store = StoreRetry::default();
-        let can_append = self.local_metrics().is_some();
-        let mut retention = Retention::default();
-        let mut timeline = Timeline::default();
-        let keep_last = self.shared.with(|c, _| c.spec.cluster.keep_last);
-        loop {
-            tokio::select! {
-                _ = &mut shutdown => break,
-                _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+        let appends = self.shared.metrics.lock().await.appends_in_place();
+        let writing = Persister::new(&self.shared, appends).run(linger, shutdown);
+        let ticking = async {
+            loop {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                self.check_lease().await?;
+                self.shared.with(|c, now| c.tick(now));
             }
-            self.check_lease().await?;
-            self.discard_abandoned(&mut timeline).await;
-            let write_now = store.due();
-            let mut events = self.shared.events.lock().await;
-            let (job, metrics, work, over) = self.shared.with(|c, now| {
-                c.tick(now);
-                let job = (write_now && std::mem::take(&mut c.dirty_job)).then(|| c.persisted());
-                let flush = write_now
-                    && c.dirty_metrics
-                    && (c.is_over() || last_flush.elapsed() >= Duration::from_secs(1));
-                let metrics = flush.then(|| (c.metrics_write(can_append), c.last_record_step()));
-                // Events follow what metrics.jsonl holds.
-                let work = (write_now
-                    && !c.dirty_metrics
-                    && (c.events_pending() || events.is_dirty())
-                    && events.due(c.is_over()))
-                .then(|| c.events_work());
-                (job, metrics, work, c.is_over())
-            });
-            let run = &self.shared.run;
-            let (had_job, had_metrics) = (job.is_some(), metrics.is_some());
-            let job_checkpoint = job.as_ref().map(|p| p.last_checkpoint);
-            let mut written: Result<(), CoordinatorError> = Ok(());
-            if let Some(p) = job {
-                let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
-                written = write_file(run, JOB_FILE, bytes).await.map_err(Into::into);
-            }
-            let metrics_last = metrics.as_ref().map(|(_, last)| *last);
-            if let Some((w, _)) = metrics {
-                if written.is_ok() {
-                    written = self.write_metrics(w).await;
-                    last_flush = Instant::now();
-                } else {
-                    self.shared.with(|c, _| c.metrics_write_failed());
-                }
-            }
-            let had_events = work.is_some();
-            if let Some(w) = work {
-                // Added to the log even if this write fails: its next write has them.
-                let w = events.write(w).await;
-                if written.is_ok() {
-                    written = w;
-                }
-            }
-            drop(events);
-            if let Err(e) = written {
-                // Whatever was not written is written again at the next try.
-                self.shared.with(|c, _| {
-                    c.dirty_job |= had_job;
-                    if had_metrics {
-                        c.metrics_write_failed();
-                    }
-                });
-                store.failed(e)?;
-                continue;
-            }
-            if had_job || had_metrics || had_events {
-                store.succeeded();
-            }
-            if let Some(c) = job_checkpoint {
-                retention.job_written(c);
-            }
-            if let Some(r) = metrics_last {
-                retention.metrics_written(r);
-            }
-            retention.maybe_start(run, keep_last);
-            let events_dirty = self.shared.events.lock().await.is_dirty();
-            let pending = {
-                let c = self.shared.core.lock().expect("state");
-                c.dirty_job || c.dirty_metrics || c.events_pending() || events_dirty
-            };
-            if over {
-                let since = *over_since.get_or_insert_with(Instant::now);
-                if since.elapsed() >= linger && !pending {
-                    break;
-                }
-            }
+            #[allow(unreachable_code)]
+            Ok::<StatusSnapshot, CoordinatorError>(self.status())
+        };
+        tokio::select! {
+            written = writing => written?,
+            lost = ticking => return lost,
         }
-        self.write_last(can_append, &mut retention, keep_last)
-            .await?;
         Ok(self.status())
-    }
-
-    /// What the run folder lacks, written once more (the job is over, or a signal stopped
-    /// the coordinator), a last retention pass, and the lease released.
-    async fn write_last(
-        &self,
-        can_append: bool,
-        retention: &mut Retention,
-        keep_last: usize,
-    ) -> Result<(), CoordinatorError> {
-        let (job, metrics) = self.shared.with(|c, _| {
-            let job = std::mem::take(&mut c.dirty_job).then(|| c.persisted());
-            let metrics = c
-                .dirty_metrics
-                .then(|| (c.metrics_write(can_append), c.last_record_step()));
-            (job, metrics)
-        });
-        if let Some(p) = job {
-            let bytes = serde_json::to_vec_pretty(&p).expect("serialises");
-            write_file(&self.shared.run, JOB_FILE, bytes).await?;
-            retention.job_written(p.last_checkpoint);
-        }
-        if let Some((w, last)) = metrics {
-            self.write_metrics(w).await?;
-            retention.metrics_written(last);
-        }
-        retention.finish(&self.shared.run, keep_last).await;
-        let work = self.shared.with(|c, _| c.events_work());
-        self.shared.events.lock().await.write(work).await?;
-        if let Some(lease) = self.shared.lease.lock().await.take() {
-            lease.release().await?;
-        }
-        Ok(())
     }
 
     /// Stops the coordinator (with the error) once its lease was lost or expired: it must
     /// not drive the job or write the folder any more. The lease is renewed by a task of
-    /// its own, so no store write of this loop delays a renewal.
+    /// its own, so no store write delays a renewal.
     async fn check_lease(&self) -> Result<(), CoordinatorError> {
         let mut guard = self.shared.lease.lock().await;
         let Some(keeper) = guard.as_ref() else {
@@ -529,117 +415,6 @@ impl Coordinator {
             return Err(e.into());
         }
         Ok(())
-    }
-
-    /// Fences off older generations in the lease, then discards the checkpoints past the
-    /// new generation's starting point (verified first) before its plans go out; a
-    /// discard that cannot be made fails the job.
-    async fn discard_abandoned(&self, timeline: &mut Timeline) {
-        let (pending, resume_step, generation) = self.shared.with(|c, _| {
-            (
-                c.discard_pending && !c.is_over(),
-                c.resume_step,
-                c.generation,
-            )
-        });
-        if !pending {
-            return;
-        }
-        // The lease names the new generation first: from then on no rank of an older one
-        // can commit a checkpoint the discard would have to catch.
-        let token = match self.shared.lease.lock().await.as_ref() {
-            Some(k) if k.fence(generation) => k.token().to_string(),
-            _ => return,
-        };
-        match timeline.turn(&self.shared.run, &token, resume_step).await {
-            Turn::Pending => {}
-            Turn::Done => self.shared.with(|c, _| {
-                if c.resume_step == resume_step {
-                    c.discarded();
-                }
-            }),
-            Turn::Fatal(reason) => self
-                .shared
-                .with(|c, _| c.fail(format!("the generation could not start: {reason}"))),
-        }
-    }
-
-    /// `RUN/metrics.jsonl` as a local file, where the run folder is one.
-    fn local_metrics(&self) -> Option<std::path::PathBuf> {
-        let run = &self.shared.run;
-        run.local_file(&run.path(METRICS_FILE))
-    }
-
-    /// Appends to `metrics.jsonl` in place (a local run folder: synced before it counts),
-    /// or writes it whole (object stores cannot append).
-    async fn write_metrics(&self, w: MetricsWrite) -> Result<(), CoordinatorError> {
-        let run = &self.shared.run;
-        match (w, self.local_metrics()) {
-            (MetricsWrite::Append(text), Some(file)) => {
-                let shown = run.describe(&run.path(METRICS_FILE));
-                tokio::task::spawn_blocking(move || -> std::io::Result<()> {
-                    use std::io::Write;
-                    let mut f = std::fs::OpenOptions::new()
-                        .create(true)
-                        .append(true)
-                        .open(&file)?;
-                    f.write_all(text.as_bytes())?;
-                    f.sync_data()
-                })
-                .await
-                .map_err(|e| run_err(run, METRICS_FILE, e))?
-                .map_err(|e| {
-                    CoordinatorError::Run(RunError::Run {
-                        path: shown,
-                        reason: format!("appending: {e}"),
-                    })
-                })
-            }
-            (MetricsWrite::Whole(text), _) => {
-                Ok(write_file(run, METRICS_FILE, text.into_bytes()).await?)
-            }
-            // Not asked of an object store (`can_append` is false there); were it, the
-            // failure makes the next write whole.
-            (MetricsWrite::Append(_), None) => Err(run_err(
-                run,
-                METRICS_FILE,
-                "an append was asked of a store that cannot append",
-            )),
-        }
-    }
-}
-
-/// How long writes of `job.json` and `metrics.jsonl` may keep failing before the
-/// coordinator gives up (the job's state stays in memory meanwhile, and workers train on).
-pub const STORE_RETRY_BUDGET: Duration = Duration::from_secs(120);
-
-/// Failed writes of the run folder, retried by the monitor loop under
-/// [`RetryPolicy::backoff`] within [`STORE_RETRY_BUDGET`].
-#[derive(Default)]
-struct StoreRetry(Failing);
-
-impl StoreRetry {
-    fn due(&self) -> bool {
-        self.0.due()
-    }
-
-    fn failed(&mut self, e: CoordinatorError) -> Result<(), CoordinatorError> {
-        match self.0.failed(&RetryPolicy::backoff(STORE_RETRY_BUDGET)) {
-            Some(wait) => {
-                tracing::warn!(error = %e, retry_in = ?wait, "writing the run folder failed; retrying");
-                Ok(())
-            }
-            None => {
-                tracing::error!(error = %e, "the run folder could not be written for {STORE_RETRY_BUDGET:?}");
-                Err(e)
-            }
-        }
-    }
-
-    fn succeeded(&mut self) {
-        if let Some(after) = self.0.succeeded() {
-            tracing::info!(?after, "the run folder is written again");
-        }
     }
 }
 

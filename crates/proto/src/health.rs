@@ -5,16 +5,19 @@
 
 use tokio::net::TcpListener;
 
+/// The longest a call on the plaintext health port may last (a `Check` answers at once).
+pub const PLAINTEXT_CALL_LIMIT: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// Answers `grpc.health.v1.Health/Check` for the whole server ("") with SERVING on
 /// `listener` until `shutdown` resolves or the process ends: it proves the process's
-/// runtime answers, as the health service on the main port does.
+/// runtime answers, as the health service on the main port does. Nothing else is served
+/// (`Watch` is refused: [`crate::server::CheckOnly`]).
 pub async fn serve_plaintext(
     listener: TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    let (_reporter, service) = tonic_health::server::health_reporter();
-    tonic::transport::Server::builder()
-        .add_service(service)
+    crate::server::builder(None, PLAINTEXT_CALL_LIMIT)?
+        .add_service(crate::server::CheckOnly::server(&[]))
         .serve_with_incoming_shutdown(
             tonic::transport::server::TcpIncoming::from(listener),
             shutdown,

@@ -17,6 +17,7 @@ pub mod checkpoint;
 pub mod cluster;
 pub mod error;
 pub mod lease;
+pub mod metrics_log;
 pub mod records;
 pub mod retry;
 pub mod tensorboard;

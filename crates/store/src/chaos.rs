@@ -31,8 +31,10 @@ pub struct Faults {
     pub reads: Vec<(String, ReadFault, usize)>,
     /// The next this many puts fail as a dropped connection does (`Error::Generic`).
     pub fail_puts: usize,
-    /// Every put waits this long first.
+    /// Every put waits this long first (with `slow_puts` set: only puts of objects whose
+    /// path contains it).
     pub put_delay: Duration,
+    pub slow_puts: Option<String>,
     /// The next this many create-only puts are written and then answered with
     /// `AlreadyExists`.
     pub exists_after_create: usize,
@@ -199,7 +201,11 @@ impl ObjectStore for ChaosStore {
             if lie {
                 f.exists_after_create -= 1;
             }
-            let mut delay = f.put_delay;
+            let slow = f
+                .slow_puts
+                .as_ref()
+                .is_none_or(|p| location.as_ref().contains(p.as_str()));
+            let mut delay = if slow { f.put_delay } else { Duration::ZERO };
             if let Some(r) = f.random.as_mut() {
                 delay += r.put_delay_max.mul_f64(r.draw());
                 lie |= create

@@ -158,6 +158,48 @@ fn a_broken_stream_fails_after_the_whole_messages() {
     assert_eq!(result.unwrap_err().code(), tonic::Code::InvalidArgument);
 }
 
+/// A small payload padded with an unknown field in one frame is handed on as a copy of
+/// its own: kept as an early chunk, it must not hold the frame (a megabyte counted as 4
+/// bytes). A payload that fills its frame stays a slice of it (no copy).
+#[test]
+fn a_payload_small_beside_its_frame_does_not_keep_the_frame() {
+    let message = |data: &[u8], padding: usize| {
+        let mut msg = Chunk {
+            tag: Some(tag()),
+            data: Bytes::copy_from_slice(data),
+        }
+        .encode_to_vec();
+        if padding > 0 {
+            msg.push((11 << 3) | 2);
+            prost::encode_length_delimiter(padding, &mut msg).unwrap();
+            msg.extend(std::iter::repeat_n(0u8, padding));
+        }
+        let mut body = vec![0u8];
+        body.extend((msg.len() as u32).to_be_bytes());
+        body.extend(msg);
+        Bytes::from(body)
+    };
+    let inside = |c: &Chunk, frame: &Bytes| {
+        let (p, f) = (c.data.as_ptr() as usize, frame.as_ptr() as usize);
+        p >= f && p < f + frame.len()
+    };
+    let padded = message(b"abcd", 1 << 20);
+    let (chunks, result) = accept_all(vec![padded.clone()], 4 << 20);
+    result.unwrap();
+    assert_eq!(chunks[0].data, Bytes::from_static(b"abcd"));
+    assert!(
+        !inside(&chunks[0], &padded),
+        "the payload still points into its frame"
+    );
+    let full = message(&[7u8; 4096], 0);
+    let (chunks, result) = accept_all(vec![full.clone()], 4 << 20);
+    result.unwrap();
+    assert!(
+        inside(&chunks[0], &full),
+        "a payload filling its frame was copied"
+    );
+}
+
 #[test]
 fn unknown_fields_are_skipped() {
     let mut msg = Chunk {

@@ -224,7 +224,7 @@ fn a_resumed_job_gets_a_fresh_restart_budget() {
         let mut c = Core::new(spec(1, 1, 1), t);
         let mut p = c.persisted();
         p.restarts = 1;
-        c.restore(&p, vec![], Some(5), resume, t);
+        c.restore(&p, None, Some(5), resume, t);
         let a = reg(&mut c, t);
         tick(&mut c, t);
         c.fault(a, c.generation, "boom", false, false, t).unwrap();
@@ -237,37 +237,47 @@ fn a_resumed_job_gets_a_fresh_restart_budget() {
     }
 }
 
-/// metrics.jsonl grows by appends while records only grow; dropped records (a new
-/// generation from an older checkpoint) or a failed write make the next write whole.
+/// Records are handed to `metrics.jsonl` as appends and forgotten once the event log has
+/// them too (memory stays bounded); a new generation from an older checkpoint cuts what
+/// either holds past it.
 #[test]
-fn metrics_are_appended_until_records_are_dropped() {
+fn records_are_handed_over_once_and_cut_where_they_went() {
     let t = Instant::now();
     let mut c = Core::new(spec(1, 2, 3), t);
     let a = reg(&mut c, t);
     tick(&mut c, t);
     let line = |s: u64| format!("{{\"loss\":0.5,\"step\":{s}}}");
+    let lines = |steps: &[u64]| steps.iter().map(|&s| (s, line(s))).collect::<Vec<_>>();
     let report = |c: &mut Core, g: u64, steps: std::ops::RangeInclusive<u64>| {
         let lines = steps.clone().map(line).collect();
         c.progress(prog(a, g, 0, *steps.end(), None, lines), t)
             .unwrap();
     };
     report(&mut c, 1, 1..=2);
-    let both = format!("{}\n{}\n", line(1), line(2));
-    assert_eq!(c.metrics_write(true), MetricsWrite::Append(both.clone()));
+    let w = c.metrics_write();
+    assert_eq!((w.cut_after, w.lines), (None, lines(&[1, 2])));
+    assert_eq!(c.records.len(), 2, "the event log has not taken them yet");
     report(&mut c, 1, 3..=3);
-    let third = format!("{}\n", line(3));
-    assert_eq!(c.metrics_write(true), MetricsWrite::Append(third));
-    // An object store rewrites whole.
+    assert_eq!(c.metrics_write().lines, lines(&[3]));
+    assert_eq!(c.events_work().records.len(), 3);
+    assert!(c.records.is_empty(), "delivered to both: forgotten");
     report(&mut c, 1, 4..=4);
-    assert!(matches!(c.metrics_write(false), MetricsWrite::Whole(_)));
-    // A failed write: whole next time.
-    c.metrics_write_failed();
-    assert!(matches!(c.metrics_write(true), MetricsWrite::Whole(_)));
-    // A new generation from checkpoint 2 drops records 3 and 4: whole.
+    assert_eq!(c.metrics_write().lines, lines(&[4]));
+    // A resent report repeats nothing, though its records are forgotten.
+    report(&mut c, 1, 3..=4);
+    assert!(!c.dirty_metrics && c.records.len() == 1);
+    // A new generation from checkpoint 2 drops 3 and 4 from both logs.
     c.checkpoint(a, 1, 2, false, t).unwrap();
     c.fault(a, 1, "boom", false, false, t).unwrap();
     tick(&mut c, t);
-    assert_eq!(c.metrics_write(true), MetricsWrite::Whole(both));
+    assert!(c.records.is_empty(), "{:?}", c.records);
+    let w = c.metrics_write();
+    assert_eq!((w.cut_after, w.lines), (Some(Some(2)), vec![]));
+    let e = c.events_work();
+    assert_eq!((e.cut_after, e.records.len()), (Some(Some(2)), 0));
+    // The replayed steps are taken again.
+    report(&mut c, 2, 3..=3);
+    assert_eq!(c.metrics_write().lines, lines(&[3]));
 }
 
 /// A worker that leaves is dropped at once: the next generation forms without it,
