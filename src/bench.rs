@@ -60,6 +60,9 @@ pub struct BenchModelArgs {
     /// Override the presets' scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
+    /// Run the step's scenes in passes of at most this many (`train.micro_batch_size`).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub micro_batch_size: Option<u64>,
     /// Override the presets' input views.
     #[arg(long)]
     pub input_views: Option<usize>,
@@ -74,11 +77,21 @@ pub struct BenchModelArgs {
     pub out: std::path::PathBuf,
 }
 
+/// `name value` where a value is given.
+fn flag(name: &str, value: Option<impl ToString>) -> Vec<String> {
+    value
+        .map(|v| vec![name.to_string(), v.to_string()])
+        .unwrap_or_default()
+}
+
 /// A preset with the command line's overrides.
 fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
     let mut job = JobConfig::preset(preset)?;
     let t = &mut job.train;
     t.batch_size = a.batch_size.unwrap_or(t.batch_size);
+    if let Some(m) = a.micro_batch_size {
+        t.micro_batch_size = Some(usize::try_from(m).unwrap_or(usize::MAX));
+    }
     t.input_views = a.input_views.unwrap_or(t.input_views);
     t.rays_per_scene = a.rays_per_scene.unwrap_or(t.rays_per_scene);
     t.device = a.device;
@@ -204,11 +217,8 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
                 .iter()
                 .flat_map(|k| ["--kernels".to_string(), k.to_string()]),
         )
-        .args(
-            a.batch_size
-                .iter()
-                .flat_map(|v| ["--batch-size".to_string(), v.to_string()]),
-        )
+        .args(flag("--batch-size", a.batch_size))
+        .args(flag("--micro-batch-size", a.micro_batch_size))
         .args(
             a.input_views
                 .iter()
@@ -359,9 +369,11 @@ fn print_step(s: &serde_json::Value) {
         s["image_size"],
         s["device"].as_str().unwrap_or(""),
         s["precision"].as_str().unwrap_or(""),
-        match s["recompute"].as_bool() {
-            Some(true) => ", activations recomputed",
-            _ => "",
+        match (s["recompute"].as_bool(), s["micro_batch_size"].as_u64()) {
+            (Some(true), Some(m)) => format!(", activations recomputed, passes of {m}"),
+            (Some(true), None) => ", activations recomputed".into(),
+            (_, Some(m)) => format!(", passes of {m}"),
+            _ => String::new(),
         },
     );
     let gib = |k: &str| match s[k].as_f64() {

@@ -121,25 +121,36 @@ fn absolute_local(data: &str) -> Result<String> {
     Ok(cwd.join(path).to_string_lossy().into_owned())
 }
 
+/// What [`memory_check`] may do about a job that does not fit.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct MemoryCheck {
+    /// Run it anyway (`--skip-memory-check`).
+    pub skip: bool,
+    /// Give a job without `train.micro_batch_size` the largest micro-batch that fits.
+    pub pick_micro_batch: bool,
+}
+
 /// Prints the estimated peak memory of one worker's step (`world` workers, `threads`
 /// threads each) on the dataset's images, and refuses a job whose `here` workers on this
-/// machine need more memory than it has, unless `skip`. Only the fused CPU step's
-/// estimate is checked against measured peaks (`tests/memory_estimate.rs`): for the
-/// others an excess is a warning.
+/// machine need more memory than it has, unless `check.skip` — or, with
+/// `check.pick_micro_batch`, runs its share in the largest micro-batches that fit (and
+/// says so). Only the fused CPU step's estimate is checked against measured peaks
+/// (`tests/memory_estimate.rs`): for the others an excess is a warning.
 pub async fn memory_check(
-    job: &JobConfig,
+    job: &mut JobConfig,
     data: &str,
     (here, world): (usize, usize),
     threads: usize,
-    skip: bool,
+    check: MemoryCheck,
 ) -> Result<()> {
+    let skip = check.skip;
     let Ok(manifest) = osrt_dataset::Manifest::read(&osrt_dataset::Location::parse(data)?).await
     else {
         // The workers report a missing or unreadable dataset with its reason.
         return Ok(());
     };
-    let Some(m) = osrt_trainer::footprint::estimate(job, manifest.image_size, world, threads)
-    else {
+    let image = manifest.image_size;
+    let Some(mut m) = osrt_trainer::footprint::estimate(job, image, world, threads) else {
         eprintln!("no memory estimate for this model (a volumetric decoder)");
         return Ok(());
     };
@@ -147,7 +158,20 @@ pub async fn memory_check(
     if here == 0 {
         return Ok(());
     }
-    match osrt_trainer::footprint::fit_here(&m, here) {
+    let micro = osrt_trainer::footprint::micro_batch_that_fits(job, image, world, threads, here);
+    if let Some(size) = micro.filter(|_| check.pick_micro_batch && !skip)
+        && job.train.micro_batch_size.is_none()
+    {
+        job.train.micro_batch_size = Some(size);
+        m = osrt_trainer::footprint::estimate(job, image, world, threads).unwrap_or(m);
+        eprintln!(
+            "a worker's share of {} scenes does not fit in one pass: micro-batches of {size} \
+             (--micro-batch-size {size}; the same step, one all-reduce): {}",
+            m.share,
+            m.describe()
+        );
+    }
+    match osrt_trainer::footprint::fit_here(&m, here, micro) {
         Ok(None) => Ok(()),
         Ok(Some(why)) => {
             eprintln!("warning: {why}");
@@ -213,7 +237,11 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     health_listener(a.health_listen).await?;
     // The workers' machines are not known here: the figure only, at one thread each.
     let world = job.cluster.min_workers.max(1);
-    memory_check(&job, &a.data, (0, world), 1, true).await?;
+    let figure_only = MemoryCheck {
+        skip: true,
+        pick_micro_batch: false,
+    };
+    memory_check(&mut job, &a.data, (0, world), 1, figure_only).await?;
     let mut spec = spec(job, &a.data, &a.run, a.max_steps, a.max_minutes).await?;
     spec.cluster_overrides = overrides;
     let opts = OpenOptions {

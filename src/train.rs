@@ -59,6 +59,12 @@ pub struct TrainArgs {
     /// Override scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
+    /// Run each worker's share of a step in passes of at most this many scenes, summing
+    /// their gradients (`train.micro_batch_size`): the same step, the memory of one pass.
+    /// Unset, a share that does not fit this machine gets the largest micro-batch that
+    /// does.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub micro_batch_size: Option<u64>,
     /// Override target rays per scene.
     #[arg(long)]
     pub rays_per_scene: Option<usize>,
@@ -156,6 +162,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.batch_size {
         t.batch_size = v;
+    }
+    if let Some(v) = a.micro_batch_size {
+        t.micro_batch_size = Some(usize::try_from(v).unwrap_or(usize::MAX));
     }
     if let Some(v) = a.rays_per_scene {
         t.rays_per_scene = v;
@@ -321,8 +330,12 @@ pub async fn train(a: TrainArgs) -> Result<()> {
     } else {
         workers
     };
-    crate::cluster::memory_check(&job, &a.data, (here, workers), threads, a.skip_memory_check)
-        .await?;
+    let check = crate::cluster::MemoryCheck {
+        skip: a.skip_memory_check,
+        // A resumed job keeps the micro-batch its run folder's config names.
+        pick_micro_batch: !a.resume,
+    };
+    crate::cluster::memory_check(&mut job, &a.data, (here, workers), threads, check).await?;
     let mut spec = crate::cluster::spec(job, &a.data, &run, a.max_steps, max_minutes).await?;
     spec.cluster_overrides = overrides;
     let status = crate::cluster::run_local(crate::cluster::LocalJob {

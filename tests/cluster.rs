@@ -109,6 +109,92 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     assert!(kept.len() <= 4 && kept[..3] == [30, 25, 20], "{kept:?}");
 }
 
+/// Micro-batches between real processes: each worker runs its share of the step's 4
+/// scenes as 2 passes of 1, sums their gradients and takes one all-reduce per optimiser
+/// step (counted in the collective's debug log: the weights' broadcast, then one per
+/// step); the replicas stay bit-identical and the records say how the share was cut.
+#[test]
+fn two_workers_with_micro_batches_reduce_once_per_step_and_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let env = [(
+        "RUST_LOG".to_string(),
+        "osrt_collective=debug,warn".to_string(),
+    )];
+    let out = train_env(
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        8,
+        &["--micro-batch-size", "1"],
+        &env,
+    );
+    let log = String::from_utf8_lossy(&out.stderr);
+    for rank in 0..2 {
+        let reduces = log
+            .lines()
+            .filter(|l| l.contains("all-reduce") && l.contains(&format!("rank={rank} ")))
+            .count();
+        assert_eq!(
+            reduces,
+            1 + 8,
+            "rank {rank}: a broadcast and one per step:\n{log}"
+        );
+    }
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    assert_eq!(job["hash_checks"], 8, "{job}");
+    let records = read_jsonl(&run.join("metrics.jsonl"));
+    let train: Vec<_> = records.iter().filter(|r| r.get("loss").is_some()).collect();
+    assert_eq!(train.len(), 8);
+    assert!(train.iter().all(|r| r["micro_batches"] == 2), "{train:?}");
+    assert!(losses(&run).iter().all(|(_, x)| x.is_finite()));
+}
+
+/// A job whose share of the batch does not fit the machine in one pass runs in the
+/// largest micro-batch that does, chosen by `osrt train` from the memory estimate and
+/// said in one line: here a limit between the estimates for passes of 4 and of 5 scenes.
+#[test]
+fn a_share_that_does_not_fit_runs_in_the_largest_micro_batch_that_does() {
+    use osrt_trainer::footprint::{estimate, with_headroom};
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let run = dir.path().join("run");
+    let mut job = osrt_trainer::JobConfig::preset("tiny").unwrap();
+    job.train.batch_size = 32;
+    // Two workers of one thread on this machine, on the dataset's 8×8 images.
+    let need = |micro: usize| {
+        let mut j = job.clone();
+        j.train.micro_batch_size = Some(micro);
+        2.0 * with_headroom(estimate(&j, [8, 8], 2, 1).unwrap().total())
+    };
+    assert!(need(4) < need(5) && need(5) < need(16));
+    let limit_gib = (need(4) + need(5)) / 2.0 / (1u64 << 30) as f64;
+    let env = [("OSRT_MEMORY_LIMIT_GIB".to_string(), format!("{limit_gib}"))];
+    let out = train_env(
+        data.to_str().unwrap(),
+        run.to_str().unwrap(),
+        2,
+        &["--batch-size", "32"],
+        &env,
+    );
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        log.contains("a worker's share of 16 scenes does not fit in one pass: micro-batches of 4"),
+        "{log}"
+    );
+    let job = read_json(&run.join("job.json")).unwrap();
+    assert_eq!(job["state"], "done", "{job}");
+    let records = read_jsonl(&run.join("metrics.jsonl"));
+    let train: Vec<_> = records.iter().filter(|r| r.get("loss").is_some()).collect();
+    assert!(
+        !train.is_empty() && train.iter().all(|r| r["micro_batches"] == 4),
+        "{train:?}"
+    );
+    let config = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(config.contains("micro_batch_size = 4"), "{config}");
+}
+
 /// The GPU's graph on the CPU (`--kernels device`) stages each worker's gradient for the
 /// ring bucket by bucket as a GPU does (`osrt_trainer::staging`): between real processes
 /// the replicas stay bit-identical (the parameter hash after every step) and the loss
@@ -706,6 +792,7 @@ fn a_step_out_of_device_memory_ends_the_job_with_the_cause() {
         "CUDA_ERROR_OUT_OF_MEMORY",
         "4 scene(s), 1 input view(s) at 8×8 px",
         "estimated peak host RAM",
+        "Set train.micro_batch_size below 4 (--micro-batch-size",
         "Lower train.batch_size",
     ] {
         assert!(said.contains(part), "{part}: {said}");

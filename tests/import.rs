@@ -419,7 +419,8 @@ fn a_job_too_big_for_the_machine_is_refused_and_trains_resized() {
             .arg(data)
             .arg("--run")
             .arg(run)
-            .env("OSRT_MEMORY_LIMIT_GIB", "24")
+            // Below even one scene's pass at 320×240 (no micro-batch makes it fit).
+            .env("OSRT_MEMORY_LIMIT_GIB", "8")
             .output()
             .unwrap()
     };
@@ -437,7 +438,7 @@ fn a_job_too_big_for_the_machine_is_refused_and_trains_resized() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     for needle in [
-        "OSRT_MEMORY_LIMIT_GIB=24 is 24.00 GiB",
+        "OSRT_MEMORY_LIMIT_GIB=8 is 8.00 GiB",
         "at 320×240 px",
         "--batch-size",
         "--rays-per-scene",

@@ -366,6 +366,14 @@ impl Ring {
     ) -> Result<(), CollectiveError> {
         let mut shared = LentBuffer::new(std::mem::take(buf));
         let result = self.ring_all_reduce(step, &mut shared, stage).await;
+        // One line per all-reduce: `tests/cluster.rs` counts them per optimiser step.
+        tracing::debug!(
+            rank = self.cfg.rank,
+            seq = step,
+            floats = shared.len(),
+            ok = result.is_ok(),
+            "all-reduce"
+        );
         // After success the successor has taken every chunk, so the transport lets go of
         // the loans at once; after a failure they may sit in a dead connection's queue,
         // and a copy now beats waiting for it.

@@ -31,6 +31,10 @@ pub struct TrainRecord {
     /// Learning rate of the window's last step.
     #[serde(default, deserialize_with = "nan_if_null")]
     pub lr: f64,
+    /// Forward and backward passes each step's share took on this rank (rank 0's:
+    /// `train.micro_batch_size`); absent where one pass took it whole.
+    #[serde(default, skip_serializing_if = "is_one_or_less")]
+    pub micro_batches: u32,
     /// The worker's peak resident memory so far (where the OS tells).
     #[serde(default)]
     pub peak_rss_mb: Option<f64>,
@@ -95,6 +99,10 @@ pub struct ObjectCountRecord {
 
 fn is_zero(n: &u32) -> bool {
     *n == 0
+}
+
+fn is_one_or_less(n: &u32) -> bool {
+    *n <= 1
 }
 
 /// One line of `metrics.jsonl`.
@@ -192,6 +200,7 @@ mod tests {
             grad_norm: None,
             loss: 0.008278974890708923,
             lr: 2e-4 * 0.1,
+            micro_batches: 0,
             peak_rss_mb: Some(147.37109375),
             restarts: 0,
             scenes_per_s: 87.52540294216084,

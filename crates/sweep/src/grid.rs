@@ -52,7 +52,7 @@ pub struct SweepFile {
 }
 
 /// The settings a point may make, in the order names list them.
-const AXES: [&str; 10] = [
+const AXES: [&str; 12] = [
     "decoder",
     "poses",
     "input_views",
@@ -63,6 +63,8 @@ const AXES: [&str; 10] = [
     "targets",
     "seed",
     "lr",
+    "batch_size",
+    "micro_batch_size",
 ];
 
 /// An explicit point's settings as text, in [`AXES`] order; `i` names it in errors.
@@ -138,6 +140,11 @@ pub struct Axes {
     pub seed: Vec<u64>,
     #[serde(default)]
     pub lr: Vec<f64>,
+    /// Scenes per optimiser step, and per forward and backward pass.
+    #[serde(default)]
+    pub batch_size: Vec<usize>,
+    #[serde(default)]
+    pub micro_batch_size: Vec<usize>,
 }
 
 impl Axes {
@@ -165,6 +172,8 @@ impl Axes {
             ("targets", targets),
             ("seed", text(&self.seed)),
             ("lr", text(&self.lr)),
+            ("batch_size", text(&self.batch_size)),
+            ("micro_batch_size", text(&self.micro_batch_size)),
         ]
         .into_iter()
         .filter(|(_, v)| !v.is_empty())
@@ -223,6 +232,8 @@ impl Point {
                 }
                 "poses" => job.model.encoder.poses = value.parse().map_err(err)?,
                 "input_views" => job.train.input_views = int()?,
+                "batch_size" => job.train.batch_size = int()?,
+                "micro_batch_size" => job.train.micro_batch_size = Some(int()?),
                 "slots" => job.model.slot_attention.num_slots = int()?,
                 "iterations" => job.model.slot_attention.iterations = int()?,
                 "slot_init" => {
@@ -378,6 +389,27 @@ targets = ["novel", "input"]
         assert_eq!(names[0], "decoder=slot_mixer,slots=3,targets=novel");
         assert_eq!(names[1], "decoder=slot_mixer,slots=3,targets=input");
         assert_eq!(names[7], "decoder=transformer,slots=5,targets=input");
+    }
+
+    /// A point may set the batch and its micro-batch (the same optimisation, another
+    /// memory); a micro-batch of 0 is refused with the point's name.
+    #[test]
+    fn a_point_sets_the_batch_and_its_micro_batch() {
+        let f = SweepFile::parse(FILE, "demo.toml").unwrap();
+        let base = f.base_job(Path::new(".")).unwrap();
+        let point = |m: &str| Point {
+            settings: vec![
+                ("batch_size".into(), "8".into()),
+                ("micro_batch_size".into(), m.into()),
+            ],
+        };
+        let job = point("2").apply(&base).unwrap();
+        assert_eq!(
+            (job.train.batch_size, job.train.micro_batch_size),
+            (8, Some(2))
+        );
+        let e = point("0").apply(&base).unwrap_err().to_string();
+        assert!(e.contains("micro_batch_size"), "{e}");
     }
 
     #[test]

@@ -23,6 +23,9 @@ pub struct StepFigures {
     pub preset: String,
     pub parameters: usize,
     pub batch_size: usize,
+    /// Scenes per forward and backward pass (`train.micro_batch_size`; `None`: the whole
+    /// batch in one).
+    pub micro_batch_size: Option<usize>,
     pub input_views: usize,
     pub rays_per_scene: usize,
     pub image_size: u32,
@@ -192,6 +195,7 @@ pub fn bench_step(
         preset: preset.to_string(),
         parameters: trainer.num_parameters(),
         batch_size: b,
+        micro_batch_size: job.train.micro_batch_size,
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,

@@ -42,6 +42,13 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Scenes per optimiser step (summed over workers).
     pub batch_size: usize,
+    /// Scenes per forward and backward pass: a worker runs its share of `batch_size` as
+    /// consecutive micro-batches of at most this many scenes and sums their gradients
+    /// (gradient accumulation), then takes one all-reduce and one optimiser step. The
+    /// step's mean and gradient are the whole batch's (to rounding); memory follows the
+    /// micro-batch. Unset: the whole share in one pass.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub micro_batch_size: Option<usize>,
     /// Target rays sampled per scene and step.
     pub rays_per_scene: usize,
     /// Share of target rays drawn from salient pixels (see
@@ -103,6 +110,7 @@ impl TrainConfig {
         Self {
             seed: 0,
             batch_size: 16,
+            micro_batch_size: None,
             rays_per_scene: 512,
             salient_fraction: 0.0,
             input_views: 1,
@@ -346,6 +354,9 @@ impl JobConfig {
             ("eval_scenes", t.eval_scenes, MAX_EVAL_SCENES),
         ] {
             within(&format!("train.{name}"), v, 1..=most)?;
+        }
+        if let Some(m) = t.micro_batch_size {
+            within("train.micro_batch_size", m, 1..=MAX_BATCH)?;
         }
         for (name, v) in [
             ("log_every", t.log_every),

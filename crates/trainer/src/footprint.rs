@@ -24,8 +24,14 @@ pub struct StepMemory {
     pub optimizer: f64,
     /// The batch as built on the host and as the step's tensors.
     pub batch: f64,
-    /// Activations and gradients at the forward or backward pass's peak.
+    /// Activations and gradients at the forward or backward pass's peak (of one
+    /// micro-batch).
     pub activations: f64,
+    /// The gradient summed over micro-batches, beside a micro-batch's own (none in one
+    /// pass).
+    pub accumulated: f64,
+    /// Scenes of this worker's share of the batch, run as `shape.batch`-scene passes.
+    pub share: usize,
     /// The shapes it was computed for.
     pub shape: StepShape,
     /// Whether this op path's estimate is checked against measured peaks (the fused
@@ -37,14 +43,14 @@ pub struct StepMemory {
 
 impl StepMemory {
     pub fn total(&self) -> f64 {
-        self.weights + self.optimizer + self.batch + self.activations
+        self.weights + self.optimizer + self.batch + self.activations + self.accumulated
     }
 
     /// One line for people: the total and its parts.
     pub fn describe(&self) -> String {
         let s = &self.shape;
         format!(
-            "{}estimated peak {} per worker: {} (weights {}, optimiser {}, batch {}, activations {}{}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
+            "{}estimated peak {} per worker: {} (weights {}, optimiser {}, batch {}, activations {}{}{}) for {} scene(s) of {} view(s) at {}×{} px, {} rays each",
             if self.checked { "" } else { "(unchecked) " },
             self.kind,
             size(self.total()),
@@ -53,6 +59,15 @@ impl StepMemory {
             size(self.batch),
             size(self.activations),
             if s.recompute { ", recomputed" } else { "" },
+            match self.share > s.batch {
+                true => format!(
+                    ", summed gradient {}; a share of {} scenes in passes of {}",
+                    size(self.accumulated),
+                    self.share,
+                    s.batch
+                ),
+                false => String::new(),
+            },
             s.batch,
             s.input_views,
             s.width,
@@ -81,7 +96,9 @@ pub fn estimate(
     threads: usize,
 ) -> Option<StepMemory> {
     let t = &job.train;
-    let batch = crate::shard::local_batch_sizes(t.batch_size, world.max(1))[0];
+    let share = crate::shard::local_batch_sizes(t.batch_size, world.max(1))[0];
+    // One forward and backward pass holds one micro-batch's activations.
+    let batch = t.micro_batch_size.map_or(share, |m| m.min(share));
     let shape = StepShape {
         batch,
         input_views: t.input_views,
@@ -105,20 +122,27 @@ pub fn estimate(
     let f = osrt_model::footprint::step(&job.model, &shape, path)?;
     let params = f.parameters as f64;
     // Images, origins and directions of the input views, origins, directions and
-    // colours of the target rays: f32; the targets' pixel coordinates.
-    let pixels = (batch * t.input_views * shape.height * shape.width) as f64;
-    let rays = (batch * t.rays_per_scene) as f64;
-    let host_batch = 4.0 * (9.0 * pixels + 9.0 * rays) + 8.0 * rays;
+    // colours of the target rays: f32; the targets' pixel coordinates. The whole share is
+    // built on the host; its tensors are one micro-batch's.
+    let scenes_bytes = |n: usize| {
+        let pixels = (n * t.input_views * shape.height * shape.width) as f64;
+        let rays = (n * t.rays_per_scene) as f64;
+        (4.0 * (9.0 * pixels + 9.0 * rays) + 8.0 * rays, 8.0 * rays)
+    };
+    let (host_share, _) = scenes_bytes(share);
+    let (host_batch, coordinates) = scenes_bytes(batch);
     Some(StepMemory {
         kind: if gpu { "GPU memory" } else { "host RAM" },
         weights: 4.0 * params,
         optimizer: 8.0 * params,
         batch: if gpu {
-            host_batch - 8.0 * rays
+            host_batch - coordinates
         } else {
-            2.0 * host_batch
+            host_share + host_batch
         },
         activations: f.activations,
+        accumulated: if share > batch { 4.0 * params } else { 0.0 },
+        share,
         shape,
         checked: path == OpPath::Fused,
         device: t.device,
@@ -174,20 +198,56 @@ pub fn with_headroom(step: f64) -> f64 {
 /// where they do or its memory cannot be read; `Ok(Some(why))` where they may not but
 /// this op path's estimate is not checked against measured peaks (a warning);
 /// `Err(why)` where they do not.
-pub fn fit_here(m: &StepMemory, workers: usize) -> Result<Option<String>, String> {
+/// `micro`: the largest micro-batch that fits ([`micro_batch_that_fits`]), named first in
+/// the advice.
+pub fn fit_here(
+    m: &StepMemory,
+    workers: usize,
+    micro: Option<usize>,
+) -> Result<Option<String>, String> {
     let Some((available, what)) = machine_memory(m.device) else {
         return Ok(None);
     };
-    match refusal(m, workers, (available, &what)) {
+    match refusal(m, workers, (available, &what), micro) {
         None => Ok(None),
         Some(why) if !m.checked => Ok(Some(why)),
         Some(why) => Err(why),
     }
 }
 
+/// The largest micro-batch (`train.micro_batch_size`, below the one `job` has) with which
+/// `workers` workers of `job` fit this machine ([`machine_memory`], with
+/// [`with_headroom`]); `None` where the job fits as it is, no micro-batch makes it fit,
+/// or the machine's memory cannot be read.
+pub fn micro_batch_that_fits(
+    job: &JobConfig,
+    image: [u32; 2],
+    world: usize,
+    threads: usize,
+    workers: usize,
+) -> Option<usize> {
+    let m = estimate(job, image, world, threads)?;
+    let (available, _) = machine_memory(m.device)?;
+    let fits = |m: &StepMemory| with_headroom(m.total()) * workers as f64 <= available;
+    if fits(&m) {
+        return None;
+    }
+    (1..m.shape.batch).rev().find(|&size| {
+        let mut smaller = job.clone();
+        smaller.train.micro_batch_size = Some(size);
+        estimate(&smaller, image, world, threads).is_some_and(|m| fits(&m))
+    })
+}
+
 /// Why `workers` workers of `m` each cannot run in `available` bytes of `what`, and what
-/// to change; `None` where they fit with [`with_headroom`].
-pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -> Option<String> {
+/// to change (`micro`: a micro-batch that fits, named first); `None` where they fit with
+/// [`with_headroom`].
+pub fn refusal(
+    m: &StepMemory,
+    workers: usize,
+    (available, what): (f64, &str),
+    micro: Option<usize>,
+) -> Option<String> {
     let need = with_headroom(m.total()) * workers as f64;
     if need <= available {
         return None;
@@ -207,9 +267,15 @@ pub fn refusal(m: &StepMemory, workers: usize, (available, what): (f64, &str)) -
              about a third more time per step),"
         }
     };
+    let micro = micro.map_or(String::new(), |size| {
+        format!(
+            " --micro-batch-size {size} (the largest micro-batch that fits: the same step, \
+             its share run in passes of {size} scenes),"
+        )
+    });
     Some(format!(
         "the job needs about {:.2} GiB{each} and {what} is {:.2} GiB. {}; a worker's \
-         resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller:{recompute} --batch-size (scenes per step), \
+         resident memory is about 1.35 × that + 0.5 GiB. Make the step smaller:{micro}{recompute} --batch-size (scenes per step), \
          --rays-per-scene (the decoder's share), --precision bf16 (GPU), fewer workers on \
          this machine, or smaller images (osrt data import --resize WxH); --skip-memory-check runs it anyway",
         need / GIB,
@@ -274,7 +340,7 @@ mod tests {
     fn a_refusal_says_what_is_needed_and_what_to_change() {
         let job = JobConfig::preset("tiny").unwrap();
         let m = estimate(&job, [320, 240], 2, 1).unwrap();
-        let why = refusal(&m, 2, (24.0 * GIB, "this machine's RAM")).expect("refused");
+        let why = refusal(&m, 2, (24.0 * GIB, "this machine's RAM"), None).expect("refused");
         for needle in [
             "2 workers of",
             "this machine's RAM is 24.00 GiB",
@@ -284,7 +350,43 @@ mod tests {
             assert!(why.contains(needle), "{needle:?} in {why}");
         }
         let need = with_headroom(m.total()) * 2.0;
-        assert!(refusal(&m, 2, (need, "x")).is_none());
-        assert!(refusal(&m, 2, (need * 0.99, "x")).is_some());
+        assert!(refusal(&m, 2, (need, "x"), None).is_none());
+        assert!(refusal(&m, 2, (need * 0.99, "x"), None).is_some());
+    }
+
+    /// Memory follows the micro-batch: its activations and tensors are one pass's, the
+    /// share's batch stays on the host and the summed gradient is added; the largest
+    /// micro-batch that fits is found and named first in the advice.
+    #[test]
+    fn memory_follows_the_micro_batch() {
+        let mut job = JobConfig::preset("paper").unwrap();
+        job.train.batch_size = 16;
+        let whole = estimate(&job, [128, 128], 1, 2).unwrap();
+        let mut micro = job.clone();
+        micro.train.micro_batch_size = Some(2);
+        let m = estimate(&micro, [128, 128], 1, 2).unwrap();
+        let mut two = job.clone();
+        two.train.batch_size = 2;
+        let pass = estimate(&two, [128, 128], 1, 2).unwrap();
+        assert_eq!((m.share, m.shape.batch), (16, 2));
+        assert_eq!(m.activations, pass.activations);
+        assert_eq!(m.accumulated, m.weights, "one f32 gradient");
+        assert!(
+            m.total() < 0.5 * whole.total(),
+            "{} vs {}",
+            m.describe(),
+            whole.describe()
+        );
+        assert!(
+            m.describe().contains("a share of 16 scenes in passes of 2"),
+            "{}",
+            m.describe()
+        );
+        let why = refusal(&whole, 1, (with_headroom(m.total()), "x"), Some(2)).unwrap();
+        let (first, recompute) = (
+            why.find("--micro-batch-size 2").unwrap(),
+            why.find("--recompute").unwrap(),
+        );
+        assert!(first < recompute, "{why}");
     }
 }

@@ -330,6 +330,11 @@ impl Learner {
                 grad_norm: (w.applied > 0).then(|| w.grad_norm / w.applied as f64),
                 loss: self.window.loss / self.window.steps as f64,
                 lr: t.lr_at(step - 1),
+                micro_batches: crate::step::micro_batches(
+                    self.epoch.plan.local_batch,
+                    t.micro_batch_size,
+                )
+                .len() as u32,
                 peak_rss_mb: crate::memory::peak_rss_mb(),
                 restarts: self.restarts,
                 scenes_per_s: self.window.samples / dt,

@@ -18,6 +18,81 @@ use osrt_kernels::profile::MemoryMeter;
 use osrt_model::{Osrt, Params};
 use rand::Rng;
 
+/// The scenes of a step's share that one forward and backward pass takes, with their
+/// rows of the share's random numbers, and the weight of its mean in the share's (`None`:
+/// the whole share in one pass, unweighted).
+struct MicroBatch {
+    scenes: std::ops::Range<usize>,
+    noise: Option<Tensor>,
+    offsets: Option<Tensor>,
+    weight: Option<f64>,
+}
+
+/// A share of `n` scenes cut into consecutive micro-batches of at most `size` (`None`:
+/// one pass); the last may be smaller.
+pub fn micro_batches(n: usize, size: Option<usize>) -> Vec<std::ops::Range<usize>> {
+    let size = size.filter(|&m| m > 0).unwrap_or(n).max(1);
+    (0..n.div_ceil(size))
+        .map(|i| i * size..((i + 1) * size).min(n))
+        .collect()
+}
+
+/// `sum + grads`, parameter by parameter (the first micro-batch's gradients are the sum).
+fn accumulate(sum: Vec<Option<Tensor>>, grads: Vec<Option<Tensor>>) -> Result<Vec<Option<Tensor>>> {
+    if sum.is_empty() {
+        return Ok(grads);
+    }
+    sum.into_iter()
+        .zip(grads)
+        .map(|pair| {
+            Ok(match pair {
+                (Some(a), Some(g)) => Some((a + g)?),
+                (a, g) => a.or(g),
+            })
+        })
+        .collect()
+}
+
+/// The passes' seconds, each lap ending synchronised with the device where timed.
+struct Clock {
+    timing: bool,
+    device: Device,
+    at: std::time::Instant,
+    forward_s: f64,
+    backward_s: f64,
+}
+
+impl Clock {
+    fn new(timing: bool, device: &Device) -> Self {
+        Self {
+            timing,
+            device: device.clone(),
+            at: std::time::Instant::now(),
+            forward_s: 0.0,
+            backward_s: 0.0,
+        }
+    }
+
+    fn lap(&mut self) -> Result<f64> {
+        if self.timing {
+            self.device.synchronize()?;
+        }
+        let s = self.at.elapsed().as_secs_f64();
+        self.at = std::time::Instant::now();
+        Ok(s)
+    }
+
+    fn forward(&mut self) -> Result<()> {
+        self.forward_s += self.lap()?;
+        Ok(())
+    }
+
+    fn backward(&mut self) -> Result<()> {
+        self.backward_s += self.lap()?;
+        Ok(())
+    }
+}
+
 /// Tensors of a batch.
 pub struct BatchTensors {
     pub images: Tensor,
@@ -30,15 +105,38 @@ pub struct BatchTensors {
 
 impl BatchTensors {
     pub fn new(b: &Batch, dev: &Device) -> Result<Self> {
-        let img = (b.batch_size, b.input_views, b.height, b.width, 3);
-        let tgt = (b.batch_size, b.rays_per_scene, 3);
+        Self::scenes(b, 0..b.batch_size, dev)
+    }
+
+    /// The tensors of the batch's scenes `scenes` only (a micro-batch: nothing of the
+    /// other scenes reaches the device).
+    pub fn scenes(b: &Batch, scenes: std::ops::Range<usize>, dev: &Device) -> Result<Self> {
+        let n = scenes.len();
+        let per_image = b.input_views * b.height * b.width * 3;
+        let per_target = b.rays_per_scene * 3;
+        let img = (n, b.input_views, b.height, b.width, 3);
+        let tgt = (n, b.rays_per_scene, 3);
+        let image = |v: &[f32]| {
+            Tensor::from_slice(
+                &v[scenes.start * per_image..scenes.end * per_image],
+                img,
+                dev,
+            )
+        };
+        let target = |v: &[f32]| {
+            Tensor::from_slice(
+                &v[scenes.start * per_target..scenes.end * per_target],
+                tgt,
+                dev,
+            )
+        };
         Ok(Self {
-            images: Tensor::from_slice(&b.input_images, img, dev)?,
-            origins: Tensor::from_slice(&b.input_origins, img, dev)?,
-            directions: Tensor::from_slice(&b.input_directions, img, dev)?,
-            target_origins: Tensor::from_slice(&b.target_origins, tgt, dev)?,
-            target_directions: Tensor::from_slice(&b.target_directions, tgt, dev)?,
-            target_rgb: Tensor::from_slice(&b.target_rgb, tgt, dev)?,
+            images: image(&b.input_images)?,
+            origins: image(&b.input_origins)?,
+            directions: image(&b.input_directions)?,
+            target_origins: target(&b.target_origins)?,
+            target_directions: target(&b.target_directions)?,
+            target_rgb: target(&b.target_rgb)?,
         })
     }
 }
@@ -339,7 +437,7 @@ impl Trainer {
         .map_or("no estimate for this decoder".to_string(), |m| m.describe());
         let card = self.card_memory();
         TrainError::OutOfMemory(format!(
-            "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. {}Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
+            "out of memory on {:?} ({e}): the step of {} scene(s), {} input view(s) at {}×{} px and {} target rays each, in {:?} with {:?} kernels, did not fit; {estimate}; {card}. {}{}Lower train.batch_size or train.rays_per_scene, use more workers, or train in bf16 on a GPU",
             self.device.location(),
             batch.batch_size,
             batch.input_views,
@@ -348,6 +446,12 @@ impl Trainer {
             batch.rays_per_scene,
             t.precision,
             t.kernels,
+            match t.micro_batch_size.unwrap_or(batch.batch_size) {
+                1 => String::new(),
+                m => format!(
+                    "Set train.micro_batch_size below {m} (--micro-batch-size: the same step, its scenes in smaller passes). "
+                ),
+            },
             match t.recompute {
                 true => "",
                 false =>
@@ -371,43 +475,103 @@ impl Trainer {
         }
         // With debug logging, the phases' times (synchronised on a GPU).
         let timing = self.time_phases || tracing::enabled!(tracing::Level::DEBUG);
-        let lap = |t: &mut std::time::Instant| -> Result<f64> {
-            if timing {
-                self.device.synchronize()?;
-            }
-            let s = t.elapsed().as_secs_f64();
-            *t = std::time::Instant::now();
-            Ok(s)
-        };
+        let mut clock = Clock::new(timing, &self.device);
         let probe = MemoryProbe::start(timing, &self.device);
-        let mut clock = std::time::Instant::now();
-        let t = BatchTensors::new(batch, &self.device)?;
-        let noise = self.slot_noise(batch.batch_size, rng)?;
+        let n = batch.batch_size;
+        // The whole share's random numbers, drawn as one batch draws them: each micro-batch
+        // takes its scenes' rows, so the numbers do not depend on how the share is cut.
+        let noise = self.slot_noise(n, rng)?;
         // Drawn after the slot noise; nothing is drawn for decoders that do not sample.
-        let offsets = self
-            .model
-            .ray_offsets(batch.batch_size, batch.rays_per_scene, rng)?;
+        let offsets = self.model.ray_offsets(n, batch.rays_per_scene, rng)?;
+        let parts = micro_batches(n, self.cfg.train.micro_batch_size);
+        let mut sum: Vec<Option<Tensor>> = Vec::new();
+        let (mut loss_value, mut forward_kept_bytes) = (0.0, None);
+        for scenes in &parts {
+            let rows = |t: &Option<Tensor>| -> Result<Option<Tensor>> {
+                Ok(match t {
+                    Some(t) if parts.len() > 1 => Some(t.narrow(0, scenes.start, scenes.len())?),
+                    other => other.clone(),
+                })
+            };
+            // The global batch's mean: each micro-batch's mean weighted by its scenes.
+            let weight = (parts.len() > 1).then(|| scenes.len() as f64 / n as f64);
+            let mb = MicroBatch {
+                scenes: scenes.clone(),
+                noise: rows(&noise)?,
+                offsets: rows(&offsets)?,
+                weight,
+            };
+            let (loss, grads, kept) = self.micro_step(batch, mb, &mut clock, &probe)?;
+            loss_value += loss;
+            forward_kept_bytes = forward_kept_bytes.max(kept);
+            sum = accumulate(sum, grads)?;
+        }
+        let peak_bytes = probe.peak();
+        let flat = self.flatten(sum, keep)?;
+        let flatten_s = clock.lap()?;
+        // The memory where the meter reads it: what was held before the batch came in, what
+        // the forward pass added, the passes' peak above the start and what the flat
+        // gradient's making added to it (GiB; where a step's peak lies).
+        let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
+        tracing::debug!(
+            forward_s = clock.forward_s,
+            backward_s = clock.backward_s,
+            flatten_s,
+            micro_batches = parts.len(),
+            start_gib = gib(probe.held_before()),
+            forward_held_gib = gib(forward_kept_bytes),
+            passes_peak_gib = gib(peak_bytes),
+            with_flatten_peak_gib = gib(probe.peak()),
+            "train step gradients"
+        );
+        Ok(StepGradients {
+            loss: loss_value,
+            grads: flat,
+            samples: n,
+            phases: timing.then_some(Phases {
+                forward_s: clock.forward_s,
+                backward_s: clock.backward_s,
+                forward_kept_bytes,
+                peak_bytes,
+            }),
+        })
+    }
+
+    /// The forward and backward pass of one micro-batch: its loss (weighted), the
+    /// parameters' gradients in [`Params::vars`] order (`None` where the loss does not
+    /// reach one), and the bytes its forward pass left held.
+    fn micro_step(
+        &self,
+        batch: &Batch,
+        mb: MicroBatch,
+        clock: &mut Clock,
+        probe: &MemoryProbe,
+    ) -> Result<(f64, Vec<Option<Tensor>>, Option<u64>)> {
+        let t = BatchTensors::scenes(batch, mb.scenes.clone(), &self.device)?;
         // The forward pass in segments (`osrt_kernels::cut`: encoder, slot attention,
         // decoder), whose backward passes run one after the other, each segment's
         // activations freed before the next: the step's peak is then not every activation
         // beside every gradient at the end of the backward pass. The gradients are the
         // uncut graph's, to the bit.
         let (forward, cuts) = osrt_kernels::with_cuts(self.cfg.train.recompute, || -> Result<_> {
-            let slots = self
-                .model
-                .encode(&t.images, &t.origins, &t.directions, noise.as_ref())?;
+            let slots =
+                self.model
+                    .encode(&t.images, &t.origins, &t.directions, mb.noise.as_ref())?;
             let out = self.model.decode_with(
                 &slots.slots,
                 &t.target_origins,
                 &t.target_directions,
-                offsets.as_ref(),
+                mb.offsets.as_ref(),
             )?;
-            let loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
+            let mut loss = (&out.rgb - &t.target_rgb)?.sqr()?.mean_all()?;
+            if let Some(w) = mb.weight {
+                loss = (loss * w)?;
+            }
             Ok((slots, out, loss))
         });
         let (slots, out, loss) = forward?;
-        let forward_s = lap(&mut clock)?;
-        let forward_kept_bytes = probe.held();
+        clock.forward()?;
+        let kept = probe.held();
         let mut grads = loss.backward()?;
         let loss_value = loss.to_scalar::<f32>()? as f64;
         // The last segment's graph (the outputs hold it) goes before the earlier
@@ -425,35 +589,8 @@ impl Trainer {
             .map(|(_, var)| grads.remove(var.as_tensor()).map(|g| g.detach()))
             .collect();
         drop(grads);
-        let backward_s = lap(&mut clock)?;
-        let peak_bytes = probe.peak();
-        let flat = self.flatten(param_grads, keep)?;
-        let flatten_s = lap(&mut clock)?;
-        // The memory where the meter reads it: what was held before the batch came in, what
-        // the forward pass added, the passes' peak above the start and what the flat
-        // gradient's making added to it (GiB; where a step's peak lies).
-        let gib = |b: Option<u64>| b.map_or(f64::NAN, |b| b as f64 / (1u64 << 30) as f64);
-        tracing::debug!(
-            forward_s,
-            backward_s,
-            flatten_s,
-            start_gib = gib(probe.held_before()),
-            forward_held_gib = gib(forward_kept_bytes),
-            passes_peak_gib = gib(peak_bytes),
-            with_flatten_peak_gib = gib(probe.peak()),
-            "train step gradients"
-        );
-        Ok(StepGradients {
-            loss: loss_value,
-            grads: flat,
-            samples: batch.batch_size,
-            phases: timing.then_some(Phases {
-                forward_s,
-                backward_s,
-                forward_kept_bytes,
-                peak_bytes,
-            }),
-        })
+        clock.backward()?;
+        Ok((loss_value, param_grads, kept))
     }
 
     /// The parameters' gradients (in [`Params::vars`] order, `None` where the loss does

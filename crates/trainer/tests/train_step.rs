@@ -425,3 +425,58 @@ fn recomputed_activations_give_the_kept_ones_gradients() {
         }
     }
 }
+
+/// A share run as micro-batches of 1, 2, 3 or 4 scenes (the last one smaller) gives the
+/// whole share's loss and gradient to rounding, for every kernel choice and decoder: each
+/// micro-batch's mean is weighted by its scenes, and the random numbers (slot noise, a
+/// volumetric decoder's ray offsets) are the whole share's, drawn once. A micro-batch as
+/// large as the share is the unset setting, to the bit.
+#[test]
+fn micro_batches_give_the_whole_batchs_gradient() {
+    use osrt_kernels::{Kernels, Precision};
+    let data = scenes(6);
+    let b = batch(&data, 3);
+    for kernels in [Kernels::Fused, Kernels::Composed, Kernels::Device] {
+        for decoder in [
+            "slot_mixer",
+            "transformer",
+            "spatial_broadcast",
+            "volumetric",
+        ] {
+            let mut cfg = tiny();
+            cfg.train.kernels = kernels;
+            cfg.train.precision = Precision::F32;
+            cfg.model = cfg.model.with_decoder(decoder).unwrap();
+            if let osrt_model::decoder::Config::Volumetric(v) = &mut cfg.model.decoder {
+                v.bounds = Some(GeneratorConfig::clevr_lite().scene_bounds());
+            }
+            let grads = |micro: Option<usize>| {
+                let mut cfg = cfg.clone();
+                cfg.train.micro_batch_size = micro;
+                let t = Trainer::new(cfg, Device::Cpu).unwrap();
+                let g = t.gradients(&b, &mut ChaCha8Rng::seed_from_u64(5)).unwrap();
+                assert_eq!(g.samples, 6);
+                (g.loss, g.grads)
+            };
+            let case = format!("{kernels:?} {decoder}");
+            let whole = grads(None);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let one_pass = grads(Some(6));
+            assert_eq!(whole.0.to_bits(), one_pass.0.to_bits(), "{case}");
+            assert_eq!(bits(&whole.1), bits(&one_pass.1), "{case}");
+            let norm = |v: &[f32]| v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>().sqrt();
+            assert!(norm(&whole.1) > 0.0, "{case}");
+            for m in [1, 2, 3, 4] {
+                let (loss, g) = grads(Some(m));
+                assert!(
+                    (loss - whole.0).abs() <= 1e-6 * whole.0.abs(),
+                    "{case} m={m}: loss {loss} vs {}",
+                    whole.0
+                );
+                let diff: Vec<f32> = g.iter().zip(&whole.1).map(|(a, b)| a - b).collect();
+                let rel = norm(&diff) / norm(&whole.1);
+                assert!(rel <= 1e-6, "{case} m={m}: relative L2 {rel:e}");
+            }
+        }
+    }
+}

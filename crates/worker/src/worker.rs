@@ -602,7 +602,14 @@ async fn check_memory(job: &JobConfig, plan: &WorkerPlan, threads: usize) -> Res
     else {
         return Ok(());
     };
-    match osrt_trainer::footprint::fit_here(&m, 1) {
+    let micro = osrt_trainer::footprint::micro_batch_that_fits(
+        job,
+        manifest.image_size,
+        plan.world(),
+        threads,
+        1,
+    );
+    match osrt_trainer::footprint::fit_here(&m, 1, micro) {
         Ok(None) => Ok(()),
         Ok(Some(why)) => {
             tracing::warn!("{why}");

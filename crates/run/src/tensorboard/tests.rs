@@ -3,6 +3,7 @@ use crate::records::{EvalRecord, ObjectCountRecord};
 
 fn train(step: u64, loss: f64, train_s: f64) -> MetricsRecord {
     MetricsRecord::Train(TrainRecord {
+        micro_batches: 0,
         epoch: 1,
         grad_norm: Some(0.5),
         loss,
