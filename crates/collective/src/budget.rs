@@ -7,8 +7,8 @@ use crate::{CollectiveError, Hop, RingConfig};
 use bytes::Bytes;
 use std::time::{Duration, Instant};
 
-/// The slowest a predecessor may deliver an all-reduce's chunks once this rank's own are
-/// all staged: a peer that sends one chunk just inside every per-chunk timeout would
+/// The slowest a predecessor may deliver an all-reduce's chunks once it has sent the
+/// first and this rank's own are all staged: a peer that sends one chunk just inside every per-chunk timeout would
 /// otherwise hold the ring for `timeout` × chunks. Any real link is orders of magnitude
 /// faster; the budget is [`STRAGGLER_TIMEOUTS`] per-chunk timeouts plus the bytes at
 /// this rate ([`all_reduce_budget`]).
@@ -21,26 +21,31 @@ pub fn all_reduce_budget(timeout: Duration, bytes: usize) -> Duration {
         + Duration::from_secs_f64(bytes as f64 / MIN_RING_BYTES_PER_S as f64)
 }
 
-/// An all-reduce's budget, counted from when this rank's own buffer is staged: before
-/// that, a slow backward pass (this rank's or the predecessor's) is not the ring's to
-/// judge, and each chunk has the per-chunk timeout only.
+/// An all-reduce's budget, counted from the first chunk received once this rank's own
+/// buffer is staged: before that, a slow backward pass (this rank's or the
+/// predecessor's) is not the ring's to judge. The first chunk may take the per-chunk
+/// timeout or the predecessor's grace, whichever is longer; each later one the per-chunk
+/// timeout.
 pub(crate) struct Budget {
     rank: usize,
     world: usize,
     timeout: Duration,
+    first: Duration,
     total: Duration,
     chunks: usize,
     deadline: Option<Instant>,
 }
 
 impl Budget {
-    /// The budget of receiving the chunks of `schedule` on the ring of `cfg`.
-    pub fn new(cfg: &RingConfig, schedule: &[Hop]) -> Self {
+    /// The budget of receiving the chunks of `schedule` on the ring of `cfg`, the
+    /// predecessor allowed `grace` to finish computing.
+    pub fn new(cfg: &RingConfig, schedule: &[Hop], grace: Duration) -> Self {
         let bytes = schedule.iter().map(|h| h.range.len() * 4).sum();
         Self {
             rank: cfg.rank,
             world: cfg.world(),
             timeout: cfg.timeout,
+            first: cfg.timeout.max(grace),
             total: all_reduce_budget(cfg.timeout, bytes),
             chunks: schedule.len(),
             deadline: None,
@@ -58,12 +63,16 @@ impl Budget {
         received: usize,
     ) -> Result<Result<Result<Bytes, String>, ()>, CollectiveError> {
         let (rank, world) = (self.rank, self.world);
-        if !staging && self.deadline.is_none() {
+        if !staging && received > 0 && self.deadline.is_none() {
             self.deadline = Some(Instant::now() + self.total);
         }
-        let wait = self.deadline.map_or(self.timeout, |d| {
+        let per_chunk = if received == 0 {
+            self.first
+        } else {
             self.timeout
-                .min(d.saturating_duration_since(Instant::now()))
+        };
+        let wait = self.deadline.map_or(per_chunk, |d| {
+            per_chunk.min(d.saturating_duration_since(Instant::now()))
         });
         let data = mailbox.take(key, wait).await;
         match self.deadline {

@@ -213,6 +213,9 @@ pub struct Ring {
     auth: MetadataValue<Ascii>,
     /// The injected fault (`fault-injection` feature only): rank and all-reduce.
     fault: Option<(usize, u64)>,
+    /// How long the predecessor may still be computing when an all-reduce starts
+    /// ([`Ring::set_peer_grace`]).
+    peer_grace: Duration,
 }
 
 /// Adds (`add`) or copies the little-endian floats in `src` into `dst`
@@ -300,7 +303,17 @@ impl Ring {
             mailbox,
             next: endpoint.connect_lazy(),
             fault: fault_injection(),
+            peer_grace: Duration::ZERO,
         })
+    }
+
+    /// How long the predecessor may still be computing its share when this rank starts
+    /// the next all-reduces: the wait for its first chunk is this or the per-chunk
+    /// timeout, whichever is longer (a worker sets it from its own step's time). A dead
+    /// predecessor is still noticed at once: its connection ends, or the coordinator ends
+    /// the generation.
+    pub fn set_peer_grace(&mut self, grace: Duration) {
+        self.peer_grace = grace;
     }
 
     pub fn layout(&self, len: usize) -> Layout {
@@ -406,7 +419,7 @@ impl Ring {
         let schedule = receive_schedule(&layout, rank);
         // Sends that may go out now, by the order the successor consumes them.
         let mut ready = first_sends(&layout, rank);
-        let mut budget = Budget::new(&self.cfg, &schedule);
+        let mut budget = Budget::new(&self.cfg, &schedule, self.peer_grace);
         let (sender, mut call) = self.open_call(schedule.len()).map_err(send_error)?;
         let mut first = true;
         let cfg = &self.cfg;

@@ -880,9 +880,53 @@ async fn a_peer_that_drips_its_chunks_fails_the_round_as_a_straggler() {
         matches!(err, CollectiveError::Straggler { from: 0, expected: 8, received, .. } if received < 8),
         "{err}"
     );
+    // The budget counts from the first chunk (one gap in).
     assert!(
-        t.elapsed() < budget + timeout,
+        t.elapsed() < budget + timeout * 2,
         "failed after {:?}, budget {budget:?}",
         t.elapsed()
     );
+}
+
+/// A predecessor still computing its share when this rank starts the all-reduce (a long
+/// step, micro-batches) is waited for within the grace the worker sets, past the
+/// per-chunk timeout; without the grace the same wait times out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_predecessor_still_computing_is_waited_for_within_its_grace() {
+    for (grace, finishes) in [(Duration::from_secs(5), true), (Duration::ZERO, false)] {
+        let nodes = start(2, "test-job").await;
+        nodes[0].mailbox.set_generation(1, 0, 3);
+        let cfg = config(&nodes, 1, 1000, 2, Duration::from_secs(1));
+        let mut ring = Ring::new(cfg, nodes[1].mailbox.clone()).unwrap();
+        ring.set_peer_grace(grace);
+        let waiting = all_reduce_in_background(ring, 3);
+        // Rank 0 sends its first chunk 2 s in: twice the per-chunk timeout.
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        let mut client = client_of(&nodes[1]).await;
+        let tagged = |phase: Phase, c: u32, v: f32| {
+            let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
+            let t = ch.tag.as_mut().unwrap();
+            t.phase = phase as i32;
+            t.chunk = c;
+            ch
+        };
+        let messages = vec![
+            tagged(Phase::ReduceScatter, 0, 1.0),
+            tagged(Phase::ReduceScatter, 1, 1.0),
+            tagged(Phase::AllGather, 0, 5.0),
+            tagged(Phase::AllGather, 1, 5.0),
+        ];
+        let _ = client.push_chunks(futures::stream::iter(messages)).await;
+        let (result, buf, _) = waiting.await.unwrap();
+        if finishes {
+            result.unwrap();
+            assert_eq!(buf, [2.0, 2.0, 2.0, 2.0, 5.0, 5.0, 5.0, 5.0]);
+        } else {
+            let err = result.unwrap_err();
+            assert!(
+                matches!(err, CollectiveError::Timeout { from: 0, .. }),
+                "{err}"
+            );
+        }
+    }
 }

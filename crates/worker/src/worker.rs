@@ -518,6 +518,11 @@ async fn reduced_step(
     let t = Instant::now();
     let g = learner.gradients().await?;
     let gradients_s = t.elapsed().as_secs_f64();
+    if let Some(ring) = ring.as_mut() {
+        // The predecessor computes the same share of work: it may still be at it when
+        // this rank is done (a long step, micro-batches), for about as long again.
+        ring.set_peer_grace(t.elapsed().saturating_mul(2));
+    }
     let signals = learner.signals(deadline_unix_s);
     let reduced = reduce(ring.as_mut(), staging, step + 1, rank, g, signals).await;
     let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
