@@ -329,6 +329,27 @@ fn chunk(job: &str, generation: u64, step: u64, from: u32, data: Vec<f32>) -> Ch
     }
 }
 
+/// Rank 0's chunk `c` of all-reduce 3 in `phase`, of 2 floats `v` (chunks of 2, 8 floats).
+fn tagged(phase: Phase, c: u32, v: f32) -> Chunk {
+    let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
+    let t = ch.tag.as_mut().unwrap();
+    t.phase = phase as i32;
+    t.chunk = c;
+    ch
+}
+
+/// Everything rank 1 receives from rank 0 in all-reduce 3 of 8 ones in chunks of 2: it
+/// sums segment 0 in the reduce-scatter and copies segment 1 in the all-gather (rank 0
+/// would send 2.0 + 1.0 for both).
+fn rank_0s_chunks() -> Vec<Chunk> {
+    vec![
+        tagged(Phase::ReduceScatter, 0, 1.0),
+        tagged(Phase::ReduceScatter, 1, 1.0),
+        tagged(Phase::AllGather, 0, 5.0),
+        tagged(Phase::AllGather, 1, 5.0),
+    ]
+}
+
 /// What a rank's all-reduce task hands back: its result, its buffer and its ring.
 type Waiting = tokio::task::JoinHandle<(Result<(), CollectiveError>, Vec<f32>, Ring)>;
 
@@ -797,21 +818,7 @@ async fn tonics_generated_stream_client_talks_to_the_ring_server() {
     // Chunks of 2: rank 1 receives 2 reduce-scatter and 2 all-gather chunks from rank 0.
     let (nodes, waiting) = rank_1_waiting(2).await;
     let mut client = client_of(&nodes[1]).await;
-    let tagged = |phase: Phase, c: u32, v: f32| {
-        let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
-        let t = ch.tag.as_mut().unwrap();
-        t.phase = phase as i32;
-        t.chunk = c;
-        ch
-    };
-    // Rank 1 receives segment 0 in the reduce-scatter (and sums it) and segment 1 in the
-    // all-gather (and copies it); rank 0 would send 2.0 + 1.0 for both.
-    let messages = vec![
-        tagged(Phase::ReduceScatter, 0, 1.0),
-        tagged(Phase::ReduceScatter, 1, 1.0),
-        tagged(Phase::AllGather, 0, 5.0),
-        tagged(Phase::AllGather, 1, 5.0),
-    ];
+    let messages = rank_0s_chunks();
     client
         .push_chunks(futures::stream::iter(messages))
         .await
@@ -903,19 +910,7 @@ async fn a_predecessor_still_computing_is_waited_for_within_its_grace() {
         // Rank 0 sends its first chunk 2 s in: twice the per-chunk timeout.
         tokio::time::sleep(Duration::from_secs(2)).await;
         let mut client = client_of(&nodes[1]).await;
-        let tagged = |phase: Phase, c: u32, v: f32| {
-            let mut ch = chunk("test-job", 1, 3, 0, vec![v; 2]);
-            let t = ch.tag.as_mut().unwrap();
-            t.phase = phase as i32;
-            t.chunk = c;
-            ch
-        };
-        let messages = vec![
-            tagged(Phase::ReduceScatter, 0, 1.0),
-            tagged(Phase::ReduceScatter, 1, 1.0),
-            tagged(Phase::AllGather, 0, 5.0),
-            tagged(Phase::AllGather, 1, 5.0),
-        ];
+        let messages = rank_0s_chunks();
         let _ = client.push_chunks(futures::stream::iter(messages)).await;
         let (result, buf, _) = waiting.await.unwrap();
         if finishes {

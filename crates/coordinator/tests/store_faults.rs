@@ -10,21 +10,26 @@ use osrt_store::chaos::ChaosStore;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// A three-step job of `cluster` on data it never reads.
+fn spec(job_id: &str, cluster: ClusterConfig) -> JobSpec {
+    JobSpec {
+        job_id: job_id.into(),
+        job_toml: "[cluster]\n".into(),
+        cluster,
+        data: "memory://nowhere/data".into(),
+        run: "memory://run".into(),
+        max_steps: Some(3),
+        deadline_unix_s: None,
+        cluster_overrides: ClusterOverrides::default(),
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
     let inner = Arc::new(InMemory::new());
     let store = Arc::new(ChaosStore::new(inner.clone()));
     let run = Location::new(store.clone(), "run");
-    let spec = JobSpec {
-        job_id: "job-flaky".into(),
-        job_toml: "[cluster]\n".into(),
-        cluster: ClusterConfig::default(),
-        data: "memory://nowhere/data".into(),
-        run: "flaky://run".into(),
-        max_steps: Some(3),
-        deadline_unix_s: None,
-        cluster_overrides: ClusterOverrides::default(),
-    };
+    let spec = spec("job-flaky", ClusterConfig::default());
     let coord = Coordinator::open_at(spec, run.clone(), false)
         .await
         .unwrap();
@@ -78,16 +83,7 @@ async fn a_slow_upload_does_not_hold_up_lost_worker_detection() {
         heartbeat_timeout_s: 1.5,
         ..ClusterConfig::default()
     };
-    let spec = JobSpec {
-        job_id: "job-slow".into(),
-        job_toml: "[cluster]\n".into(),
-        cluster,
-        data: "memory://nowhere/data".into(),
-        run: "slow://run".into(),
-        max_steps: Some(3),
-        deadline_unix_s: None,
-        cluster_overrides: ClusterOverrides::default(),
-    };
+    let spec = spec("job-slow", cluster);
     let coord = Coordinator::open_at(spec, run.clone(), false)
         .await
         .unwrap();
