@@ -113,6 +113,9 @@ pub struct Core {
     pub generation: u64,
     /// Worker ids in ring order (rank = index) of the current generation.
     pub ring: Vec<u64>,
+    /// Rank 0 of the generation that ended, until the next forms: its late reports' records
+    /// still count, as its late checkpoints do.
+    ended_rank0: Option<u64>,
     pub members: BTreeMap<u64, Member>,
     /// This coordinator process's incarnation, the high 32 bits of every id it issues:
     /// a worker id from an earlier incarnation (a coordinator restarted while the
@@ -210,6 +213,7 @@ impl Core {
             phase: Phase::Waiting { since: now },
             generation: 0,
             ring: Vec::new(),
+            ended_rank0: None,
             members: BTreeMap::new(),
             incarnation,
             next_id: 1,
@@ -403,6 +407,7 @@ impl Core {
             return;
         }
         tracing::warn!(generation = self.generation, reason, "generation ends");
+        self.ended_rank0 = self.ring.first().copied();
         self.ring.clear();
         self.hashes.clear();
         self.phase = Phase::Waiting { since: now };
@@ -622,6 +627,7 @@ impl Core {
 
     fn form(&mut self, ring: Vec<u64>) {
         self.generation += 1;
+        self.ended_rank0 = None;
         self.ring = ring;
         self.resume_step = self.last_checkpoint;
         self.discard_pending = true;
@@ -689,6 +695,18 @@ impl Core {
         // checkpoint (Done): they still count, and a divergence still fails the job.
         let finishing = self.phase == Phase::Done && generation == self.generation;
         if d != Directive::Continue && !finishing {
+            // Rank 0 of the generation that just ended: a checkpoint it commits now is
+            // still accepted (`checkpoint`), so the records before it must be too, or the
+            // checkpoint would leave a gap in `metrics.jsonl` (the worker counts a report
+            // the coordinator answered as delivered). The next generation drops those
+            // past its checkpoint.
+            if generation == self.generation
+                && rank == 0
+                && self.ended_rank0 == Some(id)
+                && records.len() <= MAX_RECORDS_PER_REPORT
+            {
+                self.take_records(records)?;
+            }
             return Ok(d);
         }
         if self.ring.get(rank) != Some(&id) {

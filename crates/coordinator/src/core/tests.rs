@@ -515,3 +515,32 @@ fn a_repeated_registration_of_one_instance_is_one_member() {
     assert_ne!(a, b);
     assert_eq!(c.members.len(), 2);
 }
+
+/// A generation that ends while rank 0 commits a checkpoint: rank 0's late report (its
+/// answer says restart) still delivers the records before that checkpoint, which the
+/// coordinator then accepts, so the next generation, resuming from it, leaves no gap.
+#[test]
+fn the_ended_generations_last_records_count_with_its_last_checkpoint() {
+    let t = Instant::now();
+    let mut c = Core::new(spec(2, 3, 5), t);
+    let a = reg(&mut c, t);
+    let b = reg(&mut c, t);
+    tick(&mut c, t);
+    let line = |s: u64| format!("{{\"loss\":0.5,\"step\":{s}}}");
+    c.progress(prog(a, 1, 0, 9, None, vec![line(9)]), t)
+        .unwrap();
+    c.fault(b, 1, "stopped by a signal", false, true, t)
+        .unwrap();
+    // Rank 0's report of step 10, answered after the generation ended.
+    let d = c.progress(prog(a, 1, 0, 10, None, vec![line(10), line(11)]), t);
+    assert_eq!(d.unwrap(), Directive::Restart);
+    c.checkpoint(a, 1, 10, false, t).unwrap();
+    // Any other member's late records do not count.
+    let d = c.progress(prog(b, 1, 0, 12, None, vec![line(12)]), t);
+    assert!(d.is_err() || d.unwrap() == Directive::Restart);
+    let _d = reg(&mut c, t);
+    tick(&mut c, t);
+    assert_eq!(c.resume_step, Some(10));
+    let steps: Vec<u64> = c.metrics_write().lines.iter().map(|(s, _)| *s).collect();
+    assert_eq!(steps, [9, 10], "11 is past the checkpoint");
+}
