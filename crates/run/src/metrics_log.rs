@@ -212,12 +212,23 @@ impl MetricsLog {
             dirty: false,
             last: None,
         };
-        for_each_line(run, |l| {
-            if let Some(s) = step_of(l) {
-                log.last = Some(s);
+        match &log.form {
+            // The parts were just read: their newest step is known.
+            Form::Parts { sealed, open, .. } if !legacy => {
+                log.last = open
+                    .last()
+                    .map(|(s, _)| *s)
+                    .or_else(|| sealed.last().and_then(|p| p.last));
             }
-        })
-        .await?;
+            _ => {
+                for_each_line(run, |l| {
+                    if let Some(s) = step_of(l) {
+                        log.last = Some(s);
+                    }
+                })
+                .await?;
+            }
+        }
         Ok(log)
     }
 
