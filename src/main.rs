@@ -6,6 +6,7 @@ mod cluster;
 mod data;
 mod device;
 mod flags;
+mod interop;
 mod render;
 mod sweep;
 mod train;
@@ -53,6 +54,13 @@ enum Command {
     Sweep(sweep::SweepArgs),
     /// Charts and a static HTML page of a run or a sweep (error against run time).
     Report(sweep::ReportArgs),
+    /// Bring in a model trained by another implementation (stelzner/osrt's PyTorch
+    /// checkpoints) as a run folder that eval, render, predict and train --resume use.
+    ImportCheckpoint(interop::ImportArgs),
+    /// Write a run's model for another implementation (stelzner/osrt's state dict).
+    ExportCheckpoint(interop::ExportArgs),
+    /// A run's inputs and predictions (colours, slot weights, slots) as NumPy arrays.
+    Predict(Box<interop::PredictArgs>),
     /// Compare a GPU's train step with the CPU's (gradients, one optimiser step).
     CheckDevice(device::CheckDeviceArgs),
     /// Benchmarks that print (and save) throughput figures.
@@ -93,6 +101,9 @@ async fn main() -> anyhow::Result<()> {
         Command::Render(args) => render::render(*args).await,
         Command::Sweep(args) => sweep::sweep(args).await,
         Command::CheckDevice(args) => device::run(args),
+        Command::ImportCheckpoint(args) => interop::import(args).await,
+        Command::ExportCheckpoint(args) => interop::export(args).await,
+        Command::Predict(args) => interop::run_predict(*args).await,
         Command::Report(args) => sweep::report(args).await,
         Command::Config { preset } => {
             print!("{}", osrt_trainer::JobConfig::preset(&preset)?.to_toml());

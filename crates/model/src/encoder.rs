@@ -99,6 +99,11 @@ pub struct Config {
     /// this; 128 covers 512 × 512 inputs at stride 4).
     #[serde(default = "default_max_grid")]
     pub max_grid: usize,
+    /// A bias on the 1×1 projection to the token width. Not in the paper's model (its
+    /// CNN has no biases); the PyTorch implementation stelzner/osrt has one, so a model
+    /// imported from it (`osrt_interop`) turns this on. Off in every preset.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub project_bias: bool,
 }
 
 impl Config {
@@ -115,6 +120,7 @@ impl Config {
             ray_input: RayInput::Concat,
             poses: Poses::Absolute,
             max_grid: default_max_grid(),
+            project_bias: false,
         }
     }
 
@@ -128,6 +134,8 @@ impl Config {
 pub struct Encoder {
     convs: Vec<(Conv2d, Conv2d)>,
     project: Conv2d,
+    /// `project_bias` only: `[dim]`, added to every token.
+    project_bias: Option<Tensor>,
     /// `RayInput::Add` only: ray-encoding patch embedding, kernel = stride = CNN stride.
     ray_embed: Option<Conv2d>,
     /// `Poses::Unposed` only: camera-ID `[2, dim]` (reference, other), row and column
@@ -169,6 +177,13 @@ impl Encoder {
         }
         let project =
             candle_nn::conv2d_no_bias(c_in, cfg.dim, 1, Default::default(), vb.pp("project"))?;
+        let project_bias = cfg
+            .project_bias
+            .then(|| {
+                vb.pp("project")
+                    .get_with_hints(cfg.dim, "bias", candle_nn::Init::Const(0.0))
+            })
+            .transpose()?;
         let ray_embed = match (cfg.poses, cfg.ray_input) {
             (Poses::Unposed, _) | (Poses::Absolute, RayInput::Concat) => None,
             (Poses::Absolute, RayInput::Add) => Some(candle_nn::conv2d_no_bias(
@@ -200,6 +215,7 @@ impl Encoder {
         Ok(Self {
             convs,
             project,
+            project_bias,
             ray_embed,
             unposed,
             transformer,
@@ -265,7 +281,11 @@ impl Encoder {
                 conv2d_relu_nhwc(&conv2d_relu_nhwc(&t[0], &a, 1, 1)?, &s2, 2, 1)
             })?;
         }
-        conv2d_nhwc(&x, self.project.weight(), 1, 0)
+        let x = conv2d_nhwc(&x, self.project.weight(), 1, 0)?;
+        match &self.project_bias {
+            None => Ok(x),
+            Some(b) => x.broadcast_add(b), // channels last: `[dim]` broadcasts
+        }
     }
 
     /// Up-OSRT's tokens: the CNN over RGB, plus camera-ID and row/column embeddings.

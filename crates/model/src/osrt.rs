@@ -55,6 +55,7 @@ impl Config {
                 ray_input: encoder::RayInput::Add,
                 poses: encoder::Poses::Absolute,
                 max_grid: 64,
+                project_bias: false,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 7,
@@ -99,6 +100,7 @@ impl Config {
                 ray_input: encoder::RayInput::Concat,
                 poses: encoder::Poses::Absolute,
                 max_grid: 16,
+                project_bias: false,
             },
             slot_attention: slot_attention::Config {
                 num_slots: 3,

@@ -9,6 +9,10 @@ pub enum TrainError {
     #[error(transparent)]
     Dataset(#[from] osrt_dataset::DatasetError),
 
+    /// Another tool's file (a PyTorch checkpoint, a peer config, NumPy arrays).
+    #[error(transparent)]
+    Interop(#[from] osrt_interop::InteropError),
+
     #[error("model: {0}")]
     Model(#[from] candle_core::Error),
 
