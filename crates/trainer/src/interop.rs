@@ -65,6 +65,13 @@ pub async fn import_stelzner(
     run_url: &str,
     data: Option<&str>,
 ) -> Result<ImportReport> {
+    // Everything is read and checked before the run folder is touched.
+    let (job, imported) = tokio::task::block_in_place(|| -> Result<_> {
+        let cfg = PeerConfig::read(config)?;
+        let ckpt = PeerCheckpoint::read(model)?;
+        let imported = stelzner::import(&ckpt, &cfg)?;
+        Ok((imported_job(&cfg, &imported)?, imported))
+    })?;
     let run = &Location::parse(run_url)?;
     for name in [CONFIG_FILE, INFO_FILE] {
         if read_file(run, name).await?.is_some() {
@@ -74,12 +81,6 @@ pub async fn import_stelzner(
             });
         }
     }
-    let (job, imported) = tokio::task::block_in_place(|| -> Result<_> {
-        let cfg = PeerConfig::read(config)?;
-        let ckpt = PeerCheckpoint::read(model)?;
-        let imported = stelzner::import(&ckpt, &cfg)?;
-        Ok((imported_job(&cfg, &imported)?, imported))
-    })?;
     let toml = job.to_toml();
     let mut trainer = Trainer::new(job.clone(), Device::Cpu)?;
     let step = imported
