@@ -218,14 +218,9 @@ fn batch(given: &BTreeMap<String, (Vec<usize>, Vec<f32>)>) -> Batch {
 
 /// The step of a run folder's one checkpoint.
 fn import_step(run: &Path) -> u64 {
-    let dirs: Vec<String> = std::fs::read_dir(run.join("checkpoints"))
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    let [one] = dirs.as_slice() else {
-        panic!("{dirs:?}")
-    };
-    one.trim_start_matches("step-").parse().unwrap()
+    let steps = import_steps(run);
+    assert_eq!(steps.len(), 1, "{steps:?}");
+    steps[0]
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -379,4 +374,100 @@ fn rewrite_entry(from: &Path, to: &Path, suffix: &str, f: impl Fn(&[u8]) -> Vec<
         zout.write_all(&bytes).unwrap();
     }
     zout.finish().unwrap();
+}
+
+#[test]
+fn an_imported_model_evaluates_renders_and_fine_tunes_like_any_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = common::tiny_dataset(dir.path(), 8);
+    let (run, data_s) = (dir.path().join("run"), data.to_str().unwrap());
+    let run_s = run.to_str().unwrap();
+    let model = fixture("model.pt");
+    osrt(&[
+        "import-checkpoint",
+        "--from",
+        "stelzner-osrt",
+        model.to_str().unwrap(),
+        "--config",
+        fixture("config.yaml").to_str().unwrap(),
+        "--run",
+        run_s,
+        "--data",
+        data_s,
+    ]);
+    let eval = osrt(&["eval", "--run", run_s, "--split", "val", "--json"]);
+    let r: serde_json::Value = serde_json::from_slice(&eval.stdout).unwrap();
+    assert!(r["psnr"].as_f64().unwrap().is_finite(), "{r}");
+    let pred = dir.path().join("p.npz");
+    osrt(&[
+        "predict",
+        "--run",
+        run_s,
+        "--split",
+        "val",
+        "--scenes",
+        "1..3",
+        "--out",
+        pred.to_str().unwrap(),
+    ]);
+    let got = arrays(&pred);
+    assert_eq!(got["scene_ids"].0, vec![2]);
+    assert_eq!(got["slot_weights"].0[0], 2);
+    let frames = dir.path().join("render");
+    osrt(&[
+        "render",
+        "--run",
+        run_s,
+        "--split",
+        "val",
+        "--scene",
+        "0",
+        "--frames",
+        "2",
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    // A plain `train` would start over beside the imported checkpoint: refused.
+    let train = [
+        "train",
+        "--run",
+        run_s,
+        "--data",
+        data_s,
+        "--workers",
+        "1",
+        "--threads",
+        "1",
+    ];
+    let out = Command::new(bin())
+        .args(train)
+        .args(["--max-steps", "5"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("pass --resume"),
+        "{err}"
+    );
+    // `--resume` continues from it: the job's first step is the peer's step 3.
+    osrt(&[&train[..], &["--resume", "--max-steps", "5"]].concat());
+    assert_eq!(import_steps(&run), vec![3, 5]);
+    let metrics = common::read_jsonl(&run.join("metrics.jsonl"));
+    assert!(
+        metrics.iter().all(|m| m["step"].as_u64().unwrap() > 3),
+        "{metrics:?}"
+    );
+}
+
+/// The steps of a run folder's checkpoints, in order.
+fn import_steps(run: &Path) -> Vec<u64> {
+    let mut steps: Vec<u64> = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .map(|e| {
+            let name = e.unwrap().file_name().to_string_lossy().into_owned();
+            name.trim_start_matches("step-").parse().unwrap()
+        })
+        .collect();
+    steps.sort();
+    steps
 }

@@ -222,13 +222,7 @@ impl Coordinator {
         };
         let now = Instant::now();
         let core = match persisted {
-            None if resume => {
-                return Err(run_err(
-                    &run,
-                    JOB_FILE,
-                    "--resume: no job to resume in this run folder",
-                ));
-            }
+            None if resume => Self::continue_imported(spec, &run, last_record, now).await?,
             None => Self::create(spec, &run, last_record, now).await?,
             Some(p) => {
                 let finished = p.state == "done" || p.state == "failed";
@@ -282,6 +276,69 @@ impl Coordinator {
         Ok(core)
     }
 
+    /// `--resume` on a folder without a job: one `osrt import-checkpoint` wrote (its
+    /// config and a checkpoint of a model trained elsewhere, no records) starts a job
+    /// from that checkpoint, with the folder's config; its records begin at that step.
+    /// Anything else has no job to resume.
+    async fn continue_imported(
+        mut spec: JobSpec,
+        run: &Location,
+        last_record: Option<u64>,
+        now: Instant,
+    ) -> Result<Core, CoordinatorError> {
+        let no_job = || {
+            run_err(
+                run,
+                JOB_FILE,
+                "--resume: no job to resume in this run folder",
+            )
+        };
+        let Some(text) = read_file(run, CONFIG_FILE).await? else {
+            return Err(no_job());
+        };
+        if last_record.is_some() {
+            return Err(no_job());
+        }
+        let Some(step) = checkpoint::latest_verified(run, None).await? else {
+            return Err(no_job());
+        };
+        let text = String::from_utf8_lossy(&text).into_owned();
+        spec.cluster = ClusterConfig::from_job_toml(&run.describe(&run.path(CONFIG_FILE)), &text)?;
+        spec.cluster_overrides.apply(&mut spec.cluster);
+        spec.cluster.validate()?;
+        spec.job_toml = text;
+        gatherable(&spec, run)?;
+        let mut info: RunInfo = match read_file(run, INFO_FILE).await? {
+            Some(b) => serde_json::from_slice(&b)
+                .map_err(|e| run_err(run, INFO_FILE, format!("unreadable: {e}")))?,
+            None => return Err(no_job()),
+        };
+        info.data = spec.data.clone();
+        info.workers = spec.cluster.min_workers;
+        let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
+        write_file(run, INFO_FILE, bytes).await?;
+        tracing::info!(
+            checkpoint = step,
+            "starting the job from the imported checkpoint"
+        );
+        let p = Persisted {
+            job_id: spec.job_id.clone(),
+            data: spec.data.clone(),
+            max_steps: spec.max_steps,
+            deadline_unix_s: spec.deadline_unix_s,
+            generation: 0,
+            restarts: 0,
+            last_checkpoint: Some(step),
+            hash_checks: 0,
+            state: "waiting".into(),
+            message: String::new(),
+        };
+        let mut core = Core::new(spec, now);
+        // The folder's history begins at the checkpoint: nothing before it is missing.
+        core.restore(&p, Some(step), Some(step), true, now);
+        Ok(core)
+    }
+
     /// A new job in an empty run folder: refused before anything is written if it cannot
     /// run; then its config and run info are written.
     async fn create(
@@ -296,6 +353,14 @@ impl Coordinator {
                 run,
                 METRICS_FILE,
                 "the run folder already holds a run; choose a new --run or pass --resume",
+            ));
+        }
+        if !checkpoint::list_steps(run).await?.is_empty() {
+            return Err(run_err(
+                run,
+                "checkpoints",
+                "the run folder holds checkpoints (a model imported with osrt \
+                 import-checkpoint?): pass --resume to continue from them, or choose a new --run",
             ));
         }
         // Refused before anything is written.
