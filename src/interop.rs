@@ -165,8 +165,9 @@ pub async fn run_predict(a: PredictArgs) -> Result<()> {
                 );
             }
             let job = &loaded.job.train;
-            let (views, targets) = (job.input_views, job.eval_target_views);
-            inputs_from_scenes(model, &scenes[a.scenes.clone()], views, targets)?
+            let (views, stride) = (job.input_views, job.input_stride);
+            let scenes = &scenes[a.scenes.clone()];
+            inputs_from_scenes(model, scenes, views, stride, job.eval_target_views)?
         }
     };
     let seed = loaded.job.train.seed ^ 0xE7A1;

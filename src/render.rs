@@ -128,9 +128,9 @@ fn render_frames(
     out: &Path,
 ) -> Result<Rendered> {
     let model = &loaded.trainer.model;
-    let views = loaded.job.train.input_views;
+    let (views, stride) = (loaded.job.train.input_views, loaded.job.train.input_stride);
     let seed = loaded.job.train.seed;
-    let slots = encode_scene(model, scene, views, seed)?;
+    let slots = encode_scene(model, scene, views, stride, seed)?;
     let k = slots.dim(1)?;
     let mut edited = None;
     if let Some(j) = drop {
@@ -146,7 +146,7 @@ fn render_frames(
                 other.id
             );
         }
-        let theirs = encode_scene(model, other, views, seed)?;
+        let theirs = encode_scene(model, other, views, stride, seed)?;
         edited = Some(add_slot(edited.as_ref().unwrap_or(&slots), &theirs, j)?);
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
@@ -332,6 +332,7 @@ pub async fn report_strip(
         model,
         scene,
         loaded.job.train.input_views,
+        loaded.job.train.input_stride,
         loaded.job.train.seed,
     )?;
     let mut panels = Vec::new();

@@ -383,13 +383,22 @@ fn an_imported_model_evaluates_renders_and_fine_tunes_like_any_run() {
     let (run, data_s) = (dir.path().join("run"), data.to_str().unwrap());
     let run_s = run.to_str().unwrap();
     let model = fixture("model.pt");
+    // As the peer's runs/clevr3d: input views point-sampled to half size.
+    let config = dir.path().join("config.yaml");
+    let text = std::fs::read_to_string(fixture("config.yaml")).unwrap();
+    let text = text.replace(
+        "  num_points: 10\n",
+        "  num_points: 10\n  kwargs:\n    downsample: 1\n",
+    );
+    assert!(text.contains("downsample"));
+    std::fs::write(&config, text).unwrap();
     osrt(&[
         "import-checkpoint",
         "--from",
         "stelzner-osrt",
         model.to_str().unwrap(),
         "--config",
-        fixture("config.yaml").to_str().unwrap(),
+        config.to_str().unwrap(),
         "--run",
         run_s,
         "--data",
@@ -413,6 +422,11 @@ fn an_imported_model_evaluates_renders_and_fine_tunes_like_any_run() {
     let got = arrays(&pred);
     assert_eq!(got["scene_ids"].0, vec![2]);
     assert_eq!(got["slot_weights"].0[0], 2);
+    // 8 × 8 views: the inputs at stride 2, the targets whole.
+    assert_eq!(got["input_images"].0[2..], [4, 4, 3]);
+    assert_eq!(got["rgb"].0[2..], [8, 8, 3]);
+    let toml = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(toml.contains("input_stride = 2"), "{toml}");
     let frames = dir.path().join("render");
     osrt(&[
         "render",

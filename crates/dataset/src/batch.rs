@@ -5,7 +5,7 @@
 
 use crate::camera::Camera;
 use crate::error::{DatasetError, Result};
-use crate::rays::{pixel_ray, view_rays};
+use crate::rays::{pixel_ray, view_rays_strided};
 use crate::scene::Scene;
 use rand::Rng;
 use rand::seq::index;
@@ -78,6 +78,21 @@ pub struct BatchConfig {
     /// The frame rays are expressed in (inputs and targets alike).
     #[serde(default)]
     pub ray_frame: RayFrame,
+    /// Input views point-sampled every `input_stride` pixels along both axes, from pixel
+    /// `input_stride / 2` on, each kept pixel with its own ray; targets keep every pixel.
+    /// 1 = the whole view. stelzner/osrt's `downsample: k` is `2^k`: its CLEVR-3D model
+    /// reads 160 × 120 inputs beside 320 × 240 targets.
+    #[serde(default = "one")]
+    pub input_stride: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+/// Pixels kept along a side of `len` at `stride` (from `stride / 2` on).
+pub fn strided_len(len: usize, stride: usize) -> usize {
+    (len.saturating_sub(stride / 2)).div_ceil(stride.max(1))
 }
 
 /// Summed absolute RGB difference (in `[0, 3]`) from the view's median colour above which
@@ -234,6 +249,39 @@ impl Batch {
 }
 
 impl Batch {
+    /// Appends the input views `inputs` of `scene` (cameras in the batch's frame), every
+    /// `stride`-th pixel of each with its ray; every view must be `w0 × h0`.
+    fn push_inputs(
+        &mut self,
+        scene: &Scene,
+        inputs: &[usize],
+        cameras: &[Camera],
+        stride: usize,
+        (w0, h0): (usize, usize),
+    ) -> Result<()> {
+        for &vi in inputs {
+            let view = &scene.views[vi];
+            if (view.width as usize, view.height as usize) != (w0, h0) {
+                return Err(DatasetError::Batch(format!(
+                    "scene {} view {vi} is {}x{}, the batch's input views are {w0}x{h0} (no padding)",
+                    scene.id, view.width, view.height
+                )));
+            }
+            let rays = view_rays_strided(&cameras[vi], view.width, view.height, stride);
+            self.input_origins.extend(rays.origins);
+            self.input_directions.extend(rays.directions);
+            for y in (stride / 2..h0).step_by(stride) {
+                for x in (stride / 2..w0).step_by(stride) {
+                    let p = 3 * (y * w0 + x);
+                    let rgb = &view.image[p..p + 3];
+                    self.input_images
+                        .extend(rgb.iter().map(|&c| c as f32 / 255.0));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Appends the target ray through pixel `rest` (row-major) of view `vi` of `scene`
     /// (`camera`: that view's camera in the batch's frame), with its colour, its mask
     /// label where the batch has masks, and where it came from.
@@ -281,17 +329,24 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
         first.views[0].width as usize,
         first.views[0].height as usize,
     );
+    let stride = cfg.input_stride;
+    if stride == 0 || stride > w0.min(h0) {
+        return Err(DatasetError::Batch(format!(
+            "input stride {stride}: must be 1 or more and at most the views' {w0}x{h0}"
+        )));
+    }
+    let (wi, hi) = (strided_len(w0, stride), strided_len(h0, stride));
     let b = scenes.len();
     let v = cfg.input_views;
     let mut batch = Batch {
         scene_ids: Vec::with_capacity(b),
         batch_size: b,
         input_views: v,
-        height: h0,
-        width: w0,
-        input_images: Vec::with_capacity(b * v * h0 * w0 * 3),
-        input_origins: Vec::with_capacity(b * v * h0 * w0 * 3),
-        input_directions: Vec::with_capacity(b * v * h0 * w0 * 3),
+        height: hi,
+        width: wi,
+        input_images: Vec::with_capacity(b * v * hi * wi * 3),
+        input_origins: Vec::with_capacity(b * v * hi * wi * 3),
+        input_directions: Vec::with_capacity(b * v * hi * wi * 3),
         rays_per_scene: 0,
         target_origins: Vec::new(),
         target_directions: Vec::new(),
@@ -308,21 +363,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
             .iter()
             .map(|v| cfg.ray_frame.express(&v.camera, &reference))
             .collect();
-        for &vi in &inputs {
-            let view = &scene.views[vi];
-            if (view.width as usize, view.height as usize) != (w0, h0) {
-                return Err(DatasetError::Batch(format!(
-                    "scene {} view {vi} is {}x{}, the batch's input views are {w0}x{h0} (no padding)",
-                    scene.id, view.width, view.height
-                )));
-            }
-            batch
-                .input_images
-                .extend(view.image.iter().map(|&p| p as f32 / 255.0));
-            let rays = view_rays(&cameras[vi], view.width, view.height);
-            batch.input_origins.extend(rays.origins);
-            batch.input_directions.extend(rays.directions);
-        }
+        batch.push_inputs(scene, &inputs, &cameras, stride, (w0, h0))?;
 
         let targets = target_view_ids(scene, &inputs, cfg.target_views)?;
         // Pixel index space over the target views, view after view.

@@ -19,11 +19,19 @@ pub fn pixel_ray(camera: &Camera, u: u32, v: u32) -> ([f32; 3], [f32; 3]) {
 
 /// Rays of every pixel of a `width × height` view, row 0 first.
 pub fn view_rays(camera: &Camera, width: u32, height: u32) -> Rays {
-    let n = width as usize * height as usize;
+    view_rays_strided(camera, width, height, 1)
+}
+
+/// The rays of every `stride`-th pixel along both axes from pixel `stride / 2` on, in
+/// row-major order: each the full-resolution ray of its pixel.
+pub fn view_rays_strided(camera: &Camera, width: u32, height: u32, stride: usize) -> Rays {
+    let (width, height) = (width as usize, height as usize);
+    let n = width.div_ceil(stride) * height.div_ceil(stride);
     let mut origins = Vec::with_capacity(n * 3);
     let mut directions = Vec::with_capacity(n * 3);
-    for v in 0..height {
-        for u in 0..width {
+    for v in (stride / 2..height).step_by(stride) {
+        for u in (stride / 2..width).step_by(stride) {
+            let (u, v) = (u as u32, v as u32);
             let (o, d) = pixel_ray(camera, u, v);
             origins.extend_from_slice(&o);
             directions.extend_from_slice(&d);

@@ -41,6 +41,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let trainer = Trainer::new(job.clone(), Device::Cpu)?;

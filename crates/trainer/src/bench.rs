@@ -116,6 +116,7 @@ fn bench_data(job: &JobConfig, image_size: u32) -> Result<(Vec<Scene>, BatchConf
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: crate::config::ray_frame(&job.model),
+        input_stride: 1,
     };
     Ok((scenes, cfg))
 }
@@ -444,6 +445,7 @@ pub fn bench_render(
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: crate::config::ray_frame(&cfg),
+        input_stride: 1,
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;
     let t = BatchTensors::new(&batch, device)?;

@@ -36,6 +36,14 @@ const MAX_SAMPLES: usize = 4096;
 const MAX_OCTAVES: usize = 32;
 const START_OCTAVES: RangeInclusive<i32> = -32..=32;
 
+fn one() -> usize {
+    1
+}
+
+fn is_one(n: &usize) -> bool {
+    *n == 1
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
     /// Model-initialisation and data-order seed.
@@ -56,6 +64,11 @@ pub struct TrainConfig {
     #[serde(default)]
     pub salient_fraction: f32,
     pub input_views: usize,
+    /// Input views point-sampled every this many pixels along both axes (targets keep
+    /// every pixel): `osrt_dataset::BatchConfig::input_stride`. 1, the default, reads
+    /// whole views; a model imported from stelzner/osrt with `downsample: k` reads `2^k`.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub input_stride: usize,
     pub input_selection: InputSelection,
     /// Views target rays are drawn from during training (`input` = 2D reconstruction).
     pub target_views: TargetViews,
@@ -114,6 +127,7 @@ impl TrainConfig {
             rays_per_scene: 512,
             salient_fraction: 0.0,
             input_views: 1,
+            input_stride: 1,
             input_selection: InputSelection::Random,
             target_views: TargetViews::All,
             lr: 1e-4,
@@ -358,6 +372,9 @@ impl JobConfig {
         if let Some(m) = t.micro_batch_size {
             within("train.micro_batch_size", m, 1..=MAX_BATCH)?;
         }
+        // At most 2^8: stelzner/osrt's `downsample` is a power of two, and views are at
+        // most a few thousand pixels wide.
+        within("train.input_stride", t.input_stride, 1..=256)?;
         for (name, v) in [
             ("log_every", t.log_every),
             ("max_consecutive_skips", t.max_consecutive_skips),

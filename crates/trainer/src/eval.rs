@@ -79,6 +79,8 @@ pub struct ObjectCountScore {
 
 pub struct EvalOptions {
     pub input_views: usize,
+    /// Input views point-sampled every this many pixels (`train.input_stride`).
+    pub input_stride: usize,
     pub target_views: TargetViews,
     /// Replace the input images by their grey level (robustness study).
     pub grayscale: bool,
@@ -116,6 +118,7 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
             .all(|s| s.views.iter().all(|v| v.mask.is_some())),
         salient_fraction: 0.0,
         ray_frame: crate::config::ray_frame(&model.cfg),
+        input_stride: opts.input_stride,
     };
     for scene in scenes {
         // Scenes with fewer views than needed for novel views fall back to all views.

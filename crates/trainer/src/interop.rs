@@ -46,6 +46,7 @@ pub fn imported_job(cfg: &PeerConfig, imported: &Imported) -> Result<JobConfig> 
         t.warmup_steps = tr.lr_warmup.unwrap_or(2500);
         t.decay_steps = tr.decay_it.unwrap_or(4e6);
     }
+    t.input_stride = cfg.input_stride();
     t.lr = 1e-4;
     t.decay_rate = 0.16;
     t.clip_norm = None;
@@ -200,9 +201,20 @@ pub async fn export_stelzner(run: &str, out: &Path, any_widths: bool) -> Result<
         }
     })?;
     std::fs::write(out, bytes).map_err(|e| TrainError::io(&shown, e))?;
+    let mut peer_yaml = stelzner::peer_model_yaml(cfg);
+    match loaded.job.train.input_stride {
+        1 => {}
+        s if s.is_power_of_two() => peer_yaml.push_str(&format!(
+            "data:\n  kwargs:\n    downsample: {}\n",
+            s.trailing_zeros()
+        )),
+        s => peer_yaml.push_str(&format!(
+            "# train.input_stride = {s}: the peer's `downsample` takes powers of two only\n"
+        )),
+    }
     Ok(ExportReport {
         step: loaded.step,
         tensors: tensors.len(),
-        peer_yaml: stelzner::peer_model_yaml(cfg),
+        peer_yaml,
     })
 }

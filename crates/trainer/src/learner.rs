@@ -180,6 +180,7 @@ impl Learner {
             with_masks: false,
             salient_fraction: t.salient_fraction,
             ray_frame: crate::config::ray_frame(&job.model),
+            input_stride: t.input_stride,
         };
         let eval_opts = crate::loaded::eval_options(&job);
         let now = Instant::now();

@@ -13,6 +13,7 @@ use osrt_run::{CONFIG_FILE, INFO_FILE, RunInfo, read_file};
 pub fn eval_options(job: &JobConfig) -> EvalOptions {
     EvalOptions {
         input_views: job.train.input_views,
+        input_stride: job.train.input_stride,
         target_views: job.train.eval_target_views,
         grayscale: false,
         seed: job.train.seed ^ 0xE7A1,

@@ -145,6 +145,7 @@ pub fn inputs_from_scenes(
     model: &Osrt,
     scenes: &[Scene],
     input_views: usize,
+    input_stride: usize,
     target_views: TargetViews,
 ) -> Result<PredictInputs> {
     let masks = scenes
@@ -158,11 +159,15 @@ pub fn inputs_from_scenes(
         with_masks: masks,
         salient_fraction: 0.0,
         ray_frame: crate::config::ray_frame(&model.cfg),
+        input_stride,
     };
     // Nothing is drawn with the first inputs and every target pixel; the RNG is a formality.
     let scenes: Vec<&Scene> = scenes.iter().collect();
     let batch = build_batch(&scenes, &cfg, &mut ChaCha8Rng::seed_from_u64(0))?;
-    let targets = batch.rays_per_scene / (batch.height * batch.width).max(1);
+    // Targets keep every pixel of the views (inputs may be strided).
+    let view = &scenes[0].views[0];
+    let (th, tw) = (view.height as usize, view.width as usize);
+    let targets = batch.rays_per_scene / (th * tw).max(1);
     let one = |x: Vec<u8>| x.into_iter().map(f32::from).collect();
     Ok(PredictInputs {
         views: [
@@ -174,7 +179,7 @@ pub fn inputs_from_scenes(
         images: batch.input_images,
         origins: batch.input_origins,
         directions: batch.input_directions,
-        target_shape: vec![targets, batch.height, batch.width],
+        target_shape: vec![targets, th, tw],
         target_origins: batch.target_origins,
         target_directions: batch.target_directions,
         target_rgb: Some(batch.target_rgb),

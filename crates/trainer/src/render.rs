@@ -87,7 +87,13 @@ fn decode_here(
 ///
 /// # Shapes
 /// → `[1, k, d]`
-pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) -> Result<Tensor> {
+pub fn encode_scene(
+    model: &Osrt,
+    scene: &Scene,
+    input_views: usize,
+    input_stride: usize,
+    seed: u64,
+) -> Result<Tensor> {
     if scene.views.len() < input_views {
         return Err(TrainError::Config {
             path: format!("scene {}", scene.id),
@@ -105,6 +111,7 @@ pub fn encode_scene(model: &Osrt, scene: &Scene, input_views: usize, seed: u64) 
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: crate::config::ray_frame(&model.cfg),
+        input_stride,
     };
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let batch = build_batch(&[scene], &cfg, &mut rng)?;
@@ -235,7 +242,7 @@ mod tests {
     fn a_dataset_camera_renders_as_many_pixels_as_the_view() {
         let t = trainer("slot_mixer");
         let s = scene();
-        let slots = encode_scene(&t.model, &s, 1, 0).unwrap();
+        let slots = encode_scene(&t.model, &s, 1, 1, 0).unwrap();
         let v = &s.views[1];
         let f = render_view(&t.model, &slots, &v.camera, v.width, v.height).unwrap();
         assert_eq!(f.decoded.rgb.len(), v.num_pixels() * 3);
@@ -245,7 +252,7 @@ mod tests {
         assert!(labels.iter().all(|&l| l < k));
         assert!(f.decoded.rgb.iter().all(|x| x.is_finite()));
         // Too few views for the model's inputs: a clear error naming the scene.
-        let err = encode_scene(&t.model, &s, 9, 0).unwrap_err().to_string();
+        let err = encode_scene(&t.model, &s, 9, 1, 0).unwrap_err().to_string();
         assert!(
             err.contains("scene 0") && err.contains("9 input views"),
             "{err}"
@@ -274,7 +281,7 @@ mod tests {
             }
         }
         let s = scene();
-        let slots = encode_scene(&t.model, &s, 1, 0).unwrap();
+        let slots = encode_scene(&t.model, &s, 1, 1, 0).unwrap();
         let v = &s.views[0];
         let full = render_view(&t.model, &slots, &v.camera, v.width, v.height).unwrap();
         let labels = full.decoded.labels.clone().unwrap();

@@ -29,6 +29,7 @@ fn batch(scenes: &[Scene], seed: u64) -> osrt_dataset::Batch {
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     build_batch(&refs, &cfg, &mut ChaCha8Rng::seed_from_u64(seed)).unwrap()
 }

@@ -57,6 +57,7 @@ fn batch(scene: &Scene, frame: RayFrame) -> Batch {
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: frame,
+        input_stride: 1,
     };
     build_batch(&[scene], &cfg, &mut ChaCha8Rng::seed_from_u64(0)).unwrap()
 }
@@ -173,6 +174,7 @@ fn variant_steps_are_finite_and_deterministic() {
             with_masks: false,
             salient_fraction: 0.0,
             ray_frame: frame,
+            input_stride: 1,
         };
         let s = scene();
         let step = || {

@@ -81,6 +81,7 @@ async fn two_half_batches_step_like_one_full_batch() {
         with_masks: false,
         salient_fraction: 0.0,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     // Uneven shares (3 + 1 scenes) check the weighting by real sample counts.
     for (step, share) in [(0u64, 2usize), (1, 3), (2, 1), (3, 2)] {

@@ -180,6 +180,7 @@ async fn rays_and_batches_from_read_scenes() {
         with_masks: true,
         salient_fraction: 0.0,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
     let b = build_batch(&refs, &cfg, &mut rng).unwrap();
@@ -217,6 +218,7 @@ async fn rays_and_batches_from_read_scenes() {
         with_masks: true,
         salient_fraction: 0.0,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     let e = build_batch(&refs, &eval, &mut rng).unwrap();
     assert_eq!(e.rays_per_scene, 2 * 64);
@@ -248,6 +250,7 @@ fn salient_sampling_draws_more_object_rays_without_reading_masks() {
         with_masks: true,
         salient_fraction: f,
         ray_frame: osrt_dataset::RayFrame::World,
+        input_stride: 1,
     };
     let share = |f: f32| {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
@@ -325,4 +328,54 @@ async fn png_storage_gives_back_the_same_scenes() {
         .unwrap()
         .into_luma8();
     assert_eq!(Some(m.into_raw()), scenes[0].views[0].mask);
+}
+
+#[test]
+fn strided_inputs_are_the_whole_views_pixels_and_rays_at_the_stride() {
+    use osrt_dataset::{BatchConfig, InputSelection, TargetViews, build_batch};
+    use rand::SeedableRng;
+    let scenes = tiny_scenes(2, 9);
+    let refs: Vec<_> = scenes.iter().collect();
+    let cfg = |input_stride| BatchConfig {
+        input_views: 2,
+        input_selection: InputSelection::First,
+        target_views: TargetViews::All,
+        rays_per_scene: None,
+        with_masks: false,
+        salient_fraction: 0.0,
+        ray_frame: osrt_dataset::RayFrame::World,
+        input_stride,
+    };
+    let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let whole = build_batch(&refs, &cfg(1), &mut rng()).unwrap();
+    for stride in [2, 4] {
+        let b = build_batch(&refs, &cfg(stride), &mut rng()).unwrap();
+        // stelzner/osrt's `x[s/2::s, s/2::s]`: pixels s/2, s/2 + s, … of each axis.
+        let kept: Vec<usize> = (stride / 2..9).step_by(stride).collect();
+        assert_eq!((b.height, b.width), (kept.len(), kept.len()));
+        let mut k = 0;
+        for scene_view in 0..2 * 2 {
+            for &y in &kept {
+                for &x in &kept {
+                    let at = (scene_view * 81 + y * 9 + x) * 3;
+                    for (got, whole) in [
+                        (&b.input_images, &whole.input_images),
+                        (&b.input_origins, &whole.input_origins),
+                        (&b.input_directions, &whole.input_directions),
+                    ] {
+                        assert_eq!(got[k * 3..k * 3 + 3], whole[at..at + 3]);
+                    }
+                    k += 1;
+                }
+            }
+        }
+        assert_eq!(k * 3, b.input_images.len());
+        // Targets keep every pixel.
+        assert_eq!(b.target_rgb, whole.target_rgb);
+        assert_eq!(b.target_directions, whole.target_directions);
+    }
+    let err = build_batch(&refs, &cfg(0), &mut rng())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("input stride 0"), "{err}");
 }

@@ -88,6 +88,32 @@ pub struct PeerData {
     pub dataset: String,
     #[serde(default)]
     pub num_points: Option<usize>,
+    #[serde(default)]
+    pub kwargs: Option<PeerDataKwargs>,
+}
+
+/// The dataset's keyword arguments that change what the model reads.
+#[derive(Debug, Clone, Default, Deserialize)]
+pub struct PeerDataKwargs {
+    /// Input views point-sampled every `2^downsample` pixels from pixel `2^downsample / 2`
+    /// (CLEVR-3D, `osrt/data/obsurf.py`); targets keep every pixel.
+    #[serde(default)]
+    pub downsample: Option<u32>,
+}
+
+impl PeerConfig {
+    /// The input stride of the peer's data (`2^downsample`; 1 without one).
+    pub fn input_stride(&self) -> usize {
+        1 << self.input_stride_exponent().min(8)
+    }
+
+    fn input_stride_exponent(&self) -> u32 {
+        self.data
+            .as_ref()
+            .and_then(|d| d.kwargs.as_ref())
+            .and_then(|k| k.downsample)
+            .unwrap_or(0)
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -161,6 +187,12 @@ impl PeerConfig {
                     "{} in the encoder and {} in the decoder: osrt's model has one ray encoding",
                     m.encoder_kwargs.pos_start_octave, m.decoder_kwargs.pos_start_octave
                 ),
+            ));
+        }
+        if cfg.input_stride_exponent() > 8 {
+            return Err(unsupported(
+                "data.kwargs.downsample",
+                "at most 8 (input views shrunk 256 times)",
             ));
         }
         if m.encoder_kwargs.slot_iters == 0 {

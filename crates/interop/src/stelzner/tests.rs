@@ -125,6 +125,15 @@ fn peer_configs_osrt_cannot_compute_are_refused_by_name() {
                 num_slots: 6\n  decoder: slot_mixer\n  decoder_kwargs:\n    pos_start_octave: -5\n";
     let cfg = PeerConfig::parse(base, "config.yaml").unwrap();
     assert_eq!(cfg.model.encoder_kwargs.slot_iters, 1);
+    assert_eq!(cfg.input_stride(), 1);
+    // The peer's runs/clevr3d: `downsample: 1` halves the input views.
+    let clevr = format!("data:\n  dataset: clevr3d\n  kwargs:\n    downsample: 1\n{base}");
+    assert_eq!(
+        PeerConfig::parse(&clevr, "c.yaml").unwrap().input_stride(),
+        2
+    );
+    let err = PeerConfig::parse(&clevr.replace("downsample: 1", "downsample: 9"), "c.yaml");
+    assert!(err.unwrap_err().to_string().contains("downsample"));
     for (change, setting) in [
         (
             ("decoder: slot_mixer", "decoder: spatial_broadcast"),
