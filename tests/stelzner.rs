@@ -404,6 +404,10 @@ fn an_imported_model_evaluates_renders_and_fine_tunes_like_any_run() {
         "--data",
         data_s,
     ]);
+    // A page before any record of this folder: the imported model's render.
+    let page = dir.path().join("page");
+    osrt(&["report", run_s, "--out", page.to_str().unwrap()]);
+    assert!(page.join("index.html").exists() && page.join("render.png").exists());
     let eval = osrt(&["eval", "--run", run_s, "--split", "val", "--json"]);
     let r: serde_json::Value = serde_json::from_slice(&eval.stdout).unwrap();
     assert!(r["psnr"].as_f64().unwrap().is_finite(), "{r}");

@@ -129,8 +129,14 @@ impl RunSummary {
         Ok(s)
     }
 
+    /// The records of the run folder `run_dir`; none yet (no `metrics.jsonl` beside its
+    /// `config.toml`: a job before its first record, a model just imported) is an empty
+    /// summary.
     pub fn load(run_dir: &Path) -> Result<Self> {
         let path = run_dir.join(osrt_run::METRICS_FILE);
+        if !path.exists() && run_dir.join(osrt_run::CONFIG_FILE).exists() {
+            return Self::parse("", &path.display().to_string());
+        }
         Self::parse(&crate::read_text(&path)?, &path.display().to_string())
     }
 
