@@ -51,7 +51,12 @@ pub fn imported_job(cfg: &PeerConfig, imported: &Imported) -> Result<JobConfig> 
     t.decay_rate = 0.16;
     t.clip_norm = None;
     if let Some(a) = &imported.adam {
-        (t.beta1, t.beta2, t.adam_eps, t.weight_decay) = (a.beta1, a.beta2, a.eps, a.weight_decay);
+        (t.beta1, t.beta2, t.adam_eps, t.weight_decay) = (
+            a.settings.beta1,
+            a.settings.beta2,
+            a.settings.eps,
+            a.settings.weight_decay,
+        );
     }
     Ok(job)
 }
@@ -87,7 +92,7 @@ pub async fn import_stelzner(
     let step = imported
         .adam
         .as_ref()
-        .map(|a| a.step)
+        .map(|a| a.settings.step)
         .or(imported.peer_it.map(|i| i.max(0) as u64))
         .unwrap_or(0);
     let moments = load_into(&mut trainer, &imported)?;
@@ -153,7 +158,7 @@ pub fn load_into(trainer: &mut Trainer, imported: &Imported) -> Result<bool> {
         m.extend(&adam.m[&name]);
         v.extend(&adam.v[&name]);
     }
-    trainer.opt.restore(m, v, adam.step)?;
+    trainer.opt.restore(m, v, adam.settings.step)?;
     Ok(true)
 }
 

@@ -2,8 +2,8 @@
 //! weights as the peer's state dict ([`export`]).
 
 use super::{
-    Entry, PEER_HEADS, PEER_OCTAVES, PeerCheckpoint, PeerConfig, Shapes, Tensors, entries,
-    peer_shape, ray_permutation, to_osrt, to_peer,
+    AdamSettings, Entry, PEER_HEADS, PEER_OCTAVES, PeerCheckpoint, PeerConfig, Shapes, Tensors,
+    entries, peer_shape, ray_permutation, to_osrt, to_peer,
 };
 use crate::error::{InteropError, Result};
 use crate::npz::NamedArray;
@@ -62,12 +62,7 @@ pub fn check_tensors(entries: &[Entry], osrt: &Shapes, have: &Shapes, path: &str
 /// Adam's state in osrt's terms.
 #[derive(Debug, Clone)]
 pub struct ImportedAdam {
-    pub step: u64,
-    pub lr: f64,
-    pub beta1: f64,
-    pub beta2: f64,
-    pub eps: f64,
-    pub weight_decay: f64,
+    pub settings: AdamSettings,
     /// First and second moments by osrt's parameter name; empty when the peer's
     /// optimiser never stepped.
     pub m: BTreeMap<String, Vec<f32>>,
@@ -106,12 +101,7 @@ pub fn import(ckpt: &PeerCheckpoint, cfg: &PeerConfig) -> Result<Imported> {
         None => None,
         Some(a) => {
             let mut out = ImportedAdam {
-                step: a.step,
-                lr: a.lr,
-                beta1: a.beta1,
-                beta2: a.beta2,
-                eps: a.eps,
-                weight_decay: a.weight_decay,
+                settings: a.settings,
                 m: BTreeMap::new(),
                 v: BTreeMap::new(),
             };

@@ -323,9 +323,9 @@ pub fn to_peer(entry: &Entry, osrt: &Tensors, perm: &[usize]) -> Option<(Vec<usi
     }
 }
 
-/// Adam's state in a peer checkpoint.
-#[derive(Debug, Clone)]
-pub struct PeerAdam {
+/// Adam's update count and hyperparameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AdamSettings {
     /// Updates taken (the bias corrections' `t`).
     pub step: u64,
     pub lr: f64,
@@ -333,6 +333,12 @@ pub struct PeerAdam {
     pub beta2: f64,
     pub eps: f64,
     pub weight_decay: f64,
+}
+
+/// Adam's state in a peer checkpoint.
+#[derive(Debug, Clone)]
+pub struct PeerAdam {
+    pub settings: AdamSettings,
     /// `exp_avg` and `exp_avg_sq` by the parameter's index in the peer's order; empty
     /// when the optimiser never stepped.
     pub moments: BTreeMap<usize, Moments>,
@@ -470,6 +476,18 @@ fn read_safetensors(path: &Path) -> Result<PeerCheckpoint> {
     })
 }
 
+/// A parameter's Adam step count: a 0-d tensor since PyTorch 1.12, a number before.
+fn adam_step(file: &mut TorchFile, state: &Value, i: i64) -> Result<Option<f64>> {
+    Ok(match state.get("step") {
+        Some(Value::Tensor(t)) => file
+            .tensor(t, &format!("optimizer.state[{i}].step"))?
+            .first()
+            .map(|&x| x as f64),
+        Some(v) => v.as_f64(),
+        None => None,
+    })
+}
+
 /// `torch.optim.Adam`'s state dict: one parameter group, moments per parameter index.
 fn read_adam(file: &mut TorchFile, opt: &Value) -> Result<PeerAdam> {
     let shown = file.path().display().to_string();
@@ -517,12 +535,14 @@ fn read_adam(file: &mut TorchFile, opt: &Value) -> Result<PeerAdam> {
         }
     }
     let mut adam = PeerAdam {
-        step: 0,
-        lr: num("lr")?,
-        beta1,
-        beta2,
-        eps: num("eps")?,
-        weight_decay: num("weight_decay")?,
+        settings: AdamSettings {
+            step: 0,
+            lr: num("lr")?,
+            beta1,
+            beta2,
+            eps: num("eps")?,
+            weight_decay: num("weight_decay")?,
+        },
         moments: BTreeMap::new(),
     };
     let Some(Value::Dict(state)) = opt.get("state") else {
@@ -545,15 +565,8 @@ fn read_adam(file: &mut TorchFile, opt: &Value) -> Result<PeerAdam> {
                 )),
             }
         };
-        let step = match s.get("step") {
-            Some(Value::Tensor(t)) => file
-                .tensor(t, &format!("optimizer.state[{i}].step"))?
-                .first()
-                .map(|&x| x as f64),
-            Some(v) => v.as_f64(),
-            None => None,
-        };
-        let step = step.ok_or_else(|| bad(&format!(".state[{i}].step"), "missing".into()))?;
+        let step = adam_step(file, s, *i)?
+            .ok_or_else(|| bad(&format!(".state[{i}].step"), "missing".into()))?;
         steps.insert(step as u64);
         let (shape, m) = tensor("exp_avg", file)?;
         let (_, v) = tensor("exp_avg_sq", file)?;
@@ -561,7 +574,7 @@ fn read_adam(file: &mut TorchFile, opt: &Value) -> Result<PeerAdam> {
     }
     match steps.len() {
         0 => {}
-        1 => adam.step = *steps.first().expect("one"),
+        1 => adam.settings.step = *steps.first().expect("one"),
         _ => {
             return Err(bad(
                 ".state",
