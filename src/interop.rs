@@ -172,9 +172,22 @@ pub async fn run_predict(a: PredictArgs) -> Result<()> {
     };
     let seed = loaded.job.train.seed ^ 0xE7A1;
     let kernels = loaded.job.train.kernels;
+    let bar = if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        indicatif::ProgressBar::new(inputs.views[0] as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:30}] scene {pos}/{len} (ETA {eta})",
+            )
+            .expect("a valid progress template"),
+        )
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
     let arrays = tokio::task::block_in_place(|| {
-        osrt_kernels::with_kernels(kernels, || predict(model, &inputs, seed))
+        osrt_kernels::with_kernels(kernels, || {
+            predict(model, &inputs, seed, &|n| bar.set_position(n as u64))
+        })
     })?;
+    bar.finish_and_clear();
     let shown = a.out.display().to_string();
     let file = std::fs::File::create(&a.out).with_context(|| format!("creating {shown}"))?;
     osrt_interop::npz::write_npz(std::io::BufWriter::new(file), &shown, &arrays)?;

@@ -189,8 +189,14 @@ pub fn inputs_from_scenes(
 }
 
 /// Runs `model` on every scene of `inputs`, one scene at a time (the decoder in chunks of
-/// rays); returns the table's arrays. `seed` draws the slot noise of random slot init.
-pub fn predict(model: &Osrt, inputs: &PredictInputs, seed: u64) -> Result<Vec<NamedArray>> {
+/// rays); returns the table's arrays. `seed` draws the slot noise of random slot init;
+/// `done` is called after each scene with the count so far (a progress bar).
+pub fn predict(
+    model: &Osrt,
+    inputs: &PredictInputs,
+    seed: u64,
+    done: &dyn Fn(usize),
+) -> Result<Vec<NamedArray>> {
     let [s, v, h, w] = inputs.views;
     let k = model.cfg.slot_attention.num_slots;
     let d = model.cfg.slot_attention.slot_dim;
@@ -211,6 +217,7 @@ pub fn predict(model: &Osrt, inputs: &PredictInputs, seed: u64) -> Result<Vec<Na
             all.extend(w);
             all
         });
+        done(i + 1);
     }
     let rays = |last: usize| -> Vec<usize> {
         let mut shape = vec![s];
