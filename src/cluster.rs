@@ -638,13 +638,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
     let mut kills: Vec<Kills> = (0..job.workers).map(|_| Kills::default()).collect();
     // Ctrl-C or SIGTERM: stop the workers too (they would otherwise wait out the
     // coordinator timeout).
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
-    let ctrl_c = async move {
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {}
-            _ = sigterm.recv() => {}
-        }
-    };
+    let ctrl_c = shutdown_signal();
     tokio::pin!(ctrl_c);
     let mut server = server;
     let status = loop {
