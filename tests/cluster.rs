@@ -289,11 +289,18 @@ fn a_torn_or_corrupt_checkpoint_is_skipped() {
     assert!(l.windows(2).all(|w| w[0].0 < w[1].0), "one timeline: {l:?}");
 }
 
+/// A worker of a micro-batched job killed mid-way: the survivor restarts alone within the
+/// heartbeat timeout and keeps the job's global batch of 4 scenes, now its whole share in
+/// 4 passes of 1 instead of 2 (the records say so).
 #[test]
 fn a_killed_worker_does_not_hang_the_job() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_dataset(dir.path(), 64);
     let run = dir.path().join("run");
+    let config = dir.path().join("job.toml");
+    let mut job = osrt_trainer::JobConfig::preset("tiny").unwrap();
+    job.train.micro_batch_size = Some(1);
+    std::fs::write(&config, job.to_toml()).unwrap();
     let port = free_port();
     // A deadline, not a step count, ends this job: it runs long enough to be killed
     // mid-way on any machine.
@@ -302,6 +309,8 @@ fn a_killed_worker_does_not_hang_the_job() {
         &data,
         &run,
         &[
+            "--config",
+            config.to_str().unwrap(),
             "--max-minutes",
             "0.25",
             "--min-workers",
@@ -334,12 +343,21 @@ fn a_killed_worker_does_not_hang_the_job() {
     let l = losses(&run);
     assert_eq!(Some(l.last().unwrap().0), job["last_checkpoint"].as_u64());
     assert!(l.windows(2).all(|w| w[0].0 < w[1].0), "one timeline");
-    // After the loss the survivor trained alone.
+    // After the loss the survivor trained alone, on the same global batch.
     let records = read_jsonl(&run.join("metrics.jsonl"));
+    let train: Vec<_> = records.iter().filter(|r| r.get("loss").is_some()).collect();
     assert!(
-        records.iter().any(|r| r["workers"] == 1),
+        train.iter().any(|r| r["workers"] == 1),
         "a 1-worker generation"
     );
+    for r in &train {
+        let workers = r["workers"].as_u64().unwrap();
+        assert_eq!(
+            workers * r["micro_batches"].as_u64().unwrap(),
+            4,
+            "passes of 1 scene make the batch of 4: {r}"
+        );
+    }
 }
 
 #[test]

@@ -322,9 +322,27 @@ impl Batch {
 /// Builds one batch. The RNG draws input views (when random) then target rays, scene by
 /// scene in order, so the same RNG state and scenes give the same batch.
 pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> Result<Batch> {
+    build_batch_each(scenes, cfg, std::slice::from_mut(rng))
+}
+
+/// [`build_batch`] with one RNG per scene: `rngs[i]` draws scene `i`'s input views and
+/// target rays, so a scene's draws do not depend on the scenes beside it (a single RNG
+/// draws for every scene, as [`build_batch`]).
+pub fn build_batch_each<R: Rng>(
+    scenes: &[&Scene],
+    cfg: &BatchConfig,
+    rngs: &mut [R],
+) -> Result<Batch> {
     let first = scenes
         .first()
         .ok_or_else(|| DatasetError::Batch("a batch needs at least one scene".into()))?;
+    if rngs.len() != 1 && rngs.len() != scenes.len() {
+        return Err(DatasetError::Batch(format!(
+            "{} random streams for {} scenes: one, or one per scene",
+            rngs.len(),
+            scenes.len()
+        )));
+    }
     let (w0, h0) = (
         first.views[0].width as usize,
         first.views[0].height as usize,
@@ -355,6 +373,7 @@ pub fn build_batch(scenes: &[&Scene], cfg: &BatchConfig, rng: &mut impl Rng) -> 
         target_pixels: Vec::new(),
     };
     for (si, scene) in scenes.iter().enumerate() {
+        let rng = &mut rngs[si.min(rngs.len() - 1)];
         let inputs = choose_inputs(scene, cfg, rng)?;
         let reference = scene.views[inputs[0]].camera;
         // Each view's camera in the batch's frame, once per scene (not once per ray).

@@ -27,7 +27,9 @@ pub mod scene;
 pub mod schema;
 pub mod writer;
 
-pub use batch::{Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch};
+pub use batch::{
+    Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch, build_batch_each,
+};
 pub use camera::{Camera, Intrinsics};
 pub use error::{DatasetError, Result};
 pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};

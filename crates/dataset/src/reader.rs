@@ -14,7 +14,7 @@ use object_store::path::Path;
 use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt};
 use osrt_store::Location;
 use parquet::arrow::ParquetRecordBatchStreamBuilder;
-use parquet::arrow::arrow_reader::ArrowReaderOptions;
+use parquet::arrow::arrow_reader::{ArrowReaderOptions, RowSelection, RowSelector};
 use parquet::arrow::async_reader::{AsyncFileReader, MetadataSuffixFetch};
 use parquet::errors::ParquetError;
 use parquet::file::metadata::{ParquetMetaData, ParquetMetaDataReader};
@@ -30,6 +30,24 @@ pub struct RowGroupRef {
     pub file: String,
     pub index: usize,
     pub num_rows: u64,
+}
+
+/// The selection of `rows` (increasing) among a row group's `total`: runs of rows
+/// skipped and selected.
+fn selection(rows: &[u64], total: u64) -> RowSelection {
+    let mut runs = Vec::new();
+    let mut at = 0;
+    for &r in rows {
+        if r > at {
+            runs.push(RowSelector::skip((r - at) as usize));
+        }
+        runs.push(RowSelector::select(1));
+        at = r + 1;
+    }
+    if total > at {
+        runs.push(RowSelector::skip((total - at) as usize));
+    }
+    RowSelection::from(runs)
 }
 
 /// Rows decoded per Arrow batch: a row group's declared size never sizes an allocation.
@@ -241,6 +259,33 @@ impl SplitReader {
         columns: Columns,
         stats: Arc<ReadStats>,
     ) -> Result<Vec<Scene>> {
+        self.read(rg, None, columns, stats).await
+    }
+
+    pub async fn read_row_group(&self, rg: &RowGroupRef, columns: Columns) -> Result<Vec<Scene>> {
+        self.read_row_group_with_stats(rg, columns, Arc::default())
+            .await
+    }
+
+    /// Decodes only `rows` (indices within the row group, increasing) of one row group, in
+    /// that order: a training rank takes its own scenes of a row group the ranks share,
+    /// and the pictures of the others are never decoded.
+    pub async fn read_rows(
+        &self,
+        rg: &RowGroupRef,
+        rows: &[u64],
+        columns: Columns,
+    ) -> Result<Vec<Scene>> {
+        self.read(rg, Some(rows), columns, Arc::default()).await
+    }
+
+    async fn read(
+        &self,
+        rg: &RowGroupRef,
+        rows: Option<&[u64]>,
+        columns: Columns,
+        stats: Arc<ReadStats>,
+    ) -> Result<Vec<Scene>> {
         let file = self.file(&rg.file)?;
         let shown = self.split.describe(&self.split.path(&file.name));
         let (builder, codec) = self.builder(file, stats).await?;
@@ -251,40 +296,58 @@ impl SplitReader {
                 format!("row group {} requested, the file has {n}", rg.index),
             ));
         }
+        let wanted = match rows {
+            Some(rows) => {
+                if !rows.windows(2).all(|w| w[0] < w[1]) || rows.last() >= Some(&rg.num_rows) {
+                    return Err(DatasetError::schema(
+                        &shown,
+                        format!(
+                            "rows of row group {} must increase and lie below its {} rows",
+                            rg.index, rg.num_rows
+                        ),
+                    ));
+                }
+                rows.len() as u64
+            }
+            None => rg.num_rows,
+        };
         let mask = projection(builder.parquet_schema(), columns);
-        let stream = builder
+        let mut builder = builder
             .with_row_groups(vec![rg.index])
             .with_projection(mask)
-            .with_batch_size(rg.num_rows.clamp(1, MAX_BATCH_ROWS) as usize)
+            .with_batch_size(wanted.clamp(1, MAX_BATCH_ROWS) as usize);
+        if let Some(rows) = rows {
+            builder = builder.with_row_selection(selection(rows, rg.num_rows));
+        }
+        let stream = builder
             .build()
             .map_err(|e| DatasetError::parquet(&shown, e))?;
         let batches: Vec<_> = stream
             .try_collect()
             .await
             .map_err(|e| DatasetError::parquet(&shown, e))?;
-        let mut scenes = Vec::with_capacity(rg.num_rows.min(MAX_BATCH_ROWS) as usize);
+        let mut scenes = Vec::with_capacity(wanted.min(MAX_BATCH_ROWS) as usize);
         for b in &batches {
             scenes.extend(batch_to_scenes_with(b, &shown, codec)?);
         }
-        if scenes.len() as u64 != rg.num_rows {
+        if scenes.len() as u64 != wanted {
             // The listing and the file disagree (a file replaced since it was listed, or
             // a footer that lies): every rank's plan counted on the listed rows.
             return Err(DatasetError::schema(
                 &shown,
                 format!(
-                    "row group {} was listed with {} scenes, {} decoded",
+                    "row group {} was listed with {} scenes, {} decoded{}",
                     rg.index,
                     rg.num_rows,
-                    scenes.len()
+                    scenes.len(),
+                    match rows {
+                        Some(_) => format!(" of {wanted} selected rows"),
+                        None => String::new(),
+                    }
                 ),
             ));
         }
         Ok(scenes)
-    }
-
-    pub async fn read_row_group(&self, rg: &RowGroupRef, columns: Columns) -> Result<Vec<Scene>> {
-        self.read_row_group_with_stats(rg, columns, Arc::default())
-            .await
     }
 
     /// Decodes the whole split (small splits: validation, tests, inspection).

@@ -235,6 +235,51 @@ impl Osrt {
         )?))
     }
 
+    /// [`Osrt::slot_noise`] with one RNG per scene (`rngs[i]` draws scene `i`'s rows).
+    ///
+    /// # Shapes
+    /// → `[rngs.len(), k, slot_dim]`
+    pub fn slot_noise_each<R: rand::Rng>(&self, rngs: &mut [R]) -> Result<Option<Tensor>> {
+        let sa = &self.cfg.slot_attention;
+        if sa.init != SlotInit::Random {
+            return Ok(None);
+        }
+        let n = sa.num_slots * sa.slot_dim;
+        let noise: Vec<f32> = rngs
+            .iter_mut()
+            .flat_map(|rng| crate::params::normal_samples(rng, n))
+            .collect();
+        Ok(Some(Tensor::from_vec(
+            noise,
+            (rngs.len(), sa.num_slots, sa.slot_dim),
+            self.device(),
+        )?))
+    }
+
+    /// [`Osrt::ray_offsets`] with one RNG per scene.
+    ///
+    /// # Shapes
+    /// → `[rngs.len(), r, samples]`
+    pub fn ray_offsets_each<R: rand::Rng>(
+        &self,
+        r: usize,
+        rngs: &mut [R],
+    ) -> Result<Option<Tensor>> {
+        let decoder::Config::Volumetric(c) = &self.cfg.decoder else {
+            return Ok(None);
+        };
+        let n = r * c.samples;
+        let u: Vec<f32> = rngs
+            .iter_mut()
+            .flat_map(|rng| (0..n).map(|_| rng.random::<f32>()).collect::<Vec<_>>())
+            .collect();
+        Ok(Some(Tensor::from_vec(
+            u,
+            (rngs.len(), r, c.samples),
+            self.device(),
+        )?))
+    }
+
     /// Every tensor of the model lives on this device.
     pub fn device(&self) -> &Device {
         self.rays.device()

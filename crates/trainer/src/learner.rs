@@ -16,14 +16,16 @@ use crate::config::{JobConfig, TrainConfig};
 use crate::distributed::{Reduced, Signals};
 use crate::error::{Result, TrainError};
 use crate::eval::{EvalOptions, EvalResult, evaluate};
+use crate::feed::Feed;
 use crate::retry::{READ_RETRY_BUDGET, retry_transient};
-use crate::shard::{EpochPlan, step_rng};
+use crate::shard::{EpochPlan, scene_rng};
 use crate::step::{ApplyOutcome, Gradient, StepGradients, Trainer};
 use candle_core::Device;
 use osrt_dataset::{
-    BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch, load_split,
+    BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch_each, load_split,
 };
 use osrt_run::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord, unix_now};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Where a generation starts and who this rank is in it.
@@ -52,12 +54,16 @@ pub struct StepEnd {
     pub last: bool,
 }
 
-/// This rank's scenes of one epoch and their order.
+/// The epoch in progress: its sequence, this rank's scenes of it, its first step.
 struct Epoch {
-    plan: EpochPlan,
-    scenes: Vec<Scene>,
-    order: Vec<usize>,
+    feed: Feed,
     start_step: u64,
+}
+
+impl Epoch {
+    fn plan(&self) -> &EpochPlan {
+        self.feed.plan()
+    }
 }
 
 /// The training window a [`TrainRecord`] averages over.
@@ -92,7 +98,7 @@ pub struct Learner {
     world: usize,
     fresh: bool,
     data: Location,
-    groups: Vec<RowGroupRef>,
+    groups: Arc<Vec<RowGroupRef>>,
     val: Vec<Scene>,
     epoch: Epoch,
     batch_cfg: BatchConfig,
@@ -138,21 +144,20 @@ impl Learner {
             }
             None => fresh_state(world, &s.config_hash),
         };
-        // Another world size deals the data differently: continue with a fresh epoch.
-        if state.world_size != world {
-            state.epoch += 1;
-            state.epoch_start_step = state.step;
-            state.world_size = world;
-        }
+        // The data sequence and the draws do not depend on the worker count: another
+        // world size continues the epoch where it stood.
+        state.world_size = world;
         state.rng = format!(
-            "ChaCha8 per step from (seed {}, step, rank, world {world})",
+            "ChaCha8 per scene and step from (seed {}, step, scene id)",
             t.seed
         );
         let data = s.data;
-        let groups = retry_transient("listing the train split", READ_RETRY_BUDGET, || {
-            list_row_groups(&data)
-        })
-        .await?;
+        let groups = Arc::new(
+            retry_transient("listing the train split", READ_RETRY_BUDGET, || {
+                list_row_groups(&data)
+            })
+            .await?,
+        );
         let val = retry_transient("reading the validation scenes", READ_RETRY_BUDGET, || {
             let columns = Columns {
                 masks: true,
@@ -170,8 +175,7 @@ impl Learner {
             state.epoch_start_step,
             rank,
             world,
-        )
-        .await?;
+        )?;
         let batch_cfg = BatchConfig {
             input_views: t.input_views,
             input_selection: t.input_selection,
@@ -259,8 +263,8 @@ impl Learner {
     /// runs where there is no GPU.
     pub async fn gradients(&mut self) -> Result<StepGradients<Gradient>> {
         let step = self.trainer.step;
-        if step - self.epoch.start_step >= self.epoch.plan.steps {
-            let next = self.epoch.plan.epoch + 1;
+        if step - self.epoch.start_step >= self.epoch.plan().steps {
+            let next = self.epoch.plan().epoch + 1;
             let t = &self.job.train;
             self.epoch = open_epoch(
                 &self.data,
@@ -270,25 +274,21 @@ impl Learner {
                 step,
                 self.rank,
                 self.world,
-            )
-            .await?;
+            )?;
         }
         self.step_start = Instant::now();
-        let (rank, world, seed) = (self.rank, self.world, self.train().seed);
-        let e = &self.epoch;
-        let k = (step - e.start_step) as usize;
-        let b = e.plan.local_batch;
-        let refs: Vec<&Scene> = e.order[k * b..(k + 1) * b]
-            .iter()
-            .map(|&i| &e.scenes[i])
-            .collect();
-        let mut rng = step_rng(seed, step, rank, world);
+        let (world, seed) = (self.world, self.train().seed);
+        let k = step - self.epoch.start_step;
+        let refs = self.epoch.feed.scenes(k).await?;
+        // Each scene's draws come from its own stream: the same for any worker count
+        // and any micro-batch size.
+        let mut rngs: Vec<_> = refs.iter().map(|s| scene_rng(seed, step, s.id)).collect();
         let (cfg, trainer) = (&self.batch_cfg, &self.trainer);
         let keep = !crate::device::is_cpu(trainer.device())
             || (world > 1 && self.job.train.kernels == osrt_model::Kernels::Device);
         tokio::task::block_in_place(|| {
-            let batch = build_batch(&refs, cfg, &mut rng)?;
-            trainer.gradients_kept(&batch, &mut rng, keep)
+            let batch = build_batch_each(&refs, cfg, &mut rngs)?;
+            trainer.gradients_each(&batch, &mut rngs, keep)
         })
     }
 
@@ -327,12 +327,12 @@ impl Learner {
             let dt = self.window.since.elapsed().as_secs_f64().max(1e-9);
             let w = &self.window;
             records.push(MetricsRecord::Train(TrainRecord {
-                epoch: self.epoch.plan.epoch,
+                epoch: self.epoch.plan().epoch,
                 grad_norm: (w.applied > 0).then(|| w.grad_norm / w.applied as f64),
                 loss: self.window.loss / self.window.steps as f64,
                 lr: t.lr_at(step - 1),
                 micro_batches: crate::step::micro_batches(
-                    self.epoch.plan.local_batch,
+                    crate::shard::share(t.batch_size, self.world, self.rank).len(),
                     t.micro_batch_size,
                 )
                 .len() as u32,
@@ -372,7 +372,7 @@ impl Learner {
             .then(|| {
                 let st = CheckpointState {
                     step,
-                    epoch: self.epoch.plan.epoch,
+                    epoch: self.epoch.plan().epoch,
                     epoch_start_step: self.epoch.start_step,
                     world_size: self.world,
                     adam_t: self.trainer.opt.t(),
@@ -466,37 +466,22 @@ async fn list_row_groups(data: &Location) -> Result<Vec<RowGroupRef>> {
         .await?)
 }
 
-/// This rank's scenes for one epoch, read straight from the store.
-async fn load_shard(data: &Location, plan: &EpochPlan) -> Result<Vec<Scene>> {
-    let reader = SplitReader::open(data.join("train")).await?;
-    let mut scenes = Vec::new();
-    for piece in &plan.pieces {
-        let group = reader.read_row_group(&piece.group, Columns::TRAIN).await?;
-        let (start, end) = (piece.rows.start as usize, piece.rows.end as usize);
-        scenes.extend(group.into_iter().take(end).skip(start));
-    }
-    Ok(scenes)
-}
-
-async fn open_epoch(
+/// The epoch's sequence and this rank's feed of it; its scenes are read as the steps
+/// need them.
+fn open_epoch(
     data: &Location,
-    groups: &[RowGroupRef],
+    groups: &Arc<Vec<RowGroupRef>>,
     t: &TrainConfig,
     epoch: u64,
     start_step: u64,
     rank: usize,
     world: usize,
 ) -> Result<Epoch> {
-    let ep = EpochPlan::new(groups, t.seed, epoch, world, rank, t.batch_size)?;
-    let scenes = retry_transient("reading this rank's shard", READ_RETRY_BUDGET, || {
-        load_shard(data, &ep)
-    })
-    .await?;
-    let order = ep.scene_order(t.seed, scenes.len());
+    crate::shard::check_world(t.batch_size, world, rank)?;
+    let plan = EpochPlan::new(groups, t.seed, epoch, t.batch_size)?;
+    let share = crate::shard::share(t.batch_size, world, rank);
     Ok(Epoch {
-        plan: ep,
-        scenes,
-        order,
+        feed: Feed::new(data.clone(), groups.clone(), Arc::new(plan), share),
         start_step,
     })
 }

@@ -13,6 +13,7 @@ pub mod device_check;
 pub mod distributed;
 pub mod error;
 pub mod eval;
+pub mod feed;
 pub mod footprint;
 pub mod interop;
 pub mod learner;

@@ -1,14 +1,19 @@
-//! Who reads what, and which random numbers each step uses — all derived from the seed,
-//! the epoch, the step and the ring (rank, world size), so any process can recompute them
-//! and a resumed run replays exactly the same data order.
+//! Which scenes each step takes, who reads them, and which random numbers each scene
+//! uses: functions of the seed, the epoch, the step and the scene, never of how many
+//! workers share a step or how a worker cuts its share into passes. A job draws the same
+//! scenes and rays on one worker or four, a resume on another worker count continues the
+//! same sequence, and any process can recompute all of it.
 //!
-//! Per epoch the train split's row groups (the sharding unit) are permuted by
-//! `(seed, epoch)` and dealt round-robin to the ranks; each rank reads only its row
-//! groups, shuffles their scenes by `(seed, epoch, rank, world)`, and takes `B/W` scenes
-//! per step (the remainder of `B` goes to the first ranks). An epoch has as many steps as
-//! the rank with the fewest batches allows, so every rank takes every step. A split with
-//! fewer row groups than ranks is dealt in pieces: each row group cut into
-//! `⌈world / groups⌉` contiguous scene ranges.
+//! Per epoch the train split's row groups (the unit of reading) are permuted by
+//! `(seed, epoch)` and cut, in that order, into shuffle windows of whole row groups
+//! holding at least [`WINDOW_SCENES`] scenes and two global batches; each window's scenes
+//! are shuffled by `(seed, epoch, window)`. The windows' concatenation is the epoch's
+//! sequence: step `k` of the epoch takes positions `k·B .. (k+1)·B` (`B` =
+//! `train.batch_size`), so an epoch has `⌊scenes / B⌋` steps whatever the worker count.
+//! Rank `r` of `W` takes a contiguous slice of every step's batch (`B/W` scenes, the
+//! remainder to the first ranks) and reads, window by window, only the rows of its
+//! slices (`crate::feed`): a rank holds its share of a few windows, never its share of
+//! the whole split.
 
 use crate::error::{Result, TrainError};
 use osrt_dataset::RowGroupRef;
@@ -17,13 +22,19 @@ use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use std::ops::Range;
 
+/// The fewest scenes a shuffle window holds (whole row groups, so often more). Larger
+/// windows mix scenes of more row groups into each batch; a rank holds its share of the
+/// window it reads and of the one read ahead.
+pub const WINDOW_SCENES: usize = 1024;
+
 /// What the RNG of a purpose is for; part of the derivation so streams never overlap.
 #[derive(Debug, Clone, Copy)]
 #[repr(u64)]
 pub enum Stream {
     RowGroups = 1,
     SceneOrder = 2,
-    Step = 3,
+    /// A scene's draws in one step: input views, target rays, slot noise, ray offsets.
+    Scene = 4,
 }
 
 /// A ChaCha RNG seeded from `(seed, stream, parts…)` by SplitMix64 mixing.
@@ -40,9 +51,10 @@ pub fn derive_rng(seed: u64, stream: Stream, parts: &[u64]) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(h)
 }
 
-/// The RNG of one training step on one rank (ray sampling, input-view choice, slot noise).
-pub fn step_rng(seed: u64, step: u64, rank: usize, world: usize) -> ChaCha8Rng {
-    derive_rng(seed, Stream::Step, &[step, rank as u64, world as u64])
+/// The RNG of one scene in one training step: its input views, target rays, slot noise
+/// and ray offsets, drawn in that order whichever rank, pass or batch position takes it.
+pub fn scene_rng(seed: u64, step: u64, scene_id: u64) -> ChaCha8Rng {
+    derive_rng(seed, Stream::Scene, &[step, scene_id])
 }
 
 /// Scenes per step of each rank: `batch / world`, remainder to the first ranks.
@@ -52,120 +64,108 @@ pub fn local_batch_sizes(batch: usize, world: usize) -> Vec<usize> {
         .collect()
 }
 
-/// Scenes `rows` (indices within the group) of one row group.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Piece {
-    pub group: RowGroupRef,
-    pub rows: Range<u64>,
+/// Rank `rank`'s positions within each step's global batch of `batch` scenes.
+pub fn share(batch: usize, world: usize, rank: usize) -> Range<usize> {
+    let sizes = local_batch_sizes(batch, world);
+    let start: usize = sizes[..rank].iter().sum();
+    start..start + sizes[rank]
 }
 
-impl Piece {
-    fn len(&self) -> u64 {
-        self.rows.end - self.rows.start
-    }
+/// One scene of the split: its row group (an index into the split's listing) and its
+/// row within the group.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct SceneRef {
+    pub group: usize,
+    pub row: u64,
 }
 
-/// The units dealt to ranks: whole row groups, or — with fewer groups than ranks — each
-/// group cut into `⌈world / groups⌉` contiguous ranges of near-equal size.
-fn pieces(all: &[RowGroupRef], world: usize) -> Vec<Piece> {
-    let cuts = if all.is_empty() {
-        1
-    } else {
-        world.div_ceil(all.len()) as u64
-    };
-    all.iter()
-        .flat_map(|g| {
-            let n = g.num_rows;
-            (0..cuts).map(move |j| Piece {
-                group: g.clone(),
-                rows: j * n / cuts..(j + 1) * n / cuts,
-            })
-        })
-        .collect()
-}
-
-/// One rank's share of one epoch.
+/// One epoch's sequence of scenes; the same on every rank and for every worker count.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpochPlan {
     pub epoch: u64,
-    pub rank: usize,
-    pub world: usize,
-    /// This rank's pieces of row groups, in the order they are read.
-    pub pieces: Vec<Piece>,
-    /// Scenes this rank contributes to each step.
-    pub local_batch: usize,
-    /// Steps in the epoch (the same on every rank).
+    /// Scenes per step over all workers (`train.batch_size`).
+    pub batch: usize,
+    /// Steps in the epoch: `⌊scenes / batch⌋`.
     pub steps: u64,
+    /// Every scene of the split once, in the order the steps take them.
+    pub order: Vec<SceneRef>,
+    /// The shuffle windows: consecutive ranges of `order`, each of whole row groups.
+    pub windows: Vec<Range<usize>>,
 }
 
 impl EpochPlan {
-    pub fn new(
-        all: &[RowGroupRef],
-        seed: u64,
-        epoch: u64,
-        world: usize,
-        rank: usize,
-        batch: usize,
-    ) -> Result<Self> {
-        // Data that cannot be dealt is a configuration problem: no restart fixes it.
-        let bad = |reason: String| TrainError::Config {
-            path: "data plan".into(),
-            reason,
-        };
-        if world == 0 || rank >= world {
-            return Err(bad(format!("rank {rank} outside a ring of {world}")));
-        }
-        if batch < world {
-            return Err(bad(format!(
-                "batch size {batch} is smaller than the {world} workers: every worker needs at least one scene per step"
-            )));
-        }
-        let units = pieces(all, world);
-        let mut order: Vec<usize> = (0..units.len()).collect();
-        order.shuffle(&mut derive_rng(seed, Stream::RowGroups, &[epoch]));
-        let sizes = local_batch_sizes(batch, world);
-        let mut steps = u64::MAX;
-        let mut mine = Vec::new();
-        for (r, &size) in sizes.iter().enumerate() {
-            let dealt: Vec<&Piece> = order
-                .iter()
-                .skip(r)
-                .step_by(world)
-                .map(|&i| &units[i])
-                .collect();
-            let rows: u64 = dealt.iter().map(|p| p.len()).sum();
-            steps = steps.min(rows / size as u64);
-            if r == rank {
-                mine = dealt.into_iter().cloned().collect();
+    pub fn new(all: &[RowGroupRef], seed: u64, epoch: u64, batch: usize) -> Result<Self> {
+        let mut groups: Vec<usize> = (0..all.len()).collect();
+        groups.shuffle(&mut derive_rng(seed, Stream::RowGroups, &[epoch]));
+        let least = WINDOW_SCENES.max(2 * batch);
+        let (mut order, mut windows) = (Vec::new(), Vec::new());
+        let mut start = 0;
+        for (i, &g) in groups.iter().enumerate() {
+            order.extend((0..all[g].num_rows).map(|row| SceneRef { group: g, row }));
+            if order.len() - start >= least || i + 1 == groups.len() {
+                let w = windows.len() as u64;
+                order[start..].shuffle(&mut derive_rng(seed, Stream::SceneOrder, &[epoch, w]));
+                windows.push(start..order.len());
+                start = order.len();
             }
         }
-        if steps == 0 {
-            return Err(bad(format!(
-                "{} row groups cannot give each of {world} workers {} scenes per step: use fewer workers, a smaller batch or smaller row groups",
-                all.len(),
-                sizes[0]
-            )));
+        let steps = (order.len() / batch.max(1)) as u64;
+        if batch == 0 || steps == 0 {
+            // Data that cannot fill a step is a configuration problem: no restart fixes it.
+            return Err(TrainError::Config {
+                path: "data plan".into(),
+                reason: format!(
+                    "the train split's {} scenes cannot fill one batch of {batch}: use a smaller batch or more scenes",
+                    order.len()
+                ),
+            });
         }
         Ok(Self {
             epoch,
-            rank,
-            world,
-            pieces: mine,
-            local_batch: sizes[rank],
+            batch,
             steps,
+            order,
+            windows,
         })
     }
 
-    /// Shuffled order of this rank's `n` scenes for the epoch.
-    pub fn scene_order(&self, seed: u64, n: usize) -> Vec<usize> {
-        let mut order: Vec<usize> = (0..n).collect();
-        order.shuffle(&mut derive_rng(
-            seed,
-            Stream::SceneOrder,
-            &[self.epoch, self.rank as u64, self.world as u64],
-        ));
-        order
+    /// Positions in [`EpochPlan::order`] of `share`'s scenes at step `k` of the epoch.
+    pub fn positions(&self, k: u64, share: &Range<usize>) -> Range<usize> {
+        let at = k as usize * self.batch;
+        at + share.start..at + share.end
     }
+
+    /// The window that holds position `p`.
+    pub fn window_of(&self, p: usize) -> usize {
+        self.windows.partition_point(|w| w.end <= p)
+    }
+
+    /// The positions in window `w` that `share` takes in some step of the epoch, in
+    /// increasing order.
+    pub fn share_in_window(&self, w: usize, share: &Range<usize>) -> Vec<usize> {
+        let used = self.steps as usize * self.batch;
+        self.windows[w]
+            .clone()
+            .filter(|&p| p < used && share.contains(&(p % self.batch)))
+            .collect()
+    }
+}
+
+/// Checks that `world` ranks can share a batch of `batch` scenes.
+pub fn check_world(batch: usize, world: usize, rank: usize) -> Result<()> {
+    let bad = |reason: String| TrainError::Config {
+        path: "data plan".into(),
+        reason,
+    };
+    if world == 0 || rank >= world {
+        return Err(bad(format!("rank {rank} outside a ring of {world}")));
+    }
+    if batch < world {
+        return Err(bad(format!(
+            "batch size {batch} is smaller than the {world} workers: every worker needs at least one scene per step"
+        )));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -183,75 +183,79 @@ mod tests {
     }
 
     #[test]
-    fn ranks_partition_the_row_groups_reproducibly() {
-        let all = groups(10, 32);
-        for world in 1..=3 {
-            let plans: Vec<EpochPlan> = (0..world)
-                .map(|r| EpochPlan::new(&all, 7, 3, world, r, 6).unwrap())
-                .collect();
-            let mut seen: Vec<RowGroupRef> = plans
-                .iter()
-                .flat_map(|p| p.pieces.iter().map(|x| x.group.clone()))
-                .collect();
-            seen.sort_by(|a, b| (&a.file, a.index).cmp(&(&b.file, b.index)));
-            let mut want = all.clone();
-            want.sort_by(|a, b| (&a.file, a.index).cmp(&(&b.file, b.index)));
-            assert_eq!(seen, want, "world {world}: every group exactly once");
-            assert!(plans.iter().all(|p| p.steps == plans[0].steps));
-            assert_eq!(plans.iter().map(|p| p.local_batch).sum::<usize>(), 6);
-            // Same inputs, same plan.
-            assert_eq!(plans[0], EpochPlan::new(&all, 7, 3, world, 0, 6).unwrap());
+    fn an_epoch_takes_every_scene_once_and_reproducibly() {
+        let all = groups(100, 32);
+        let plan = EpochPlan::new(&all, 7, 3, 48).unwrap();
+        let mut seen = plan.order.clone();
+        seen.sort();
+        let want: Vec<SceneRef> = (0..100)
+            .flat_map(|group| (0..32).map(move |row| SceneRef { group, row }))
+            .collect();
+        assert_eq!(seen, want, "every scene exactly once");
+        assert_eq!(plan.steps, 3200 / 48);
+        assert_eq!(plan, EpochPlan::new(&all, 7, 3, 48).unwrap(), "same inputs");
+        assert_ne!(plan.order, EpochPlan::new(&all, 7, 4, 48).unwrap().order);
+        // Windows: whole row groups, ≥ WINDOW_SCENES each but the last, covering all.
+        assert_eq!(plan.windows.len(), 4, "{:?}", plan.windows);
+        for w in &plan.windows[..3] {
+            assert_eq!(w.len(), 1024);
         }
-        let a = EpochPlan::new(&all, 7, 3, 2, 0, 6).unwrap();
-        let b = EpochPlan::new(&all, 7, 4, 2, 0, 6).unwrap();
-        assert_ne!(a.pieces, b.pieces, "epochs reshuffle");
-        assert!(a.pieces.iter().all(|p| p.rows == (0..32)), "whole groups");
+        assert_eq!(plan.windows[3], 3072..3200);
+        let groups_of = |w: &Range<usize>| {
+            let mut g: Vec<usize> = plan.order[w.clone()].iter().map(|s| s.group).collect();
+            g.sort();
+            g.dedup();
+            g.len() * 32
+        };
+        assert!(plan.windows.iter().all(|w| groups_of(w) == w.len()));
+        // A batch larger than half the minimum makes windows of two batches.
+        let big = EpochPlan::new(&all, 7, 3, 800).unwrap();
+        assert_eq!(big.windows[0].len(), 1600);
     }
 
-    /// 32 scenes in one row group train on 2 workers: each gets its own half.
     #[test]
-    fn fewer_row_groups_than_workers_are_split_by_scene_ranges() {
-        for (n, world, batch) in [(1, 2, 16), (1, 3, 6), (2, 3, 6)] {
-            let all = groups(n, 32);
-            let plans: Vec<EpochPlan> = (0..world)
-                .map(|r| EpochPlan::new(&all, 0, 0, world, r, batch).unwrap())
-                .collect();
-            let mut covered: Vec<(usize, u64)> = plans
-                .iter()
-                .flat_map(|p| p.pieces.iter())
-                .flat_map(|p| p.rows.clone().map(|r| (p.group.index, r)))
-                .collect();
-            covered.sort();
-            let want: Vec<(usize, u64)> =
-                (0..n).flat_map(|g| (0..32).map(move |r| (g, r))).collect();
-            assert_eq!(
-                covered, want,
-                "{n} groups, {world} workers: every scene once"
-            );
-            assert!(plans.iter().all(|p| !p.pieces.is_empty()));
-            assert!(plans[0].steps >= 1);
+    fn shares_cut_each_step_the_same_way_for_any_worker_count() {
+        let plan = EpochPlan::new(&groups(10, 30), 1, 0, 7).unwrap();
+        for world in 1..=7 {
+            let shares: Vec<Range<usize>> = (0..world).map(|r| share(7, world, r)).collect();
+            for k in 0..plan.steps {
+                let joined: Vec<usize> = shares.iter().flat_map(|s| plan.positions(k, s)).collect();
+                let whole: Vec<usize> = plan.positions(k, &(0..7)).collect();
+                assert_eq!(joined, whole, "world {world}, step {k}");
+            }
+            // Each rank's positions per window are exactly its steps' positions.
+            for s in &shares {
+                let by_window: Vec<usize> = (0..plan.windows.len())
+                    .flat_map(|w| plan.share_in_window(w, s))
+                    .collect();
+                let by_step: Vec<usize> =
+                    (0..plan.steps).flat_map(|k| plan.positions(k, s)).collect();
+                assert_eq!(by_window, by_step, "world {world}");
+                for &p in &by_step {
+                    assert!(plan.windows[plan.window_of(p)].contains(&p));
+                }
+            }
         }
     }
 
     #[test]
     fn too_small_data_or_batch_is_a_clear_error() {
-        let e = EpochPlan::new(&groups(1, 4), 0, 0, 2, 0, 8)
+        let e = EpochPlan::new(&groups(1, 4), 0, 0, 8)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("cannot give each of 2 workers"), "{e}");
-        let e = EpochPlan::new(&groups(4, 4), 0, 0, 4, 0, 2)
-            .unwrap_err()
-            .to_string();
+        assert!(e.contains("4 scenes cannot fill one batch of 8"), "{e}");
+        let e = check_world(2, 4, 0).unwrap_err().to_string();
         assert!(e.contains("smaller than the 4 workers"), "{e}");
+        check_world(4, 4, 3).unwrap();
     }
 
     #[test]
-    fn step_rngs_differ_by_step_rank_and_world() {
+    fn scene_rngs_differ_by_seed_step_and_scene() {
         use rand::Rng;
-        let x = |s, r, w| step_rng(1, s, r, w).random::<u64>();
-        assert_eq!(x(5, 0, 2), x(5, 0, 2));
-        assert_ne!(x(5, 0, 2), x(6, 0, 2));
-        assert_ne!(x(5, 0, 2), x(5, 1, 2));
-        assert_ne!(x(5, 0, 2), x(5, 0, 1));
+        let x = |seed, s, id| scene_rng(seed, s, id).random::<u64>();
+        assert_eq!(x(1, 5, 9), x(1, 5, 9));
+        assert_ne!(x(1, 5, 9), x(1, 6, 9));
+        assert_ne!(x(1, 5, 9), x(1, 5, 10));
+        assert_ne!(x(1, 5, 9), x(2, 5, 9));
     }
 }

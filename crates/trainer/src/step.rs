@@ -386,12 +386,34 @@ impl Trainer {
         rng: &mut R,
         keep: bool,
     ) -> Result<StepGradients<Gradient>> {
+        self.gradients_each(batch, std::slice::from_mut(rng), keep)
+    }
+
+    /// [`Trainer::gradients_kept`] with one RNG per scene of the batch (`rngs[i]` draws
+    /// scene `i`'s slot noise and ray offsets, after its rays: the batch was built from
+    /// the same RNGs), or a single RNG for all.
+    pub fn gradients_each<R: Rng + Send + Clone>(
+        &self,
+        batch: &Batch,
+        rngs: &mut [R],
+        keep: bool,
+    ) -> Result<StepGradients<Gradient>> {
+        if rngs.len() != 1 && rngs.len() != batch.batch_size {
+            return Err(TrainError::Config {
+                path: "train step".into(),
+                reason: format!(
+                    "{} random streams for a batch of {} scenes: one, or one per scene",
+                    rngs.len(),
+                    batch.batch_size
+                ),
+            });
+        }
         let (kernels, precision) = (self.cfg.train.kernels, self.cfg.train.precision);
-        let run = |rng: &mut R| {
+        let run = |rngs: &mut [R]| {
             osrt_kernels::with_kernels(kernels, || {
                 osrt_kernels::with_precision(precision, || {
                     osrt_kernels::on_device_pool(&self.device, || {
-                        self.gradients_here(batch, rng, keep)
+                        self.gradients_here(batch, rngs, keep)
                     })
                 })
             })
@@ -400,8 +422,8 @@ impl Trainer {
         // the free blocks go back to the driver and the step runs once more from the same
         // RNG state (so the retried step draws what the first try drew). Failing again,
         // it is final.
-        let mut again = rng.clone();
-        let out = match run(rng) {
+        let mut again = rngs.to_vec();
+        let out = match run(rngs) {
             Err(TrainError::Model(e))
                 if crate::device::is_out_of_memory(&e)
                     && crate::device::release_cached(&self.device) =>
@@ -410,7 +432,7 @@ impl Trainer {
                     "out of device memory: the pool's free blocks released, step retried"
                 );
                 let out = run(&mut again);
-                *rng = again;
+                rngs.clone_from_slice(&again);
                 out
             }
             other => other,
@@ -463,7 +485,7 @@ impl Trainer {
     fn gradients_here(
         &self,
         batch: &Batch,
-        rng: &mut impl Rng,
+        rngs: &mut [impl Rng],
         keep: bool,
     ) -> Result<StepGradients<Gradient>> {
         #[cfg(feature = "fault-injection")]
@@ -480,9 +502,21 @@ impl Trainer {
         let n = batch.batch_size;
         // The whole share's random numbers, drawn as one batch draws them: each micro-batch
         // takes its scenes' rows, so the numbers do not depend on how the share is cut.
-        let noise = self.slot_noise(n, rng)?;
-        // Drawn after the slot noise; nothing is drawn for decoders that do not sample.
-        let offsets = self.model.ray_offsets(n, batch.rays_per_scene, rng)?;
+        // Offsets are drawn after the slot noise; nothing is drawn for decoders that do
+        // not sample.
+        let (noise, offsets) = match rngs {
+            [rng] => (
+                self.slot_noise(n, rng)?,
+                self.model.ray_offsets(n, batch.rays_per_scene, rng)?,
+            ),
+            each => {
+                let noise = self.model.slot_noise_each(each)?;
+                (
+                    noise,
+                    self.model.ray_offsets_each(batch.rays_per_scene, each)?,
+                )
+            }
+        };
         let parts = micro_batches(n, self.cfg.train.micro_batch_size);
         let mut sum: Vec<Option<Tensor>> = Vec::new();
         let (mut loss_value, mut forward_kept_bytes) = (0.0, None);

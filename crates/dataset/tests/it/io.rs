@@ -104,6 +104,37 @@ async fn row_groups_are_listed_and_read_one_at_a_time() {
     );
 }
 
+/// A rank reads only its rows of a shared row group: the selected scenes, in row order,
+/// exactly as the whole group's read gives them.
+#[tokio::test]
+async fn selected_rows_of_a_row_group_are_read_alone() {
+    let scenes = tiny_scenes(12, 8);
+    let loc = Location::parse("memory://io-rows/train").unwrap();
+    write(&loc, scenes.clone(), 6, 2).await;
+    let r = SplitReader::open(loc).await.unwrap();
+    let rgs = r.row_groups().await.unwrap();
+    for rows in [vec![0u64], vec![1, 2, 5], vec![0, 1, 2, 3, 4, 5], vec![5]] {
+        let got = r.read_rows(&rgs[1], &rows, Columns::ALL).await.unwrap();
+        let want: Vec<_> = rows
+            .iter()
+            .map(|&i| scenes[6 + i as usize].clone())
+            .collect();
+        assert_eq!(got, want, "rows {rows:?}");
+    }
+    for bad in [vec![2u64, 1], vec![3, 3], vec![6]] {
+        let err = r
+            .read_rows(&rgs[0], &bad, Columns::ALL)
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("part-00000.parquet")
+                && err.contains("must increase and lie below its 6 rows"),
+            "{bad:?}: {err}"
+        );
+    }
+}
+
 #[tokio::test]
 async fn projection_skips_mask_and_object_bytes() {
     let scenes = tiny_scenes(8, 32);
