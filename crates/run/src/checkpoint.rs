@@ -44,11 +44,11 @@ pub struct CheckpointState {
     /// epoch index the epoch's shuffled order).
     pub epoch: u64,
     pub epoch_start_step: u64,
-    /// World size the cursor refers to: with another world size the data order of the
-    /// epoch differs, so a resume with another size starts a fresh epoch.
+    /// Workers of the generation that wrote the checkpoint. The data order and the draws
+    /// do not depend on it: a resume with another size continues the epoch.
     pub world_size: usize,
-    /// Random state: every step's RNG is derived from (seed, step, rank, world), so the
-    /// step number *is* the RNG state; recorded here for people reading the file.
+    /// Random state: each scene's RNG in a step is derived from (seed, step, scene id),
+    /// so the step number *is* the RNG state; recorded here for people reading the file.
     pub rng: String,
     pub adam_t: u64,
     pub skipped_total: u64,

@@ -57,6 +57,7 @@ impl Feed {
         self.held.retain(|&w, _| w >= first);
         for w in first..=last {
             if !self.held.contains_key(&w) {
+                let waited = std::time::Instant::now();
                 let scenes = match self.ahead.take() {
                     Some((a, task)) if a == w => match task.await {
                         Ok(read) => read?,
@@ -71,6 +72,12 @@ impl Feed {
                         self.read(w).await?
                     }
                 };
+                tracing::debug!(
+                    window = w,
+                    scenes = scenes.len(),
+                    waited_s = waited.elapsed().as_secs_f64(),
+                    "data window ready"
+                );
                 self.held.insert(w, scenes);
             }
         }
