@@ -203,7 +203,7 @@ visit)
     [ "${mib:-0}" -lt 100000 ] && pb=16
     echo "== paper preset at batch $pb (${mib} MiB card)"
     paper=(--device cuda --step-only --presets paper --image-size 128 --batch-size "$pb")
-    # The four cases of the memory issue, osrt then PyTorch, time and peak memory; then
+    # The four step cases of docs/gpu.md's memory table, osrt then PyTorch, time and peak memory; then
     # the same with the activations made again in the backward pass (`--recompute`).
     for rc in "" --recompute; do
         for vr in "1 8192" "5 2304"; do

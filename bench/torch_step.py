@@ -54,7 +54,7 @@ PRESETS = {
     # model = Config::paper() (ray_encoding, encoder, slot_attention, slot_mixer `paper()`);
     # optimiser = TrainConfig::reference(). The Rust preset trains batch 256 × 8192 rays;
     # here the default batch is 32 (what one GPU holds), 128 px input views, and the two
-    # cases of the table: 1 view + 8192 rays, 5 views + 2304 rays.
+    # cases of docs/gpu.md's table: 1 view + 8192 rays, 5 views + 2304 rays.
     "paper": dict(
         origin_octaves=15, origin_start=-5, direction_octaves=15, direction_start=0,
         conv_channels=[96, 192, 384], dim=768, enc_layers=5, enc_heads=12, enc_head_dim=64,
