@@ -3,7 +3,8 @@
 //! × chunks.
 
 use crate::mailbox::{Key, Mailbox};
-use crate::{CollectiveError, Hop, RingConfig};
+use crate::schedule::Hop;
+use crate::{CollectiveError, RingConfig};
 use bytes::Bytes;
 use std::time::{Duration, Instant};
 

@@ -6,7 +6,9 @@
 
 pub mod bench_allreduce;
 pub mod error;
+mod generation;
 pub mod link;
+mod membership;
 pub mod reduce;
 pub mod worker;
 
