@@ -4,7 +4,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use osrt_model::{Kernels, Precision};
+use osrt_kernels::{Kernels, Precision};
 use osrt_run::MetricsRecord;
 use osrt_trainer::bench::{bench_render, bench_step, profile_step};
 use osrt_trainer::{DeviceSpec, JobConfig};

@@ -5,10 +5,11 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec, OpenOptions};
+use osrt_coordinator::{Coordinator, JobSpec, OpenOptions};
 use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::tls::Tls;
 use osrt_proto::v1;
+use osrt_run::ClusterOverrides;
 use osrt_run::MetricsRecord;
 use osrt_run::unix_now;
 use osrt_trainer::{DeviceSpec, JobConfig};
@@ -144,7 +145,7 @@ pub async fn memory_check(
     check: MemoryCheck,
 ) -> Result<()> {
     let skip = check.skip;
-    let Ok(manifest) = osrt_dataset::Manifest::read(&osrt_dataset::Location::parse(data)?).await
+    let Ok(manifest) = osrt_dataset::Manifest::read(&osrt_store::Location::parse(data)?).await
     else {
         // The workers report a missing or unreadable dataset with its reason.
         return Ok(());
@@ -198,7 +199,7 @@ pub async fn spec(
     if let osrt_model::decoder::Config::Volumetric(v) = &job.model.decoder
         && v.bounds.is_none()
     {
-        let manifest = osrt_dataset::Manifest::read(&osrt_dataset::Location::parse(data)?)
+        let manifest = osrt_dataset::Manifest::read(&osrt_store::Location::parse(data)?)
             .await
             .with_context(|| format!("reading the manifest of {data} for the scene's box"))?;
         job.resolve_scene_bounds(&manifest, data)?;

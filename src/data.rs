@@ -7,8 +7,9 @@ use osrt_dataset::import::kubric::KubricSource;
 use osrt_dataset::import::obsurf::ObsurfSource;
 use osrt_dataset::import::{Format, ImportOptions, Source, Splits, import};
 use osrt_dataset::{
-    Columns, ImageCodec, Location, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
+    Columns, ImageCodec, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
 };
+use osrt_store::Location;
 use std::io::IsTerminal;
 
 #[derive(Subcommand)]

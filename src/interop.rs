@@ -3,7 +3,8 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use osrt_dataset::{Columns, Location};
+use osrt_dataset::Columns;
+use osrt_store::Location;
 use osrt_trainer::predict::{PredictInputs, inputs_from_npz, inputs_from_scenes, predict};
 use osrt_trainer::{DeviceSpec, load_run_on};
 use std::path::PathBuf;

@@ -3,11 +3,11 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use osrt_dataset::{Camera, Columns, Location, Scene};
+use osrt_dataset::{Camera, Columns, Scene};
 use osrt_model::{add_slot, drop_slot};
-use osrt_sweep::pictures::{
-    rgb_image, rgb8_image, segmentation_image, strip, write_gif, write_png,
-};
+use osrt_store::Location;
+use osrt_sweep::pictures::{write_gif, write_png};
+use osrt_trainer::pictures::{rgb_image, rgb8_image, segmentation_image, strip};
 use osrt_trainer::render::{encode_scene, orbit, render_view, scene_camera};
 use osrt_trainer::{DeviceSpec, LoadedRun, load_run, load_run_on};
 use serde_json::json;

@@ -3,7 +3,8 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use osrt_dataset::{Location, Manifest};
+use osrt_dataset::Manifest;
+use osrt_store::Location;
 use osrt_sweep::html::{self, Report};
 use osrt_sweep::results::RESULT_FILE;
 use osrt_sweep::{Curve, PointResult, RunSummary, SweepFile};

@@ -3,9 +3,11 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{Columns, Location, Manifest, SplitSizes, WriterOptions, generate_dataset};
-use osrt_model::{Kernels, Precision, SlotInit};
+use osrt_dataset::{Columns, Manifest, SplitSizes, WriterOptions, generate_dataset};
+use osrt_kernels::{Kernels, Precision};
+use osrt_model::SlotInit;
 use osrt_run::MetricsRecord;
+use osrt_store::Location;
 use osrt_trainer::loaded::eval_options;
 use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
 use std::io::IsTerminal;
@@ -285,7 +287,7 @@ pub async fn train(a: TrainArgs) -> Result<()> {
         workers = batch.max(1);
     }
     // The launcher starts exactly `workers`: the job (a resumed one too) waits for them.
-    let overrides = osrt_coordinator::ClusterOverrides {
+    let overrides = osrt_run::ClusterOverrides {
         min_workers: Some(workers),
         ..Default::default()
     };

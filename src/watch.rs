@@ -24,7 +24,7 @@ pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
     if every == 0 {
         bail!("--every must be at least 1 second");
     }
-    let loc = osrt_run::Location::parse(run)?;
+    let loc = osrt_store::Location::parse(run)?;
     let out: PathBuf = match (out, loc.local_file(&loc.path(METRICS_FILE))) {
         (Some(o), _) => o.to_path_buf(),
         (None, Some(_)) => Path::new(run).join("report"),
@@ -58,7 +58,12 @@ pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
 }
 
 /// One page from what the run folder holds now; returns where the job stands.
-async fn write_page(loc: &osrt_run::Location, out: &Path, label: &str, every: u64) -> Result<Live> {
+async fn write_page(
+    loc: &osrt_store::Location,
+    out: &Path,
+    label: &str,
+    every: u64,
+) -> Result<Live> {
     let text = osrt_run::metrics_log::read_all(loc)
         .await?
         .unwrap_or_default();

@@ -5,7 +5,7 @@
 mod common;
 
 use common::*;
-use osrt_dataset::Location;
+use osrt_store::Location;
 use std::path::Path;
 use std::time::{Duration, Instant};
 

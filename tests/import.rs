@@ -6,7 +6,8 @@ mod common;
 
 use common::osrt;
 use osrt_dataset::import::npy::{Values, read_npz};
-use osrt_dataset::{Columns, Location, Scene, load_split};
+use osrt_dataset::{Columns, Scene, load_split};
+use osrt_store::Location;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 

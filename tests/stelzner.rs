@@ -249,7 +249,7 @@ async fn continues_adam(fixtures: &Path) {
     let mut trainer =
         osrt_trainer::Trainer::new(job.clone(), osrt_trainer::DeviceSpec::Cpu.open().unwrap())
             .unwrap();
-    let loc = osrt_dataset::Location::parse(run.to_str().unwrap()).unwrap();
+    let loc = osrt_store::Location::parse(run.to_str().unwrap()).unwrap();
     let state = osrt_trainer::checkpoint::load(&loc, 3, &mut trainer)
         .await
         .unwrap();

@@ -9,7 +9,8 @@
 mod common;
 
 use common::*;
-use osrt_run::{Location, checkpoint};
+use osrt_run::checkpoint;
+use osrt_store::Location;
 use std::collections::BTreeSet;
 use std::path::Path;
 use std::time::{Duration, Instant};

@@ -1,7 +1,7 @@
 //! Who is on a ring (`RingConfig`) and how a buffer is cut into buckets, segments and
 //! chunks (`Layout`): both ends of a connection compute the same cut from the same numbers.
 
-use crate::MAX_CHUNK_FLOATS;
+use osrt_proto::MAX_CHUNK_FLOATS;
 use osrt_proto::auth::Token;
 use osrt_proto::tls::Tls;
 use osrt_proto::v1::Phase;

@@ -37,7 +37,6 @@ pub use budget::{MIN_RING_BYTES_PER_S, STRAGGLER_TIMEOUTS, all_reduce_budget};
 pub use error::CollectiveError;
 pub use layout::{Layout, RingConfig};
 pub use mailbox::Mailbox;
-pub use osrt_proto::{KEEP_ALIVE_INTERVAL, KEEP_ALIVE_TIMEOUT, MAX_CHUNK_FLOATS};
 #[cfg(feature = "fault-injection")]
 pub use ring::FAULT_ENV;
 pub use ring::Ring;

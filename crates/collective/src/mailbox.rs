@@ -1,8 +1,9 @@
 //! Chunks received by this rank's Collective server, checked and held until the local
 //! all-reduce takes them.
 
-use crate::{Layout, MAX_CHUNK_FLOATS};
+use crate::Layout;
 use bytes::Bytes;
+use osrt_proto::MAX_CHUNK_FLOATS;
 use osrt_proto::v1::{Chunk, ChunkTag, Phase};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};

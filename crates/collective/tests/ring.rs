@@ -633,9 +633,8 @@ async fn a_peer_that_answers_no_ping_is_dropped() {
     tcp.write_all(&[0, 0, 0, 4, 0, 0, 0, 0, 0]).await.unwrap();
     let t = Instant::now();
     let mut buf = [0u8; 4096];
-    let limit = osrt_collective::KEEP_ALIVE_INTERVAL
-        + osrt_collective::KEEP_ALIVE_TIMEOUT
-        + Duration::from_secs(5);
+    let limit =
+        osrt_proto::KEEP_ALIVE_INTERVAL + osrt_proto::KEEP_ALIVE_TIMEOUT + Duration::from_secs(5);
     loop {
         match tokio::time::timeout_at((t + limit).into(), tcp.read(&mut buf)).await {
             Ok(Ok(0)) | Ok(Err(_)) => break,
@@ -643,7 +642,7 @@ async fn a_peer_that_answers_no_ping_is_dropped() {
             Err(_) => panic!("the silent peer was still connected after {limit:?}"),
         }
     }
-    assert!(t.elapsed() >= osrt_collective::KEEP_ALIVE_TIMEOUT);
+    assert!(t.elapsed() >= osrt_proto::KEEP_ALIVE_TIMEOUT);
 }
 
 /// tonic's generated `Collective` server, recording what it is sent.

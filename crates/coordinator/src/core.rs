@@ -14,7 +14,7 @@
 
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};
 use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
-pub use osrt_run::ClusterOverrides;
+use osrt_run::ClusterOverrides;
 use osrt_run::{ClusterConfig, MetricsRecord};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

@@ -9,7 +9,7 @@ pub enum CoordinatorError {
     Run(#[from] osrt_run::RunError),
 
     #[error(transparent)]
-    Location(#[from] osrt_run::LocationError),
+    Location(#[from] osrt_store::LocationError),
 
     /// Serving: the listener, TLS.
     #[error("cluster: {0}")]

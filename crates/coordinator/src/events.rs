@@ -6,7 +6,8 @@
 use crate::core::{Core, EventsWork};
 use crate::error::CoordinatorError;
 use osrt_run::tensorboard::{self, EVAL_PICTURES, EventLog, eval_picture};
-use osrt_run::{Location, MetricsRecord, read_file};
+use osrt_run::{MetricsRecord, read_file};
+use osrt_store::Location;
 use std::time::{Duration, Instant};
 
 /// How often events are written to an object store, which cannot append: each write puts

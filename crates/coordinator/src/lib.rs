@@ -15,7 +15,7 @@ pub mod retention;
 pub mod service;
 pub mod timeline;
 
-pub use crate::core::{ClusterOverrides, Core, JobSpec, MetricsWrite, Persisted};
+pub use crate::core::{Core, JobSpec, MetricsWrite, Persisted};
 pub use error::CoordinatorError;
 pub use persist::STORE_RETRY_BUDGET;
-pub use service::{Coordinator, JOB_FILE, OpenOptions, StatusSnapshot};
+pub use service::{Coordinator, OpenOptions, StatusSnapshot};

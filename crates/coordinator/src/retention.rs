@@ -8,7 +8,8 @@
 //! never do (a worker paused past its coordinator's restart would otherwise wake up and
 //! delete, by the old timeline's count, the checkpoint the new coordinator had chosen).
 
-use osrt_run::{Location, checkpoint};
+use osrt_run::checkpoint;
+use osrt_store::Location;
 use tokio::task::JoinHandle;
 
 /// What the store holds of `job.json` and `metrics.jsonl`, as far as this coordinator

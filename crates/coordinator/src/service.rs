@@ -9,20 +9,20 @@ use osrt_proto::auth::{CheckToken, Token};
 use osrt_proto::convert::Directive;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::{self, CoordinatorServer};
-use osrt_run::Location;
 use osrt_run::lease::{self, Holder, Keeper, Lease, LeaseTiming};
 use osrt_run::metrics_log::MetricsLog;
 use osrt_run::{
     CONFIG_FILE, ClusterConfig, INFO_FILE, METRICS_FILE, RunError, RunInfo, checkpoint, read_file,
     write_file,
 };
+use osrt_store::Location;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::Notify;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 
-pub use osrt_run::JOB_FILE;
+use osrt_run::JOB_FILE;
 
 /// Largest message the coordinator takes or sends.
 const MAX_MESSAGE_BYTES: usize = 16 << 20;

@@ -10,7 +10,8 @@
 //! [`Core::discard_pending`]: crate::core::Core::discard_pending
 
 use osrt_run::retry::{Failing, RetryPolicy};
-use osrt_run::{Location, RunError, checkpoint, lease};
+use osrt_run::{RunError, checkpoint, lease};
+use osrt_store::Location;
 use tokio::task::JoinHandle;
 
 /// How long the discard may keep failing for a reason that may pass before the job

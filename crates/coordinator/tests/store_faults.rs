@@ -3,9 +3,11 @@
 
 use object_store::ObjectStoreExt;
 use object_store::memory::InMemory;
-use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec};
+use osrt_coordinator::{Coordinator, JobSpec};
 use osrt_proto::auth::Token;
-use osrt_run::{ClusterConfig, Location};
+use osrt_run::ClusterConfig;
+use osrt_run::ClusterOverrides;
+use osrt_store::Location;
 use osrt_store::chaos::ChaosStore;
 use std::sync::Arc;
 use std::time::{Duration, Instant};

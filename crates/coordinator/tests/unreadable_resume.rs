@@ -6,9 +6,11 @@
 use bytes::Bytes;
 use object_store::ObjectStoreExt;
 use object_store::memory::InMemory;
-use osrt_coordinator::{ClusterOverrides, Coordinator, JobSpec, Persisted};
+use osrt_coordinator::{Coordinator, JobSpec, Persisted};
+use osrt_run::ClusterConfig;
+use osrt_run::ClusterOverrides;
 use osrt_run::checkpoint::{self, CheckpointState, MODEL, OPTIMIZER, STATE};
-use osrt_run::{ClusterConfig, Location};
+use osrt_store::Location;
 use osrt_store::chaos::{ChaosStore, ReadFault};
 use std::sync::Arc;
 

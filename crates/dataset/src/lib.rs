@@ -34,7 +34,6 @@ pub use camera::{Camera, Intrinsics};
 pub use error::{DatasetError, Result};
 pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};
 pub use manifest::{MANIFEST_FILE, Manifest, SplitInfo};
-pub use osrt_store::{Location, LocationError};
 pub use reader::{ReadStats, RowGroupRef, SplitReader, load_split};
 pub use scene::{ObjectMeta, Scene, View};
 pub use schema::{Columns, ImageCodec, SCHEMA_VERSION};

@@ -385,7 +385,7 @@ fn valid_part() -> &'static [u8] {
             .enable_all()
             .build()
             .unwrap();
-        let loc = osrt_dataset::Location::parse(dir.path().to_str().unwrap()).unwrap();
+        let loc = osrt_store::Location::parse(dir.path().to_str().unwrap()).unwrap();
         rt.block_on(osrt_dataset::generator::generate_dataset(
             &loc, &cfg, 1, sizes, opts, false,
         ))
@@ -419,7 +419,7 @@ proptest! {
         }
         std::fs::write(&part, &bytes).unwrap();
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
-        let split = osrt_dataset::Location::parse(dir.path().join("train").to_str().unwrap())
+        let split = osrt_store::Location::parse(dir.path().join("train").to_str().unwrap())
             .unwrap();
         let read = rt.block_on(async {
             let reader = osrt_dataset::reader::SplitReader::open(split).await?;

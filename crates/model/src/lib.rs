@@ -23,6 +23,5 @@ mod tests;
 
 pub use decoder::{Decoder, DecoderOutput};
 pub use osrt::{Config, Osrt, add_slot, drop_slot};
-pub use osrt_kernels::{Kernels, Precision};
 pub use params::Params;
 pub use slot_attention::{SlotInit, SlotOutput};

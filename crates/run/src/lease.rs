@@ -22,9 +22,9 @@
 //! object stores from the store itself. [`probe_store`] refuses a store that ignores
 //! create-only or conditional writes before a job runs on it.
 
-use crate::Location;
 use crate::error::{Result, RunError};
 use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload, PutResult, UpdateVersion};
+use osrt_store::Location;
 use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};

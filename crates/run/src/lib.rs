@@ -24,11 +24,11 @@ pub mod tensorboard;
 
 pub use cluster::{ClusterConfig, ClusterOverrides};
 pub use error::{Result, RunError};
+use osrt_store::Location;
 pub use records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord};
 
 use object_store::ObjectStoreExt;
 /// Run folders are object-store locations, like datasets.
-pub use osrt_store::{Location, LocationError};
 use serde::{Deserialize, Serialize};
 
 pub const CONFIG_FILE: &str = "config.toml";

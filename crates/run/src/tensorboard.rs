@@ -18,8 +18,9 @@
 //! than every name already there; files of other names are left alone.
 
 use crate::records::{MetricsRecord, TrainRecord};
-use crate::{Location, Result, RunError};
+use crate::{Result, RunError};
 use object_store::{ObjectStore, ObjectStoreExt};
+use osrt_store::Location;
 use prost::Message;
 
 /// TensorBoard's messages (`proto/tensorflow/event.proto`).

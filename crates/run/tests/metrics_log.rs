@@ -4,8 +4,9 @@
 
 use object_store::ObjectStoreExt;
 use object_store::memory::InMemory;
+use osrt_run::METRICS_FILE;
 use osrt_run::metrics_log::{self, MetricsLog, PART_LINES, part_name};
-use osrt_run::{Location, METRICS_FILE};
+use osrt_store::Location;
 use osrt_store::chaos::ChaosStore;
 use std::sync::Arc;
 

@@ -4,7 +4,6 @@
 use crate::{Result, SweepError};
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbImage};
-pub use osrt_trainer::pictures::{rgb_image, rgb8_image, segmentation_image, slot_colour, strip};
 use std::path::Path;
 
 fn io_err(path: &Path, e: impl std::fmt::Display) -> SweepError {
@@ -39,6 +38,7 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use osrt_trainer::pictures::{segmentation_image, slot_colour};
 
     #[test]
     fn gifs_hold_every_frame() {

@@ -202,7 +202,7 @@ pub fn bench_step(
         image_size,
         device: crate::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
-        fused: job.train.kernels == osrt_model::Kernels::Fused && device.is_cpu(),
+        fused: job.train.kernels == osrt_kernels::Kernels::Fused && device.is_cpu(),
         kernels: job.train.kernels.to_string(),
         recompute: job.train.recompute,
         median_step_s: m,

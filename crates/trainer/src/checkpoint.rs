@@ -8,8 +8,8 @@ use crate::error::{Result, TrainError};
 use crate::step::Trainer;
 use bytes::Bytes;
 use candle_core::{Device, Tensor};
-use osrt_dataset::Location;
 pub use osrt_run::checkpoint::*;
+use osrt_store::Location;
 
 /// A copy of the weights and optimiser state, ready to be written.
 pub struct Snapshot {

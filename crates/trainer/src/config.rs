@@ -5,11 +5,11 @@
 use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use osrt_dataset::{InputSelection, Manifest, RayFrame, TargetViews};
+use osrt_kernels::{Kernels, Precision};
 use osrt_model::decoder::Config as DecoderConfig;
 use osrt_model::encoder::Poses;
 use osrt_model::nn::TransformerConfig;
-use osrt_model::{Kernels, Precision};
-pub use osrt_run::{ClusterConfig, ClusterOverrides};
+use osrt_run::ClusterConfig;
 use serde::{Deserialize, Serialize};
 use std::ops::RangeInclusive;
 

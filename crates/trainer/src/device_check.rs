@@ -13,7 +13,7 @@ use crate::device::DeviceSpec;
 use crate::error::Result;
 use crate::step::{Gradient, Trainer};
 use candle_core::Device;
-use osrt_model::Precision;
+use osrt_kernels::Precision;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -190,7 +190,7 @@ fn recomputed_step(device: &Device) -> Result<PlumbingCheck> {
     for &precision in precisions {
         let mut job = JobConfig::preset("clevr-lite-cpu")?;
         job.train.device = DeviceSpec::from_device(device);
-        job.train.kernels = osrt_model::Kernels::Device;
+        job.train.kernels = osrt_kernels::Kernels::Device;
         job.train.precision = precision;
         let batch = bench_batch(&job, 32, &mut ChaCha8Rng::seed_from_u64(7))?;
         let step = |recompute: bool| -> Result<Vec<f32>> {

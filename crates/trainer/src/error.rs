@@ -84,8 +84,8 @@ impl TrainError {
     }
 }
 
-impl From<osrt_dataset::LocationError> for TrainError {
-    fn from(e: osrt_dataset::LocationError) -> Self {
+impl From<osrt_store::LocationError> for TrainError {
+    fn from(e: osrt_store::LocationError) -> Self {
         Self::Dataset(e.into())
     }
 }

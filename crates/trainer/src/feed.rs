@@ -8,7 +8,8 @@
 use crate::error::Result;
 use crate::retry::{READ_RETRY_BUDGET, retry_transient};
 use crate::shard::EpochPlan;
-use osrt_dataset::{Columns, Location, RowGroupRef, Scene, SplitReader};
+use osrt_dataset::{Columns, RowGroupRef, Scene, SplitReader};
+use osrt_store::Location;
 use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::sync::Arc;

@@ -9,8 +9,8 @@
 
 use crate::config::JobConfig;
 use crate::device::DeviceSpec;
+use osrt_kernels::{Kernels, Precision};
 use osrt_model::footprint::{OpPath, StepShape};
-use osrt_model::{Kernels, Precision};
 
 const GIB: f64 = (1u64 << 30) as f64;
 

@@ -8,9 +8,9 @@ use crate::error::{Result, TrainError};
 use crate::loaded::load_run;
 use crate::step::Trainer;
 use candle_core::{Device, Tensor};
-use osrt_dataset::Location;
 use osrt_interop::stelzner::{self, Imported, PeerCheckpoint, PeerConfig};
 use osrt_run::{CONFIG_FILE, INFO_FILE, RunInfo, read_file, write_file};
+use osrt_store::Location;
 use std::collections::HashMap;
 use std::path::Path;
 

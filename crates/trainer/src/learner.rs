@@ -22,9 +22,10 @@ use crate::shard::{EpochPlan, scene_rng};
 use crate::step::{ApplyOutcome, Gradient, StepGradients, Trainer};
 use candle_core::Device;
 use osrt_dataset::{
-    BatchConfig, Columns, Location, RowGroupRef, Scene, SplitReader, build_batch_each, load_split,
+    BatchConfig, Columns, RowGroupRef, Scene, SplitReader, build_batch_each, load_split,
 };
 use osrt_run::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord, unix_now};
+use osrt_store::Location;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -285,7 +286,7 @@ impl Learner {
         let mut rngs: Vec<_> = refs.iter().map(|s| scene_rng(seed, step, s.id)).collect();
         let (cfg, trainer) = (&self.batch_cfg, &self.trainer);
         let keep = !crate::device::is_cpu(trainer.device())
-            || (world > 1 && self.job.train.kernels == osrt_model::Kernels::Device);
+            || (world > 1 && self.job.train.kernels == osrt_kernels::Kernels::Device);
         tokio::task::block_in_place(|| {
             let batch = build_batch_each(&refs, cfg, &mut rngs)?;
             trainer.gradients_each(&batch, &mut rngs, keep)

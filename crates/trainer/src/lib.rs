@@ -28,7 +28,7 @@ pub mod shard;
 pub mod staging;
 pub mod step;
 
-pub use config::{ClusterConfig, JobConfig, TrainConfig};
+pub use config::{JobConfig, TrainConfig};
 pub use device::DeviceSpec;
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};

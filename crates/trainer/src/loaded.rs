@@ -7,8 +7,8 @@ use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
 use crate::eval::EvalOptions;
 use crate::step::Trainer;
-use osrt_dataset::Location;
 use osrt_run::{CONFIG_FILE, INFO_FILE, RunInfo, read_file};
+use osrt_store::Location;
 
 pub fn eval_options(job: &JobConfig) -> EvalOptions {
     EvalOptions {

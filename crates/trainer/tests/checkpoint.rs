@@ -3,7 +3,7 @@
 
 use candle_core::Device;
 use object_store::ObjectStoreExt;
-use osrt_dataset::Location;
+use osrt_store::Location;
 use osrt_trainer::checkpoint::{
     self, CheckpointState, Snapshot, apply_retention, latest_verified, list_steps,
 };

@@ -5,9 +5,10 @@
 
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
-    Batch, BatchConfig, InputSelection, Location, SplitReader, SplitSizes, TargetViews,
-    WriterOptions, build_batch_each, generate_dataset,
+    Batch, BatchConfig, InputSelection, SplitReader, SplitSizes, TargetViews, WriterOptions,
+    build_batch_each, generate_dataset,
 };
+use osrt_store::Location;
 use osrt_trainer::feed::Feed;
 use osrt_trainer::shard::{EpochPlan, scene_rng, share};
 use rand::Rng;

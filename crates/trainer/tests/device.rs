@@ -4,7 +4,7 @@
 //! `cuda` feature is built and a GPU is present; prints SKIPPED otherwise.
 
 use candle_core::Device;
-use osrt_model::Precision;
+use osrt_kernels::Precision;
 use osrt_trainer::device::cuda_device_count;
 use osrt_trainer::device_check::compare_with_cpu;
 use osrt_trainer::{DeviceSpec, JobConfig};

@@ -257,7 +257,7 @@ fn same_seed_same_weights_after_several_steps() {
 /// attention, convolution and MLP nodes, the one-node LayerNorm, softmax and bias).
 #[test]
 fn fused_ops_leave_the_loss_curve_unchanged() {
-    use osrt_model::Kernels;
+    use osrt_kernels::Kernels;
     let data = scenes(4);
     for preset in ["tiny", "clevr-lite-cpu"] {
         let run = |kernels: Kernels| {

@@ -43,8 +43,8 @@ impl From<candle_core::Error> for WorkerError {
     }
 }
 
-impl From<osrt_run::LocationError> for WorkerError {
-    fn from(e: osrt_run::LocationError) -> Self {
+impl From<osrt_store::LocationError> for WorkerError {
+    fn from(e: osrt_store::LocationError) -> Self {
         Self::Train(e.into())
     }
 }

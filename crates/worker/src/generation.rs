@@ -8,12 +8,13 @@ use crate::membership::{Liveness, aborted, spawn_heartbeat};
 use crate::reduce::{broadcast_from_rank0, reduce};
 use crate::worker::WorkerOptions;
 use osrt_collective::{Mailbox, Ring, RingConfig};
-use osrt_dataset::Location;
 use osrt_proto::convert::{Directive, WorkerPlan};
+use osrt_run::ClusterConfig;
 use osrt_run::MetricsRecord;
+use osrt_store::Location;
 use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::{self, Snapshot};
-use osrt_trainer::config::{ClusterConfig, JobConfig};
+use osrt_trainer::config::JobConfig;
 use osrt_trainer::learner::{Learner, Start};
 use osrt_trainer::staging::Staging;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -224,7 +225,7 @@ async fn put_pictures(run: &Location, pictures: Vec<(u64, &'static str, Vec<u8>)
 /// Only the fused CPU step's estimate is checked against measured peaks: for other op
 /// paths an excess is logged.
 async fn check_memory(job: &JobConfig, plan: &WorkerPlan, threads: usize) -> Result<()> {
-    let Ok(data) = osrt_dataset::Location::parse(&plan.data) else {
+    let Ok(data) = osrt_store::Location::parse(&plan.data) else {
         return Ok(());
     };
     // A dataset that cannot be read fails later, with its reason.
@@ -367,7 +368,7 @@ impl<T> Drop for AbortOnDrop<T> {
 mod device_tests {
     use super::*;
     use crate::membership::is_fatal;
-    use osrt_model::Precision;
+    use osrt_kernels::Precision;
     use osrt_trainer::DeviceSpec;
 
     fn toml_of(f: impl FnOnce(&mut JobConfig)) -> String {

@@ -30,8 +30,8 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
     let endpoint = endpoint
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(30))
-        .http2_keep_alive_interval(osrt_collective::KEEP_ALIVE_INTERVAL)
-        .keep_alive_timeout(osrt_collective::KEEP_ALIVE_TIMEOUT)
+        .http2_keep_alive_interval(osrt_proto::KEEP_ALIVE_INTERVAL)
+        .keep_alive_timeout(osrt_proto::KEEP_ALIVE_TIMEOUT)
         .keep_alive_while_idle(true)
         .tcp_nodelay(true);
     Ok(CoordinatorClient::with_interceptor(

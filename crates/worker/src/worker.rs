@@ -52,8 +52,6 @@ pub struct WorkerOptions {
     pub memory_check: bool,
 }
 
-pub use osrt_run::unix_now;
-
 /// Runs a worker until the job is done (Ok) or failed (Err).
 pub async fn run_worker(opts: WorkerOptions) -> Result<()> {
     run_worker_until(opts, std::future::pending()).await

@@ -6,9 +6,8 @@ use arrow::array::{ArrayRef, Int32Array, RecordBatch, UInt64Array};
 use arrow::datatypes::{DataType, Field, Schema};
 use object_store::ObjectStoreExt;
 use osrt_dataset::schema::{VERSION_KEY, scenes_to_batch};
-use osrt_dataset::{
-    Columns, DatasetError, Location, Scene, SplitReader, SplitWriter, WriterOptions,
-};
+use osrt_dataset::{Columns, DatasetError, Scene, SplitReader, SplitWriter, WriterOptions};
+use osrt_store::Location;
 use parquet::arrow::ArrowWriter;
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;

@@ -5,7 +5,8 @@ use osrt_dataset::camera::{Camera, Intrinsics};
 use osrt_dataset::generator::tracer::{Lighting, Material, Object, Shape, World, render};
 use osrt_dataset::generator::{COLORS, GeneratorConfig};
 use osrt_dataset::math::Vec3;
-use osrt_dataset::{Location, SplitSizes, WriterOptions, generate_dataset, generate_scene};
+use osrt_dataset::{SplitSizes, WriterOptions, generate_dataset, generate_scene};
+use osrt_store::Location;
 
 fn lighting() -> Lighting {
     Lighting {

@@ -1,9 +1,8 @@
 //! Write/read round trips, projection, row groups.
 
 use crate::tiny_scenes;
-use osrt_dataset::{
-    Columns, Location, ReadStats, RowGroupRef, SplitReader, SplitWriter, WriterOptions,
-};
+use osrt_dataset::{Columns, ReadStats, RowGroupRef, SplitReader, SplitWriter, WriterOptions};
+use osrt_store::Location;
 use std::sync::Arc;
 
 async fn write(
