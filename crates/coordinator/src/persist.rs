@@ -8,7 +8,7 @@ use crate::error::CoordinatorError;
 use crate::retention::Retention;
 use crate::service::Shared;
 use crate::timeline::{Timeline, Turn};
-use osrt_run::retry::{Failing, RetryPolicy};
+use osrt_retry::{Failing, RetryPolicy};
 use osrt_run::{JOB_FILE, write_file};
 use std::time::{Duration, Instant};
 

@@ -9,7 +9,7 @@
 //!
 //! [`Core::discard_pending`]: crate::core::Core::discard_pending
 
-use osrt_run::retry::{Failing, RetryPolicy};
+use osrt_retry::{Failing, RetryPolicy};
 use osrt_run::{RunError, checkpoint, lease};
 use osrt_store::Location;
 use tokio::task::JoinHandle;

@@ -21,10 +21,10 @@
 //! skipped with a warning — never loaded.
 
 use crate::error::{Result, RunError, is_refusal};
-use crate::retry::RetryPolicy;
 use bytes::Bytes;
 use futures::StreamExt;
 use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use osrt_retry::RetryPolicy;
 use osrt_store::Location;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};

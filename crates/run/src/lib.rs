@@ -19,7 +19,6 @@ pub mod error;
 pub mod lease;
 pub mod metrics_log;
 pub mod records;
-pub mod retry;
 pub mod tensorboard;
 
 pub use cluster::{ClusterConfig, ClusterOverrides};

@@ -7,9 +7,9 @@
 use bytes::Bytes;
 use object_store::ObjectStoreExt;
 use object_store::memory::InMemory;
+use osrt_retry::RetryPolicy;
 use osrt_run::RunError;
 use osrt_run::checkpoint::{self, CheckpointState, MODEL, OPTIMIZER, STATE};
-use osrt_run::retry::RetryPolicy;
 use osrt_store::Location;
 use osrt_store::chaos::{ChaosStore, ReadFault};
 use std::sync::Arc;

@@ -3,7 +3,7 @@
 //! A permanent error (a missing file, a bad schema, a refused permission) fails at once.
 
 use crate::error::{Result, TrainError};
-use osrt_run::retry::RetryPolicy;
+use osrt_retry::RetryPolicy;
 use std::future::Future;
 use std::time::Duration;
 
