@@ -100,12 +100,10 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     assert_eq!(job["last_checkpoint"], 30);
     let loc = Location::parse(run.to_str().unwrap()).unwrap();
     let rt = tokio::runtime::Runtime::new().unwrap();
-    rt.block_on(osrt_trainer::checkpoint::verify(&loc, 30))
+    rt.block_on(osrt_run::checkpoint::verify(&loc, 30))
         .expect("the final checkpoint verifies");
     // Retention: the newest 3 (keep_last) plus the best by validation FG-ARI at most.
-    let kept = rt
-        .block_on(osrt_trainer::checkpoint::list_steps(&loc))
-        .unwrap();
+    let kept = rt.block_on(osrt_run::checkpoint::list_steps(&loc)).unwrap();
     assert!(kept.len() <= 4 && kept[..3] == [30, 25, 20], "{kept:?}");
 }
 
@@ -963,9 +961,9 @@ fn checkpoints_to_and_resumes_from_s3() {
             .build()
             .unwrap();
         let loc = Location::new(std::sync::Arc::new(store), "runs/a");
-        let steps = osrt_trainer::checkpoint::list_steps(&loc).await.unwrap();
+        let steps = osrt_run::checkpoint::list_steps(&loc).await.unwrap();
         assert_eq!(steps, vec![10, 6, 5], "{steps:?}");
-        osrt_trainer::checkpoint::verify(&loc, 10).await.unwrap();
+        osrt_run::checkpoint::verify(&loc, 10).await.unwrap();
         // The manifest's create-only put is enforced by the server.
         use object_store::{PutMode, PutOptions};
         let path = loc.path("checkpoints/step-000000010/MANIFEST.json");

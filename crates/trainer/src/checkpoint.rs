@@ -2,13 +2,13 @@
 //! (the only part on the training thread); serialising, hashing and uploading happen in
 //! [`Snapshot::commit`], which can run in a task; [`load`] puts a verified checkpoint back
 //! into a trainer. Layout, commit protocol, verification, listing and retention:
-//! `osrt_run::checkpoint` (re-exported here).
+//! `osrt_run::checkpoint`.
 
 use crate::error::{Result, TrainError};
 use crate::step::Trainer;
 use bytes::Bytes;
 use candle_core::{Device, Tensor};
-pub use osrt_run::checkpoint::*;
+use osrt_run::checkpoint::*;
 use osrt_store::Location;
 
 /// A copy of the weights and optimiser state, ready to be written.

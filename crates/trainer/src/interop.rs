@@ -2,13 +2,14 @@
 //! (`osrt import-checkpoint`, `osrt export-checkpoint`). The formats and the mapping of
 //! every tensor: `osrt_interop::stelzner`.
 
-use crate::checkpoint::{self, CheckpointState, Snapshot};
+use crate::checkpoint::Snapshot;
 use crate::config::JobConfig;
 use crate::error::{Result, TrainError};
 use crate::loaded::load_run;
 use crate::step::Trainer;
 use candle_core::{Device, Tensor};
 use osrt_interop::stelzner::{self, Imported, PeerCheckpoint, PeerConfig};
+use osrt_run::checkpoint::{self, CheckpointState};
 use osrt_run::{CONFIG_FILE, INFO_FILE, RunInfo, read_file, write_file};
 use osrt_store::Location;
 use std::collections::HashMap;

@@ -11,7 +11,7 @@
 //!   loop: gradients ─▶ (shell: all-reduce) ─▶ finish_step ─▶ (shell: reports, commit)
 //! ```
 
-use crate::checkpoint::{self, CheckpointState, Snapshot};
+use crate::checkpoint::{self, Snapshot};
 use crate::config::{JobConfig, TrainConfig};
 use crate::distributed::{Reduced, Signals};
 use crate::error::{Result, TrainError};
@@ -24,6 +24,7 @@ use candle_core::Device;
 use osrt_dataset::{
     BatchConfig, Columns, RowGroupRef, Scene, SplitReader, build_batch_each, load_split,
 };
+use osrt_run::checkpoint::{CheckpointState, param_hash, step_dir};
 use osrt_run::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord, unix_now};
 use osrt_store::Location;
 use std::sync::Arc;
@@ -137,7 +138,7 @@ impl Learner {
                 let st = checkpoint::load(&s.run, step, &mut trainer).await?;
                 if st.config_hash != s.config_hash {
                     return Err(TrainError::Config {
-                        path: s.run.describe(&s.run.path(&checkpoint::step_dir(step))),
+                        path: s.run.describe(&s.run.path(&step_dir(step))),
                         reason: "the checkpoint was written with another job config; resume with the run's own config.toml".into(),
                     });
                 }
@@ -362,12 +363,7 @@ impl Learner {
             self.last_eval = Instant::now();
         }
         let hash = (step.is_multiple_of(c.hash_every) || last)
-            .then(|| {
-                self.trainer
-                    .params
-                    .flatten()
-                    .map(|f| checkpoint::param_hash(&f))
-            })
+            .then(|| self.trainer.params.flatten().map(|f| param_hash(&f)))
             .transpose()?;
         let snapshot = (self.rank == 0 && (step.is_multiple_of(c.checkpoint_every) || last))
             .then(|| {

@@ -90,7 +90,7 @@ pub async fn load_run_on(
         sa.num_slots = k;
     }
     let mut trainer = Trainer::new(job.clone(), device.open()?)?;
-    let step = checkpoint::latest_verified(&loc, None)
+    let step = osrt_run::checkpoint::latest_verified(&loc, None)
         .await?
         .ok_or_else(|| TrainError::Run {
             path: loc.describe(&loc.path("checkpoints")),

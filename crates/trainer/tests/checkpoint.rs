@@ -3,10 +3,9 @@
 
 use candle_core::Device;
 use object_store::ObjectStoreExt;
+use osrt_run::checkpoint::{self, CheckpointState, apply_retention, latest_verified, list_steps};
 use osrt_store::Location;
-use osrt_trainer::checkpoint::{
-    self, CheckpointState, Snapshot, apply_retention, latest_verified, list_steps,
-};
+use osrt_trainer::checkpoint::{Snapshot, load};
 use osrt_trainer::{JobConfig, Trainer};
 
 fn state(step: u64, fg_ari: Option<f64>) -> CheckpointState {
@@ -65,7 +64,7 @@ async fn a_checkpoint_round_trips_exactly() {
     snap.commit(&run, None).await.unwrap();
     let mut u = trainer_with_seed(99);
     assert_ne!(u.params.flatten().unwrap(), t.params.flatten().unwrap());
-    let st = checkpoint::load(&run, 7, &mut u).await.unwrap();
+    let st = load(&run, 7, &mut u).await.unwrap();
     assert_eq!(st, state(7, Some(0.5)));
     assert_eq!(u.params.flatten().unwrap(), t.params.flatten().unwrap());
     assert_eq!((u.opt.moments().unwrap(), u.opt.t()), ((m, v), 7));
@@ -110,10 +109,7 @@ async fn torn_and_corrupt_checkpoints_are_skipped() {
     assert!(e.contains("torn"), "{e}");
     assert_eq!(latest_verified(&run, None).await.unwrap(), Some(1));
     let mut u = trainer();
-    assert!(
-        checkpoint::load(&run, 3, &mut u).await.is_err(),
-        "never loaded"
-    );
+    assert!(load(&run, 3, &mut u).await.is_err(), "never loaded");
     // Re-committing a step whose manifest exists but fails is refused, not overwritten.
     let e = commit_error(&t, &run, state(3, None)).await;
     assert!(e.contains("does not verify"), "{e}");
@@ -288,7 +284,7 @@ async fn two_writers_at_one_step_never_overwrite_each_other() {
         assert!(loser.contains("another checkpoint is committed"), "{loser}");
         let winner = if ra.is_ok() { &a } else { &b };
         let mut loaded = trainer_with_seed(7);
-        checkpoint::load(&run, step, &mut loaded).await.unwrap();
+        load(&run, step, &mut loaded).await.unwrap();
         let (got, want) = (
             loaded.params.flatten().unwrap(),
             winner.params.flatten().unwrap(),
