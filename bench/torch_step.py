@@ -15,7 +15,7 @@ f32 or bf16 autocast. Run by hand; CI does not install PyTorch.
 
 Mirrors crates/model (ray_encoding, encoder, nn, slot_attention, decoder/slot_mixer) with
 the sizes of `Config::cpu()` (preset `clevr-lite-cpu`) or `Config::paper()` (preset
-`paper`), and crates/trainer/src/bench.rs: the median of `--steps` full optimiser steps
+`paper`), and crates/bench/src/model.rs: the median of `--steps` full optimiser steps
 (forward, MSE on the target rays, backward, AdamW step, zero_grad) after `--warmup` steps
 (1 on the CPU, 2 on CUDA), batch building excluded; and render speed (decoding one whole
 input view, image_size² rays, from the model's slots, no gradients; median of 5 after one

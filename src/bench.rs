@@ -6,7 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_kernels::{Kernels, Precision};
 use osrt_run::MetricsRecord;
-use osrt_trainer::bench::{bench_render, bench_step, profile_step};
+use osrt_bench::model::{bench_render, bench_step, profile_step};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
 
@@ -137,7 +137,7 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
     let mut renders = Vec::new();
     let slots: &[usize] = if a.step_only { &[] } else { &a.slots };
     for &k in slots {
-        for d in osrt_trainer::bench::RENDER_DECODERS {
+        for d in osrt_bench::model::RENDER_DECODERS {
             let kernels = a.kernels.unwrap_or_default();
             renders.push(osrt_kernels::with_kernels(kernels, || {
                 bench_render(&model, d, k, a.image_size, 5, &device)
@@ -493,7 +493,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     let mut rows = Vec::new();
     for &n in &a.floats {
         rows.push(
-            osrt_worker::bench_allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
+            osrt_bench::allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
         );
     }
     let text = save_json(&a.out, &serde_json::to_value(&rows)?)?;
@@ -596,7 +596,7 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
         if sps.is_empty() {
             bail!("no training records after warm-up for {c}: raise --steps");
         }
-        let median = osrt_dataset::bench::median(sps);
+        let median = osrt_bench::median(sps);
         rows.push(json!({"config": c, "workers": w, "threads": t, "median_scenes_per_s": median}));
     }
     let _ = std::fs::remove_dir_all(&tmp);
@@ -607,7 +607,7 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
             .filter(|r| r["config"] == cfg)
             .filter_map(|r| r["median_scenes_per_s"].as_f64())
             .collect();
-        (!runs.is_empty()).then(|| osrt_dataset::bench::median(runs))
+        (!runs.is_empty()).then(|| osrt_bench::median(runs))
     };
     let report = json!({
         "preset": a.preset,

@@ -10,7 +10,6 @@
 //! One Parquet row is one scene; row groups are the unit the workers shard (each rank reads its own).
 
 pub mod batch;
-pub mod bench;
 pub mod camera;
 pub mod codec;
 pub mod error;

@@ -5,11 +5,9 @@
 //! all-reduce, reports) is the crate `osrt-worker`; evaluation, rendering, sweeps and
 //! `check-device` build without gRPC.
 
-pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod device;
-pub mod device_check;
 pub mod distributed;
 pub mod error;
 pub mod eval;

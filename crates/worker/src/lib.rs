@@ -1,10 +1,8 @@
 //! The osrt worker: the shell around a generation's [`osrt_trainer::learner::Learner`]
 //! (the training loop, which makes no RPC) that registers with the coordinator, asks for
 //! plans, carries the step's reduction over the ring all-reduce of `osrt-collective`,
-//! sends heartbeats and progress and checkpoint reports ([`worker`]), and the all-reduce
-//! benchmark ([`bench_allreduce`]).
+//! sends heartbeats and progress and checkpoint reports ([`worker`]).
 
-pub mod bench_allreduce;
 pub mod error;
 mod generation;
 pub mod link;

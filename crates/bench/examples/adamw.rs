@@ -10,7 +10,7 @@
 //! reports the same phases inside a whole step (`median_optimizer_s`).
 
 use candle_core::{Device, Tensor, Var};
-use osrt_dataset::bench::median;
+use osrt_bench::median;
 use osrt_trainer::optim::{AdamW, GradSummary, Hyperparams};
 use std::time::Instant;
 

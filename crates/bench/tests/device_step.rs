@@ -6,7 +6,7 @@
 use candle_core::Device;
 use osrt_kernels::Precision;
 use osrt_trainer::device::cuda_device_count;
-use osrt_trainer::device_check::compare_with_cpu;
+use osrt_bench::device_step::compare_with_cpu;
 use osrt_trainer::{DeviceSpec, JobConfig};
 
 fn gpu() -> Option<Device> {

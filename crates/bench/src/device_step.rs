@@ -7,11 +7,11 @@
 //!
 //! `osrt check-device` prints it; `tests/device.rs` asserts the tolerances below.
 
-use crate::bench::bench_batch;
-use crate::config::JobConfig;
-use crate::device::DeviceSpec;
-use crate::error::Result;
-use crate::step::{Gradient, Trainer};
+use crate::model::bench_batch;
+use osrt_trainer::config::JobConfig;
+use osrt_trainer::device::DeviceSpec;
+use osrt_trainer::error::Result;
+use osrt_trainer::step::{Gradient, Trainer};
 use candle_core::Device;
 use osrt_kernels::Precision;
 use rand::SeedableRng;
@@ -84,7 +84,7 @@ pub fn compare_with_cpu(
     let g_dev = dev.gradients(&batch, &mut ChaCha8Rng::seed_from_u64(8))?;
 
     let gradient_rel_l2 = rel_l2(&g_cpu.grads, &g_dev.grads, 0.0);
-    let floor = 1e-3 * crate::optim::global_norm(&g_cpu.grads);
+    let floor = 1e-3 * osrt_trainer::optim::global_norm(&g_cpu.grads);
     let mut worst = (String::new(), 0f64);
     let mut off = 0;
     for (name, var) in cpu.params.vars() {
@@ -223,7 +223,7 @@ fn recomputed_step(device: &Device) -> Result<PlumbingCheck> {
 /// (page-locked memory, the ring's cut into buckets of `bucket`) comes back with its bits,
 /// twice with the same staging.
 fn staged_round_trip(device: &Device, n: usize, bucket: usize) -> Result<PlumbingCheck> {
-    use crate::staging::{Staging, ring_buckets};
+    use osrt_trainer::staging::{Staging, ring_buckets};
     let g = (candle_core::Tensor::arange(0u32, n as u32, device)?
         .to_dtype(candle_core::DType::F32)?
         * 1e-3)?;
@@ -231,7 +231,7 @@ fn staged_round_trip(device: &Device, n: usize, bucket: usize) -> Result<Plumbin
     let mut staging = Staging::new(
         device,
         n,
-        ring_buckets(n + crate::step::CONTROL_FLOATS, bucket),
+        ring_buckets(n + osrt_trainer::step::CONTROL_FLOATS, bucket),
     )?;
     let mut detail = format!("{n} floats in buckets of {bucket}: ");
     let mut pass = true;
@@ -258,22 +258,22 @@ fn staged_round_trip(device: &Device, n: usize, bucket: usize) -> Result<Plumbin
 /// The pool's high-water mark sees a 256 MiB buffer allocated after a reset.
 fn peak_memory(device: &Device) -> Result<PlumbingCheck> {
     let bytes = 256u64 << 20;
-    let reset = crate::device::reset_device_peak(device);
+    let reset = osrt_trainer::device::reset_device_peak(device);
     let t = candle_core::Tensor::zeros((bytes / 4) as usize, candle_core::DType::F32, device)?;
     device.synchronize()?;
-    let peak = crate::device::device_peak_bytes(device);
+    let peak = osrt_trainer::device::device_peak_bytes(device);
     drop(t);
     let pass = reset && peak.is_some_and(|p| p >= bytes);
     // How the pool counts small buffers, of which a step holds thousands (PyTorch's peak
     // counts each at its size rounded up to 512 bytes): a figure, not a condition.
     use osrt_kernels::profile::MemoryMeter;
-    let before = crate::device::Meter(device.clone()).live();
-    crate::device::reset_device_peak(device);
+    let before = osrt_trainer::device::Meter(device.clone()).live();
+    osrt_trainer::device::reset_device_peak(device);
     let small = (0..1000)
         .map(|_| candle_core::Tensor::zeros(1024, candle_core::DType::F32, device))
         .collect::<candle_core::Result<Vec<_>>>()?;
     device.synchronize()?;
-    let small_peak = crate::device::device_peak_bytes(device);
+    let small_peak = osrt_trainer::device::device_peak_bytes(device);
     drop(small);
     let counted = small_peak.zip(before).map(|(p, b)| p.saturating_sub(b));
     Ok(PlumbingCheck {
@@ -293,7 +293,7 @@ fn out_of_memory(device: &Device) -> Result<PlumbingCheck> {
         candle_core::DeviceLocation::Cuda { gpu_id } => gpu_id,
         _ => 0,
     };
-    let card = crate::device::gpu_memory(ordinal).unwrap_or(1e12);
+    let card = osrt_trainer::device::gpu_memory(ordinal).unwrap_or(1e12);
     let floats = (2.0 * card / 4.0) as usize;
     let (recognised, text) =
         match candle_core::Tensor::zeros(floats, candle_core::DType::F32, device) {
@@ -301,9 +301,9 @@ fn out_of_memory(device: &Device) -> Result<PlumbingCheck> {
                 false,
                 "a buffer twice the card's size was allocated".to_string(),
             ),
-            Err(e) => (crate::device::is_out_of_memory(&e), e.to_string()),
+            Err(e) => (osrt_trainer::device::is_out_of_memory(&e), e.to_string()),
         };
-    let released = crate::device::release_cached(device);
+    let released = osrt_trainer::device::release_cached(device);
     // The device still works after the failed request.
     let after = candle_core::Tensor::ones(1024, candle_core::DType::F32, device)
         .and_then(|t| t.sum_all()?.to_scalar::<f32>());
@@ -326,7 +326,7 @@ fn freed_on_another_thread(device: &Device) -> Result<PlumbingCheck> {
     device.synchronize()?;
     std::thread::spawn(move || drop(t))
         .join()
-        .map_err(|_| crate::TrainError::Device("the thread dropping a buffer panicked".into()))?;
+        .map_err(|_| osrt_trainer::TrainError::Device("the thread dropping a buffer panicked".into()))?;
     let state = context_error(device);
     let again = candle_core::Tensor::ones(1 << 20, candle_core::DType::F32, device)
         .and_then(|t| t.sum_all()?.to_scalar::<f32>())

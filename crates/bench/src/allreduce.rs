@@ -16,7 +16,7 @@
 //!   reaches; reported for comparison with the figures of 2026-11-25.
 
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
-use osrt_dataset::bench::median;
+use crate::median;
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

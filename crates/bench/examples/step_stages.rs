@@ -11,7 +11,7 @@
 //! MALLOC_TOP_PAD_=268435456`).
 
 use candle_core::{Device, Var};
-use osrt_dataset::bench::median;
+use osrt_bench::median;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{BatchConfig, InputSelection, TargetViews, build_batch, generate_scene};
 use osrt_trainer::JobConfig;

@@ -2,12 +2,12 @@
 //! scenes read and decoded per second with and without masks (plus the bytes fetched,
 //! which shows what projection saves).
 
-use crate::error::Result;
-use crate::generator::{GeneratorConfig, generate_scene};
-use crate::reader::{ReadStats, SplitReader};
-use crate::scene::Scene;
-use crate::schema::{Columns, ImageCodec};
-use crate::writer::{SplitWriter, WriterOptions};
+use osrt_dataset::Result;
+use osrt_dataset::generator::{GeneratorConfig, generate_scene};
+use osrt_dataset::reader::{ReadStats, SplitReader};
+use osrt_dataset::scene::Scene;
+use osrt_dataset::schema::{Columns, ImageCodec};
+use osrt_dataset::writer::{SplitWriter, WriterOptions};
 use osrt_store::Location;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -38,12 +38,6 @@ pub struct DataBench {
     pub file_bytes: u64,
     pub read_with_masks: ReadFigures,
     pub read_without_masks: ReadFigures,
-}
-
-/// Median of timings (upper median for even counts); shared by every benchmark.
-pub fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// The middle `height` rows of a scene's square views (camera intrinsics follow).
@@ -125,7 +119,7 @@ pub async fn bench_data(
             times.push(t.elapsed().as_secs_f64());
             bytes = stats.bytes();
         }
-        let m = median(times);
+        let m = crate::median(times);
         figures.push(ReadFigures {
             scenes_per_s: scenes as f64 / m,
             median_s: m,

@@ -2,12 +2,12 @@
 //! speed of each decoder at several slot counts. Figures are medians over repeats; the
 //! thread count is whatever this process runs with (the CLI runs one process per count).
 
-use crate::config::JobConfig;
-use crate::error::Result;
-use crate::staging::{Staging, ring_buckets};
-use crate::step::{BatchTensors, CONTROL_FLOATS, Trainer};
+use osrt_trainer::config::JobConfig;
+use osrt_trainer::error::Result;
+use osrt_trainer::staging::{Staging, ring_buckets};
+use osrt_trainer::step::{BatchTensors, CONTROL_FLOATS, Trainer};
 use candle_core::{DType, Device, Tensor};
-use osrt_dataset::bench::median;
+use crate::median;
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
     Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene,
@@ -43,7 +43,7 @@ pub struct StepFigures {
     pub median_step_s: f64,
     pub median_forward_backward_s: f64,
     /// On a GPU: a gradient's round trip device → host → device through the staging of a
-    /// ring all-reduce (`crate::staging`, bucket by bucket through page-locked memory,
+    /// ring all-reduce (`osrt_trainer::staging`, bucket by bucket through page-locked memory,
     /// without the ring), as each of two or more workers pays it (median; 0 on the CPU).
     pub median_gradient_transfer_s: f64,
     /// Where that round trip failed or did not give back the gradient's bits: the first
@@ -54,7 +54,7 @@ pub struct StepFigures {
     pub scenes_per_s: f64,
     /// The most heap bytes live at once during a timed step, weights and optimiser state
     /// included (the CPU counterpart of `torch.cuda.max_memory_allocated`); `None` where
-    /// the process does not count its allocations ([`crate::memory::CountingAlloc`]).
+    /// the process does not count its allocations ([`osrt_trainer::memory::CountingAlloc`]).
     pub peak_heap_gib: Option<f64>,
     /// The process's peak resident memory during the timed steps (the figure
     /// `bench/torch_step.py` reports for PyTorch on the CPU).
@@ -68,7 +68,7 @@ pub struct StepFigures {
     /// `torch.cuda.max_memory_allocated`); `None` on the CPU.
     pub peak_gib: Option<f64>,
     /// The step's peak as `osrt train` estimates it before a job starts
-    /// ([`crate::footprint::estimate`]): host RAM on the CPU (beside `peak_heap_gib`),
+    /// ([`osrt_trainer::footprint::estimate`]): host RAM on the CPU (beside `peak_heap_gib`),
     /// device memory on a GPU (beside `peak_gib`); `None` for a model it cannot count.
     pub estimated_peak_gib: Option<f64>,
 }
@@ -115,7 +115,7 @@ fn bench_data(job: &JobConfig, image_size: u32) -> Result<(Vec<Scene>, BatchConf
         rays_per_scene: Some(job.train.rays_per_scene),
         with_masks: false,
         salient_fraction: 0.0,
-        ray_frame: crate::config::ray_frame(&job.model),
+        ray_frame: osrt_trainer::config::ray_frame(&job.model),
         input_stride: 1,
     };
     Ok((scenes, cfg))
@@ -160,10 +160,10 @@ pub fn bench_step(
         if i == warmup {
             // The peaks of the timed steps only (the warm-up's first allocations of
             // optimiser state are not a step's).
-            crate::memory::reset_peak_rss();
+            osrt_trainer::memory::reset_peak_rss();
         }
-        crate::memory::reset_peak_heap();
-        crate::device::reset_device_peak(device);
+        osrt_trainer::memory::reset_peak_heap();
+        osrt_trainer::device::reset_device_peak(device);
         // Both halves end synchronised, so the clock reads finished work on a GPU too.
         let t0 = Instant::now();
         let g = trainer.gradients_kept(&batch, &mut rng, keep)?;
@@ -173,7 +173,7 @@ pub fn bench_step(
         let outcome = trainer.apply(g.loss, g.grads)?;
         device.synchronize()?;
         log_apply(t1, gradients_peak, device);
-        if let crate::step::ApplyOutcome::Skipped { reason } = outcome
+        if let osrt_trainer::step::ApplyOutcome::Skipped { reason } = outcome
             && i >= warmup
         {
             skipped_steps += 1;
@@ -183,8 +183,8 @@ pub fn bench_step(
             step_s.push(t0.elapsed().as_secs_f64());
             fb_s.push((t1 - t0).as_secs_f64());
             optimizer_s.push(t1.elapsed().as_secs_f64());
-            peak_heap = crate::memory::peak_heap_bytes().max(peak_heap);
-            peak_device = crate::device::device_peak_bytes(device).max(peak_device);
+            peak_heap = osrt_trainer::memory::peak_heap_bytes().max(peak_heap);
+            peak_device = osrt_trainer::device::device_peak_bytes(device).max(peak_device);
             if !device.is_cpu() && transfer_error.is_none() {
                 let n = trainer.num_parameters();
                 transfer_error = time_round_trip(&mut staging, n, device, &mut transfer_s);
@@ -200,7 +200,7 @@ pub fn bench_step(
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        device: crate::DeviceSpec::from_device(device).to_string(),
+        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
         fused: job.train.kernels == osrt_kernels::Kernels::Fused && device.is_cpu(),
         kernels: job.train.kernels.to_string(),
@@ -216,9 +216,9 @@ pub fn bench_step(
         median_optimizer_s: median(optimizer_s),
         scenes_per_s: b as f64 / m,
         peak_heap_gib: peak_heap.map(gib),
-        peak_rss_gib: crate::memory::peak_rss_mb().map(|mb| mb / 1024.0),
+        peak_rss_gib: osrt_trainer::memory::peak_rss_mb().map(|mb| mb / 1024.0),
         peak_gib: peak_device.map(|b| gib(b as usize)),
-        estimated_peak_gib: crate::footprint::estimate(
+        estimated_peak_gib: osrt_trainer::footprint::estimate(
             job,
             [image_size, image_size],
             1,
@@ -297,7 +297,7 @@ pub fn profile_step(
     let ops = osrt_kernels::with_kernels(kernels, || {
         osrt_kernels::with_precision(precision, || {
             osrt_kernels::on_device_pool(device, || {
-                let meter = crate::device::Meter(device.clone());
+                let meter = osrt_trainer::device::Meter(device.clone());
                 profile::time_calls(calls, device, repeats, &meter)
             })
         })
@@ -308,7 +308,7 @@ pub fn profile_step(
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        device: crate::DeviceSpec::from_device(device).to_string(),
+        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
         precision: precision.to_string(),
         kernels: kernels.to_string(),
         forward_s: median(fwd),
@@ -336,8 +336,8 @@ fn log_apply(started: Instant, gradients_peak: Option<u64>, device: &Device) {
 /// binary counts it), the memory pool on a GPU.
 fn step_peak(device: &Device) -> Option<u64> {
     match device.is_cpu() {
-        true => crate::memory::peak_heap_bytes().map(|b| b as u64),
-        false => crate::device::device_peak_bytes(device),
+        true => osrt_trainer::memory::peak_heap_bytes().map(|b| b as u64),
+        false => osrt_trainer::device::device_peak_bytes(device),
     }
 }
 
@@ -388,7 +388,7 @@ fn gradient_round_trip(staging: &mut Option<Staging>, n: usize, device: &Device)
     let back = back.into_host()?;
     let sent = g.to_vec1::<f32>()?;
     if let Some(i) = (0..n).find(|&i| back[i].to_bits() != sent[i].to_bits()) {
-        return Err(crate::TrainError::Device(format!(
+        return Err(osrt_trainer::TrainError::Device(format!(
             "the staged round trip of the gradient changed float {i} of {n}: {} came back as {}",
             sent[i], back[i]
         )));
@@ -425,7 +425,7 @@ pub fn bench_render(
         model_cfg
             .clone()
             .with_decoder(kind)
-            .ok_or_else(|| crate::TrainError::Config {
+            .ok_or_else(|| osrt_trainer::TrainError::Config {
                 path: "bench".into(),
                 reason: format!("unknown decoder `{decoder}`: expected one of {RENDER_DECODERS:?}"),
             })?;
@@ -444,7 +444,7 @@ pub fn bench_render(
         rays_per_scene: None,
         with_masks: false,
         salient_fraction: 0.0,
-        ray_frame: crate::config::ray_frame(&cfg),
+        ray_frame: osrt_trainer::config::ray_frame(&cfg),
         input_stride: 1,
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;

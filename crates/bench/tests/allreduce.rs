@@ -4,7 +4,7 @@
 /// finite time or ratio, and its all-reduces summed correctly (the benchmark asserts it).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_allreduce_benchmark_measures_every_baseline() {
-    let f = osrt_worker::bench_allreduce::bench_allreduce(20_000, 1, 4096).await;
+    let f = osrt_bench::allreduce::bench_allreduce(20_000, 1, 4096).await;
     assert_eq!(f.bytes, 80_000);
     assert_eq!(f.repeats, 20);
     for x in [
