@@ -340,7 +340,7 @@ pub async fn bench(a: BenchDataArgs) -> Result<()> {
         for &codec in &a.codecs {
             let scratch = Location::parse(&format!("memory://bench-data/{size}-{codec}"))?;
             eprintln!("{size} {codec}: {} scenes…", a.scenes);
-            let r = osrt_bench::data::bench_data(
+            let r = osrt_bench::data_path::bench_data(
                 &cfg,
                 a.scenes,
                 a.repeats,

@@ -15,8 +15,8 @@
 //!   buffer that stays in cache): the sockets' own speed, a bound no real receiver
 //!   reaches; reported for comparison with the figures of 2026-11-25.
 
-use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use crate::median;
+use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use serde::Serialize;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -8,12 +8,12 @@
 //! `osrt check-device` prints it; `tests/device.rs` asserts the tolerances below.
 
 use crate::model::bench_batch;
+use candle_core::Device;
+use osrt_kernels::Precision;
 use osrt_trainer::config::JobConfig;
 use osrt_trainer::device::DeviceSpec;
 use osrt_trainer::error::Result;
 use osrt_trainer::step::{Gradient, Trainer};
-use candle_core::Device;
-use osrt_kernels::Precision;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -324,9 +324,9 @@ fn out_of_memory(device: &Device) -> Result<PlumbingCheck> {
 fn freed_on_another_thread(device: &Device) -> Result<PlumbingCheck> {
     let t = candle_core::Tensor::ones(1 << 20, candle_core::DType::F32, device)?;
     device.synchronize()?;
-    std::thread::spawn(move || drop(t))
-        .join()
-        .map_err(|_| osrt_trainer::TrainError::Device("the thread dropping a buffer panicked".into()))?;
+    std::thread::spawn(move || drop(t)).join().map_err(|_| {
+        osrt_trainer::TrainError::Device("the thread dropping a buffer panicked".into())
+    })?;
     let state = context_error(device);
     let again = candle_core::Tensor::ones(1 << 20, candle_core::DType::F32, device)
         .and_then(|t| t.sum_all()?.to_scalar::<f32>())

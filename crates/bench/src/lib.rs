@@ -6,11 +6,11 @@
 //! - [`device_step`]: a device's train step against the CPU's, its memory and its
 //!   out-of-memory handling (`osrt check-device`; the ops themselves are compared in
 //!   `osrt_kernels::device_check`).
-//! - [`data`]: the data path's throughput (`osrt bench data`).
+//! - [`data_path`]: the data path's throughput (`osrt bench data`).
 //! - [`allreduce`]: the ring all-reduce against bare TCP (`osrt bench allreduce`).
 
 pub mod allreduce;
-pub mod data;
+pub mod data_path;
 pub mod device_step;
 pub mod model;
 

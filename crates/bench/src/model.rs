@@ -2,17 +2,17 @@
 //! speed of each decoder at several slot counts. Figures are medians over repeats; the
 //! thread count is whatever this process runs with (the CLI runs one process per count).
 
-use osrt_trainer::config::JobConfig;
-use osrt_trainer::error::Result;
-use osrt_trainer::staging::{Staging, ring_buckets};
-use osrt_trainer::step::{BatchTensors, CONTROL_FLOATS, Trainer};
-use candle_core::{DType, Device, Tensor};
 use crate::median;
+use candle_core::{DType, Device, Tensor};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
     Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene,
 };
 use osrt_model::{Config, Osrt, Params};
+use osrt_trainer::config::JobConfig;
+use osrt_trainer::error::Result;
+use osrt_trainer::staging::{Staging, ring_buckets};
+use osrt_trainer::step::{BatchTensors, CONTROL_FLOATS, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;

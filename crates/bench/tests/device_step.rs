@@ -4,9 +4,9 @@
 //! `cuda` feature is built and a GPU is present; prints SKIPPED otherwise.
 
 use candle_core::Device;
+use osrt_bench::device_step::compare_with_cpu;
 use osrt_kernels::Precision;
 use osrt_trainer::device::cuda_device_count;
-use osrt_bench::device_step::compare_with_cpu;
 use osrt_trainer::{DeviceSpec, JobConfig};
 
 fn gpu() -> Option<Device> {
