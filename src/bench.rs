@@ -4,9 +4,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use osrt_bench::model::{bench_render, bench_step, profile_step};
 use osrt_kernels::{Kernels, Precision};
 use osrt_run::MetricsRecord;
-use osrt_bench::model::{bench_render, bench_step, profile_step};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use serde_json::json;
 
@@ -492,9 +492,7 @@ pub async fn allreduce(a: BenchAllReduceArgs) -> Result<()> {
     crate::cluster::reexec_with_worker_allocator()?;
     let mut rows = Vec::new();
     for &n in &a.floats {
-        rows.push(
-            osrt_bench::allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await,
-        );
+        rows.push(osrt_bench::allreduce::bench_allreduce(n, a.repeats, a.chunk_floats).await);
     }
     let text = save_json(&a.out, &serde_json::to_value(&rows)?)?;
     if a.json {

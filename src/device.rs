@@ -4,11 +4,11 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use osrt_kernels::{Kernels, Precision};
 use osrt_bench::device_step::{
     DeviceCheck, GRADIENT_TOLERANCE_BF16, GRADIENT_TOLERANCE_F32, STEP_TOLERANCE, compare_with_cpu,
     plumbing,
 };
+use osrt_kernels::{Kernels, Precision};
 use osrt_trainer::{DeviceSpec, JobConfig};
 
 #[derive(Args)]
