@@ -4,11 +4,12 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use osrt_bench::model::{bench_render, bench_step, profile_step};
+use osrt_bench::model::{
+    ModelReport, ProfileFigures, StepFigures, bench_render, bench_step, profile_step,
+};
 use osrt_kernels::{Kernels, Precision};
 use osrt_run::MetricsRecord;
 use osrt_trainer::{DeviceSpec, JobConfig};
-use serde_json::json;
 
 #[derive(Args)]
 pub struct BenchModelArgs {
@@ -104,7 +105,7 @@ fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
     Ok(job)
 }
 
-fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
+fn measure(a: &BenchModelArgs) -> Result<ModelReport> {
     let device = a.device.open()?;
     if a.profile {
         let mut profiles = Vec::new();
@@ -113,7 +114,10 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
             job.train.kernels = a.kernels.unwrap_or_default();
             profiles.push(profile_step(p, &job, a.image_size, a.steps, 3, &device)?);
         }
-        return Ok(json!({ "steps": [], "renders": [], "profiles": profiles }));
+        return Ok(ModelReport {
+            profiles,
+            ..ModelReport::default()
+        });
     }
     let mut steps = Vec::new();
     let presets: &[String] = if a.render_only { &[] } else { &a.presets };
@@ -144,7 +148,11 @@ fn measure(a: &BenchModelArgs) -> Result<serde_json::Value> {
             })?);
         }
     }
-    Ok(json!({ "steps": steps, "renders": renders }))
+    Ok(ModelReport {
+        steps,
+        renders,
+        profiles: Vec::new(),
+    })
 }
 
 /// How a benchmark child ended, for people: a SIGKILL, which leaves no message of its
@@ -187,7 +195,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         return Ok(());
     }
     let exe = std::env::current_exe()?;
-    let mut by_threads = serde_json::Map::new();
+    let mut by_threads: Vec<(usize, ModelReport)> = Vec::new();
     // A GPU benchmark runs once, with every core for the host's share of the step.
     let threads = if a.device.is_cuda() {
         vec![std::thread::available_parallelism().map_or(1, |n| n.get())]
@@ -258,39 +266,41 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
                 }
             );
         }
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
-        by_threads.insert(n.to_string(), v);
+        let v: ModelReport =
+            serde_json::from_slice(&out.stdout).context("reading the benchmark child's figures")?;
+        by_threads.push((n, v));
     }
-    let report = serde_json::Value::Object(by_threads);
-    let text = save_json(&a.out, &report)?;
+    let mut saved = serde_json::Map::new();
+    for (n, v) in &by_threads {
+        saved.insert(n.to_string(), serde_json::to_value(v)?);
+    }
+    let text = save_json(&a.out, &serde_json::Value::Object(saved))?;
     if a.json {
         println!("{text}");
         return Ok(());
     }
-    print_model_report(&a, &report);
+    print_model_report(&a, &by_threads);
     println!("saved to {}", a.out.display());
     Ok(())
 }
 
 /// One step's profile (`--profile`): op kinds, then the costliest distinct calls.
-fn print_profile(p: &serde_json::Value) {
-    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(0.0);
-    let (fwd, bwd) = (f(p, "forward_s"), f(p, "backward_s"));
+fn print_profile(p: &ProfileFigures) {
+    let (fwd, bwd) = (p.forward_s, p.backward_s);
     println!(
         "  profile of {} (batch {}, {} view(s), {} rays, {} px) on {}, {}, {} kernels: \
          forward {:.1} ms, backward {:.1} ms (medians of the whole step's passes)",
-        p["preset"].as_str().unwrap_or(""),
-        p["batch_size"],
-        p["input_views"],
-        p["rays_per_scene"],
-        p["image_size"],
-        p["device"].as_str().unwrap_or(""),
-        p["precision"].as_str().unwrap_or(""),
-        p["kernels"].as_str().unwrap_or(""),
+        p.preset,
+        p.batch_size,
+        p.input_views,
+        p.rays_per_scene,
+        p.image_size,
+        p.device,
+        p.precision,
+        p.kernels,
         fwd * 1e3,
         bwd * 1e3,
     );
-    let ops: Vec<_> = p["ops"].as_array().into_iter().flatten().collect();
     println!(
         "    {:<12} {:>6} {:>11} {:>11} {:>11} {:>9} {:>10} {:>14}",
         "op",
@@ -304,28 +314,28 @@ fn print_profile(p: &serde_json::Value) {
     );
     let (step, mib) = (fwd + bwd, |b: f64| b / (1u64 << 20) as f64);
     let (mut sf, mut sb, mut sk) = (0.0, 0.0, 0.0);
-    for k in p["kinds"].as_array().into_iter().flatten() {
-        let (of, ob, kept) = (f(k, "forward_s"), f(k, "backward_s"), f(k, "kept_bytes"));
+    for k in &p.kinds {
+        let (of, ob) = (k.forward_s, k.backward_s);
+        let kept = k.kept_bytes.unwrap_or(0) as f64;
         (sf, sb, sk) = (sf + of, sb + ob, sk + kept);
         println!(
             "    {:<12} {:>6} {:>11.2} {:>11.2} {:>11.2} {:>8.1}% {:>10.1} {:>10.1} MiB",
-            k["kind"].as_str().unwrap_or(""),
-            k["calls"].as_u64().unwrap_or(0),
+            k.kind,
+            k.calls,
             of * 1e3,
             ob * 1e3,
             (of + ob) * 1e3,
             100.0 * (of + ob) / step,
             mib(kept),
-            mib(f(k, "peak_bytes")),
+            mib(k.peak_bytes.unwrap_or(0) as f64),
         );
     }
-    if let (Some(kept), Some(peak)) = (p["step_kept_bytes"].as_f64(), p["step_peak_bytes"].as_f64())
-    {
+    if let (Some(kept), Some(peak)) = (p.step_kept_bytes, p.step_peak_bytes) {
         println!(
             "    the step's forward pass left {:.1} MiB held (the batch and the graph), its \
              passes peaked {:.1} MiB above their start",
-            mib(kept),
-            mib(peak)
+            mib(kept as f64),
+            mib(peak as f64)
         );
     }
     println!(
@@ -340,113 +350,110 @@ fn print_profile(p: &serde_json::Value) {
         mib(sk),
     );
     println!("    costliest calls (calls × (forward + backward); calls × kept):");
-    for o in ops.iter().take(8) {
-        let n = o["calls"].as_u64().unwrap_or(0) as f64;
+    for o in p.ops.iter().take(8) {
+        let n = o.calls as f64;
         println!(
             "      {:>9.2} ms {:>9.1} MiB  {} × {}",
-            n * (f(o, "forward_s") + f(o, "backward_s")) * 1e3,
-            mib(n * f(o, "kept_bytes")),
+            n * (o.forward_s + o.backward_s) * 1e3,
+            mib(n * o.kept_bytes.unwrap_or(0) as f64),
             n,
-            o["signature"].as_str().unwrap_or("")
+            o.signature
         );
     }
 }
 
 /// One step's figures of `osrt bench model`, for people.
-fn print_step(s: &serde_json::Value) {
-    let ms = |k: &str| s[k].as_f64().unwrap_or(0.0) * 1e3;
+fn print_step(s: &StepFigures) {
+    let ms = |x: f64| x * 1e3;
     println!(
         "  train step {:<16} {:<8} {:>8.1} ms median ({:.1} scenes/s; fwd+bwd {:.1} ms; {} params, batch {}, {} view(s), {} rays, {}px, {} {}{})",
-        s["preset"].as_str().unwrap_or(""),
-        s["kernels"].as_str().unwrap_or(""),
-        ms("median_step_s"),
-        s["scenes_per_s"].as_f64().unwrap_or(0.0),
-        ms("median_forward_backward_s"),
-        s["parameters"],
-        s["batch_size"],
-        s["input_views"],
-        s["rays_per_scene"],
-        s["image_size"],
-        s["device"].as_str().unwrap_or(""),
-        s["precision"].as_str().unwrap_or(""),
-        match (s["recompute"].as_bool(), s["micro_batch_size"].as_u64()) {
-            (Some(true), Some(m)) => format!(", activations recomputed, passes of {m}"),
-            (Some(true), None) => ", activations recomputed".into(),
-            (_, Some(m)) => format!(", passes of {m}"),
-            _ => String::new(),
+        s.preset,
+        s.kernels,
+        ms(s.median_step_s),
+        s.scenes_per_s,
+        ms(s.median_forward_backward_s),
+        s.parameters,
+        s.batch_size,
+        s.input_views,
+        s.rays_per_scene,
+        s.image_size,
+        s.device,
+        s.precision,
+        match (s.recompute, s.micro_batch_size) {
+            (true, Some(m)) => format!(", activations recomputed, passes of {m}"),
+            (true, None) => ", activations recomputed".into(),
+            (false, Some(m)) => format!(", passes of {m}"),
+            (false, None) => String::new(),
         },
     );
-    let gib = |k: &str| match s[k].as_f64() {
+    let gib = |g: Option<f64>| match g {
         Some(g) => format!("{g:.2} GiB"),
         None => "not counted".into(),
     };
     println!(
         "    optimiser {:.1} ms median; peak heap {}, peak resident {}; estimated peak {}",
-        ms("median_optimizer_s"),
-        gib("peak_heap_gib"),
-        gib("peak_rss_gib"),
-        gib("estimated_peak_gib"),
+        ms(s.median_optimizer_s),
+        gib(s.peak_heap_gib),
+        gib(s.peak_rss_gib),
+        gib(s.estimated_peak_gib),
     );
-    if let Some(n) = s["skipped_steps"].as_u64().filter(|&n| n > 0) {
+    if s.skipped_steps > 0 {
         println!(
-            "    SKIPPED {n} of the timed steps: {}",
-            s["skip_reason"].as_str().unwrap_or("")
+            "    SKIPPED {} of the timed steps: {}",
+            s.skipped_steps,
+            s.skip_reason.as_deref().unwrap_or("")
         );
     }
-    if s["peak_gib"].is_number() {
-        println!("    peak device memory {}", gib("peak_gib"));
+    if s.peak_gib.is_some() {
+        println!("    peak device memory {}", gib(s.peak_gib));
     }
-    if ms("median_gradient_transfer_s") > 0.0 {
+    if s.median_gradient_transfer_s > 0.0 {
         println!(
             "    gradient device → host → device through the all-reduce's staging \
              (paid by each of ≥ 2 workers beside the ring, not in the step above): \
              {:.2} ms median ({:.1} % of the step)",
-            ms("median_gradient_transfer_s"),
-            100.0 * ms("median_gradient_transfer_s") / ms("median_step_s")
+            ms(s.median_gradient_transfer_s),
+            100.0 * s.median_gradient_transfer_s / s.median_step_s
         );
     }
-    if let Some(e) = s["gradient_transfer_error"].as_str() {
+    if let Some(e) = &s.gradient_transfer_error {
         println!("    GRADIENT ROUND TRIP FAILED: {e}");
     }
 }
 
 /// The figures of `osrt bench model`, for people.
-fn print_model_report(a: &BenchModelArgs, report: &serde_json::Value) {
-    for (threads, v) in report.as_object().expect("object") {
+fn print_model_report(a: &BenchModelArgs, report: &[(usize, ModelReport)]) {
+    for (threads, v) in report {
         println!("{threads} thread(s):");
-        for p in v["profiles"].as_array().into_iter().flatten() {
+        for p in &v.profiles {
             print_profile(p);
         }
-        for s in v["steps"].as_array().expect("array") {
+        for s in &v.steps {
             print_step(s);
         }
-        let steps = v["steps"].as_array().expect("array");
         for p in &a.presets {
             let t = |fused: bool| {
-                steps
+                v.steps
                     .iter()
-                    .find(|s| s["preset"] == p.as_str() && s["fused"] == fused)
-                    .and_then(|s| s["median_step_s"].as_f64())
+                    .find(|s| &s.preset == p && s.fused == fused)
+                    .map(|s| s.median_step_s)
             };
             if let (Some(f), Some(c)) = (t(true), t(false)) {
                 println!("  {p}: fused ops make the step {:.2}× as fast", c / f);
             }
         }
-        let renders = v["renders"].as_array().expect("array");
-        for r in renders {
+        for r in &v.renders {
             println!(
                 "  render {:<18} {:>3} slots {:>9.1} fps",
-                r["decoder"].as_str().unwrap_or(""),
-                r["slots"],
-                r["fps"].as_f64().unwrap_or(0.0)
+                r.decoder, r.slots, r.fps
             );
         }
         for &k in &a.slots {
             let fps = |d: &str| {
-                renders
+                v.renders
                     .iter()
-                    .find(|r| r["decoder"] == d && r["slots"] == k)
-                    .and_then(|r| r["fps"].as_f64())
+                    .find(|r| r.decoder == d && r.slots == k)
+                    .map(|r| r.fps)
             };
             if let (Some(sm), Some(sb)) = (fps("slot_mixer"), fps("spatial_broadcast")) {
                 println!(
@@ -551,6 +558,26 @@ pub struct BenchClusterArgs {
     pub out: std::path::PathBuf,
 }
 
+/// One local cluster's training throughput in `osrt bench cluster`.
+#[derive(Debug, serde::Serialize)]
+struct ClusterRow {
+    config: String,
+    workers: usize,
+    threads: usize,
+    median_scenes_per_s: f64,
+}
+
+/// What `osrt bench cluster` saves.
+#[derive(Debug, serde::Serialize)]
+struct ClusterReport {
+    preset: String,
+    steps: u64,
+    warmup: u64,
+    rows: Vec<ClusterRow>,
+    speedup_2x1_over_1x1: Option<f64>,
+    speedup_2x1_over_1x2: Option<f64>,
+}
+
 /// Training throughput of whole local clusters (`osrt train` in a child process per
 /// configuration): the median of the logged global scenes/s after warm-up.
 pub fn cluster(a: BenchClusterArgs) -> Result<()> {
@@ -595,41 +622,45 @@ pub fn cluster(a: BenchClusterArgs) -> Result<()> {
             bail!("no training records after warm-up for {c}: raise --steps");
         }
         let median = osrt_bench::median(sps);
-        rows.push(json!({"config": c, "workers": w, "threads": t, "median_scenes_per_s": median}));
+        rows.push(ClusterRow {
+            config: c.clone(),
+            workers: w,
+            threads: t,
+            median_scenes_per_s: median,
+        });
     }
     let _ = std::fs::remove_dir_all(&tmp);
     // Over repeated configurations: the median of their runs' medians.
     let base = |cfg: &str| {
         let runs: Vec<f64> = rows
             .iter()
-            .filter(|r| r["config"] == cfg)
-            .filter_map(|r| r["median_scenes_per_s"].as_f64())
+            .filter(|r| r.config == cfg)
+            .map(|r| r.median_scenes_per_s)
             .collect();
         (!runs.is_empty()).then(|| osrt_bench::median(runs))
     };
-    let report = json!({
-        "preset": a.preset,
-        "steps": a.steps,
-        "warmup": a.warmup,
-        "rows": rows,
-        "speedup_2x1_over_1x1": base("2x1").zip(base("1x1")).map(|(x, y)| x / y),
-        "speedup_2x1_over_1x2": base("2x1").zip(base("1x2")).map(|(x, y)| x / y),
-    });
-    let text = save_json(&a.out, &report)?;
+    let report = ClusterReport {
+        preset: a.preset.clone(),
+        steps: a.steps,
+        warmup: a.warmup,
+        speedup_2x1_over_1x1: base("2x1").zip(base("1x1")).map(|(x, y)| x / y),
+        speedup_2x1_over_1x2: base("2x1").zip(base("1x2")).map(|(x, y)| x / y),
+        rows,
+    };
+    let text = save_json(&a.out, &serde_json::to_value(&report)?)?;
     if a.json {
         println!("{text}");
         return Ok(());
     }
     println!("training throughput of local clusters ({}):", a.preset);
-    for r in report["rows"].as_array().expect("rows") {
-        println!(
-            "  {:>4}: {:>7.2} scenes/s",
-            r["config"].as_str().unwrap_or("?"),
-            r["median_scenes_per_s"].as_f64().unwrap_or(f64::NAN)
-        );
+    for r in &report.rows {
+        println!("  {:>4}: {:>7.2} scenes/s", r.config, r.median_scenes_per_s);
     }
-    for k in ["speedup_2x1_over_1x1", "speedup_2x1_over_1x2"] {
-        if let Some(v) = report[k].as_f64() {
+    for (k, v) in [
+        ("speedup_2x1_over_1x1", report.speedup_2x1_over_1x1),
+        ("speedup_2x1_over_1x2", report.speedup_2x1_over_1x2),
+    ] {
+        if let Some(v) = v {
             println!("  {k}: {v:.2}×");
         }
     }

@@ -15,10 +15,22 @@ use osrt_trainer::staging::{Staging, ring_buckets};
 use osrt_trainer::step::{BatchTensors, CONTROL_FLOATS, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-#[derive(Debug, Clone, Serialize)]
+/// What one `osrt bench model` child measures (one thread count): the train steps, the
+/// renders, or the per-op profiles.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct ModelReport {
+    #[serde(default)]
+    pub steps: Vec<StepFigures>,
+    #[serde(default)]
+    pub renders: Vec<RenderFigures>,
+    #[serde(default)]
+    pub profiles: Vec<ProfileFigures>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StepFigures {
     pub preset: String,
     pub parameters: usize,
@@ -73,7 +85,7 @@ pub struct StepFigures {
     pub estimated_peak_gib: Option<f64>,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RenderFigures {
     pub decoder: String,
     pub slots: usize,
@@ -231,7 +243,7 @@ pub fn bench_step(
 }
 
 /// The time of each op kind in one preset's train step (`osrt bench model --profile`).
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ProfileFigures {
     pub preset: String,
     pub batch_size: usize,

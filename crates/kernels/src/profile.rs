@@ -115,9 +115,9 @@ pub(crate) fn record(rec: &Recorder, kind: &'static str, inputs: &[&Tensor], rer
 }
 
 /// The time of one distinct call, and how often the step made it.
-#[derive(Debug, Clone, serde::Serialize)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct CallTime {
-    pub kind: &'static str,
+    pub kind: String,
     pub signature: String,
     pub calls: usize,
     /// Median seconds of one forward pass.
@@ -182,7 +182,7 @@ pub fn time_calls(
         let (kept_bytes, peak_bytes) = measure_memory(&c, meter)?;
         let (forward_s, backward_s) = time_call(&c, device, repeats.max(1))?;
         out.push(CallTime {
-            kind: c.kind,
+            kind: c.kind.to_string(),
             signature,
             calls: count,
             forward_s,
@@ -298,9 +298,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// One op kind's share of a step: its calls' totals.
-#[derive(Debug, Clone, Default, serde::Serialize)]
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct KindTime {
-    pub kind: &'static str,
+    pub kind: String,
     pub calls: usize,
     /// Seconds of all its calls' forward passes, and backward passes.
     pub forward_s: f64,
@@ -313,10 +313,10 @@ pub struct KindTime {
 
 /// Per-kind totals of [`time_calls`]' figures, largest total time first.
 pub fn by_kind(times: &[CallTime]) -> Vec<KindTime> {
-    let mut kinds: BTreeMap<&'static str, KindTime> = BTreeMap::new();
+    let mut kinds: BTreeMap<&str, KindTime> = BTreeMap::new();
     for t in times {
-        let k = kinds.entry(t.kind).or_insert_with(|| KindTime {
-            kind: t.kind,
+        let k = kinds.entry(&t.kind).or_insert_with(|| KindTime {
+            kind: t.kind.clone(),
             ..Default::default()
         });
         let n = t.calls as u64;
