@@ -518,7 +518,11 @@ impl Trainer {
             }
         };
         let parts = micro_batches(n, self.cfg.train.micro_batch_size);
+        // Passes on the CPU add their gradients straight into the flat host gradient (the
+        // buffer the step hands on anyway), so no per-parameter sum is held beside it.
+        let host_sum = crate::device::is_cpu(&self.device) && !keep && parts.len() > 1;
         let mut sum: Vec<Option<Tensor>> = Vec::new();
+        let mut flat_sum: Option<Vec<f32>> = None;
         let (mut loss_value, mut forward_kept_bytes) = (0.0, None);
         for scenes in &parts {
             let rows = |t: &Option<Tensor>| -> Result<Option<Tensor>> {
@@ -538,10 +542,17 @@ impl Trainer {
             let (loss, grads, kept) = self.micro_step(batch, mb, &mut clock, &probe)?;
             loss_value += loss;
             forward_kept_bytes = forward_kept_bytes.max(kept);
-            sum = accumulate(sum, grads)?;
+            match (host_sum, &mut flat_sum) {
+                (true, None) => flat_sum = Some(self.flatten_host(grads)?),
+                (true, Some(flat)) => self.add_into(flat, grads)?,
+                (false, _) => sum = accumulate(sum, grads)?,
+            }
         }
         let peak_bytes = probe.peak();
-        let flat = self.flatten(sum, keep)?;
+        let flat = match flat_sum {
+            Some(flat) => Gradient::Host(flat),
+            None => self.flatten(sum, keep)?,
+        };
         let flatten_s = clock.lap()?;
         // The memory where the meter reads it: what was held before the batch came in, what
         // the forward pass added, the passes' peak above the start and what the flat
@@ -632,19 +643,7 @@ impl Trainer {
     /// the device where `keep` is set.
     fn flatten(&self, param_grads: Vec<Option<Tensor>>, keep: bool) -> Result<Gradient> {
         Ok(if crate::device::is_cpu(&self.device) && !keep {
-            // Room for the all-reduce's control values, so that appending them does not
-            // move the buffer.
-            let cap = self.num_parameters() + CONTROL_FLOATS;
-            let mut flat = Vec::with_capacity(cap);
-            for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
-                // Each gradient is freed once copied.
-                match g {
-                    Some(g) => extend_with(&mut flat, &g)?,
-                    // A parameter the loss does not reach (e.g. unused init of another mode).
-                    None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
-                }
-            }
-            Gradient::Host(flat)
+            Gradient::Host(self.flatten_host(param_grads)?)
         } else {
             // One flat tensor on the device; copied to the host only for an all-reduce.
             let mut parts = Vec::new();
@@ -662,6 +661,42 @@ impl Trainer {
                 Gradient::Host(flat.to_vec1::<f32>()?)
             }
         })
+    }
+
+    /// The parameters' gradients as one flat host buffer, each gradient freed once copied.
+    fn flatten_host(&self, param_grads: Vec<Option<Tensor>>) -> Result<Vec<f32>> {
+        // Room for the all-reduce's control values, so that appending them does not move
+        // the buffer.
+        let cap = self.num_parameters() + CONTROL_FLOATS;
+        let mut flat = Vec::with_capacity(cap);
+        for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
+            match g {
+                Some(g) => extend_with(&mut flat, &g)?,
+                // A parameter the loss does not reach (e.g. unused init of another mode).
+                None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
+            }
+        }
+        Ok(flat)
+    }
+
+    /// Adds a pass's gradients into a flat host gradient ([`Trainer::flatten_host`]'s
+    /// layout), each freed once added: the same sums, in the same order, as adding the
+    /// per-parameter tensors.
+    fn add_into(&self, flat: &mut [f32], param_grads: Vec<Option<Tensor>>) -> Result<()> {
+        let mut at = 0;
+        for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
+            let n = var.elem_count();
+            if let Some(g) = g {
+                let mut part = Vec::with_capacity(n);
+                extend_with(&mut part, &g)?;
+                drop(g);
+                for (a, b) in flat[at..at + n].iter_mut().zip(part) {
+                    *a += b;
+                }
+            }
+            at += n;
+        }
+        Ok(())
     }
 
     /// Clips (if configured) and applies a flat gradient with AdamW, or skips the step if
