@@ -1,9 +1,10 @@
 //! Whether a device's one-node ops compute what the CPU's do: each op with a CUDA kernel
-//! (`cuda.rs`) or a node of its own there (attention, convolution, MLP), on the same seeded inputs (ordinary and extreme) on the CPU and on the
-//! device, values and input gradients of `Σ op(args) ⊙ w` compared. `osrt check-device`
-//! reports it beside the whole train step; on the CPU it compares the CPU with itself.
+//! (`crate::cuda`) or a node of its own there (attention, convolution, MLP), on the same
+//! seeded inputs (ordinary and extreme) on the CPU and on the device, values and input
+//! gradients of `Σ op(args) ⊙ w` compared. `osrt check-device` reports it beside the whole
+//! train step; on the CPU it compares the CPU with itself.
 
-use crate::mlp::MlpAct;
+use crate::MlpAct;
 use candle_core::{Device, Result, Tensor, Var};
 use rand::{Rng, SeedableRng};
 use serde::Serialize;
@@ -182,8 +183,8 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
         "softmax backward scaled in place [64, 40]".into(),
         vec![normal(&[64, 40], 3.0, 22)?, normal(&[64, 40], 1.0, 23)?],
         Box::new(|t| {
-            let y = crate::softmax::softmax_no_grad(&t[0].detach())?;
-            crate::softmax::softmax_grad_scaled(&y, t[1].detach().copy()?, 0.125)
+            let y = crate::cpu::softmax::softmax_no_grad(&t[0].detach())?;
+            crate::cpu::softmax::softmax_grad_scaled(&y, t[1].detach().copy()?, 0.125)
         }),
     ));
     for (name, act) in BIAS_ACTS {
@@ -193,7 +194,7 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
             vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
             Box::new(move |t| {
                 let h = t[0].detach().copy()?;
-                crate::bias_act::bias_act_in_place(&h, &t[1].detach(), act)?;
+                crate::cpu::bias_act::bias_act_in_place(&h, &t[1].detach(), act)?;
                 Ok(h)
             }),
         ));
@@ -204,7 +205,7 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
             vec![normal(&[500, 96], 2.0, 6)?, normal(&[96], 1.0, 7)?],
             Box::new(move |t| {
                 let z = t[0].detach().to_dtype(candle_core::DType::BF16)?;
-                crate::bias_act::bias_act_low(&z, &t[1].detach(), act)?
+                crate::cpu::bias_act::bias_act_low(&z, &t[1].detach(), act)?
                     .to_dtype(candle_core::DType::F32)
             }),
         ));
@@ -218,7 +219,12 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
                 ],
                 Box::new(move |t| {
                     let h = t[0].detach().copy()?;
-                    crate::bias_act::bias_act_bwd_in_place(&h, &t[1].detach(), &t[2].detach(), a)?;
+                    crate::cpu::bias_act::bias_act_bwd_in_place(
+                        &h,
+                        &t[1].detach(),
+                        &t[2].detach(),
+                        a,
+                    )?;
                     Ok(h)
                 }),
             ));
@@ -232,7 +238,12 @@ fn own_buffer_cases(out: &mut Vec<(String, Vec<Tensor>, Op)>) -> Result<()> {
                 ],
                 Box::new(move |t| {
                     let low = |t: &Tensor| t.detach().to_dtype(candle_core::DType::BF16);
-                    crate::bias_act::bias_act_bwd_low(&low(&t[0])?, &t[1].detach(), &low(&t[2])?, a)
+                    crate::cpu::bias_act::bias_act_bwd_low(
+                        &low(&t[0])?,
+                        &t[1].detach(),
+                        &low(&t[2])?,
+                        a,
+                    )
                 }),
             ));
         }

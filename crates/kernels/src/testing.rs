@@ -1,7 +1,7 @@
 //! Helpers of the kernels' tests: seeded inputs, fused-vs-composed comparisons, f64
 //! finite differences, a second backward pass.
 
-use crate::*;
+use crate::with_fused;
 use candle_core::{Device, Result, Tensor, Var};
 use rand::{Rng, SeedableRng};
 

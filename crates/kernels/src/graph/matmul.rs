@@ -1,0 +1,334 @@
+//! The matrix product every node is built from: [`matmul`] and [`matmul_low`] in the
+//! thread's precision, as one graph node (`MatmulNode`) where the one-node ops are on,
+//! else candle's product; and the precision helpers of the products ([`stores_low`],
+//! [`in_precision`]).
+//!
+//! The node is a matrix product of f32 tensors, in f32 or on bf16 operands.
+//!
+//! Why, in bf16: composed from candle's ops, `a · b` in bf16 is four nodes (two casts
+//! down, the bf16 product, the cast of the product back up), and candle's graph keeps
+//! every node's inputs until the backward pass: the bf16 copies of both operands and the
+//! bf16 product stay alive beside the f32 tensors the step keeps anyway, so a bf16 step
+//! held more memory than the f32 one (the `paper` preset at batch 32 on a GPU: 89.6
+//! against 83.0 GiB). This node computes the same ops in the same order (cast, product,
+//! cast) and keeps only its f32 operands; its backward pass casts them again.
+//!
+//! Why, in f32 too: candle's backward pass of its own product computes a weight's
+//! gradient as `aᵀ · grad` from the tracked activation `a`, so that gradient carries a
+//! graph holding the output's gradient (the size of the output), and candle's gradient
+//! store keeps it until the whole backward pass has ended: one output gradient per
+//! linear layer, pinned beside the activations. This node's backward pass multiplies
+//! detached operands, so its gradients hold nothing else.
+//!
+//! The values and gradients are candle's (f32) or the composed version's (bf16) bit for
+//! bit.
+//!
+//! In bf16 the product can also be stored as it comes out of the bf16 product (see
+//! [`crate::matmul_low`]), and either operand may be such a stored bf16 tensor: the casts
+//! of a bf16 operand are no-ops and its gradient is returned in bf16 (the bf16 product's
+//! result, which the f32 version would cast up exactly), so the values and gradients
+//! are the f32-stored version's, while the graph holds half the bytes.
+
+use crate::{Precision, device_graph, enabled, precision, profile};
+use candle_core::backend::BackendStorage;
+use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
+
+/// `a · b` (candle's batched matmul) in this thread's [`precision`]; with the fused ops
+/// on, as one node that keeps no bf16 copies and whose gradients hold no graph
+/// (`MatmulNode`).
+pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    profile::op("matmul", &[a, b], |t| {
+        let f32s = t.iter().all(|t| t.dtype() == candle_core::DType::F32);
+        if enabled() && (f32s || stores_low(&[&t[0], &t[1]])) {
+            let bf16 = precision() == Precision::Bf16;
+            return matmul_node(&t[0], &t[1], bf16);
+        }
+        in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
+    })
+}
+
+/// [`matmul`], the product stored as the bf16 product returns it where the products run
+/// in bf16 on the device graph (else as [`matmul`]): for a product whose one reader is
+/// another bf16 product or an op that reads it in f32, where storing it in f32 would
+/// only double the bytes the graph keeps (autocast stores a product in bf16 too). The
+/// values and gradients are [`matmul`]'s (`MatmulNode`).
+pub fn matmul_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    profile::op("matmul", &[a, b], |t| {
+        if stores_low(&[&t[0], &t[1]]) {
+            return matmul_node_low(&t[0], &t[1]);
+        }
+        matmul(&t[0], &t[1])
+    })
+}
+
+/// Whether products of `ts` run on bf16 operands with the device graph's nodes, which
+/// also take (and may store) bf16 tensors ([`matmul_low`]).
+pub(crate) fn stores_low(ts: &[&Tensor]) -> bool {
+    enabled()
+        && precision() == Precision::Bf16
+        && ts.iter().all(|t| {
+            matches!(t.dtype(), DType::F32 | DType::BF16)
+                && t.rank() >= 1
+                && device_graph(t)
+                && (t.device().is_cpu() || (cfg!(feature = "cuda") && t.device().is_cuda()))
+        })
+}
+
+/// Runs a product-like op on its f32 operands rounded to bf16 when the thread's precision
+/// asks for it (the result back in f32; the casts carry the gradient back to f32).
+pub(crate) fn in_precision(
+    ts: &[&Tensor],
+    op: impl FnOnce(&[Tensor]) -> Result<Tensor>,
+) -> Result<Tensor> {
+    let cast = precision() == Precision::Bf16 && ts.iter().all(|t| t.dtype() == DType::F32);
+    if !cast {
+        let owned: Vec<Tensor> = ts.iter().map(|t| (*t).clone()).collect();
+        return op(&owned);
+    }
+    let low = ts
+        .iter()
+        .map(|t| t.to_dtype(DType::BF16))
+        .collect::<Result<Vec<_>>>()?;
+    op(&low)?.to_dtype(DType::F32)
+}
+
+/// `a · b` in f32, or with both operands rounded to bf16 and the product returned in f32
+/// where `bf16` is set (see the module docs). `a: [.., m, k]`, `b: [.., k, n]` (the same
+/// leading dims) → `[.., m, n]`.
+pub(crate) fn matmul_node(a: &Tensor, b: &Tensor, bf16: bool) -> Result<Tensor> {
+    a.apply_op2(b, MatmulNode { bf16, low: false })
+}
+
+/// [`matmul_node`] in bf16, the product stored in bf16 (as the bf16 product returns it).
+pub(crate) fn matmul_node_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    a.apply_op2(
+        b,
+        MatmulNode {
+            bf16: true,
+            low: true,
+        },
+    )
+}
+
+struct MatmulNode {
+    bf16: bool,
+    /// The product stays in bf16 (only with `bf16`).
+    low: bool,
+}
+
+/// `(batch, m, n, k)` and the product's shape, as `Tensor::matmul` checks them.
+fn dims(la: &Layout, lb: &Layout) -> Result<((usize, usize, usize, usize), Shape)> {
+    let (a, b) = (la.dims(), lb.dims());
+    let r = a.len();
+    if r < 2 || b.len() != r || a[..r - 2] != b[..r - 2] || a[r - 1] != b[r - 2] {
+        candle_core::bail!("bf16 matmul: shapes {a:?} and {b:?} do not multiply");
+    }
+    let (m, k, n) = (a[r - 2], a[r - 1], b[r - 1]);
+    let batch = a[..r - 2].iter().product();
+    Ok(((batch, m, n, k), Shape::from(&a[..r - 2]).extend(&[m, n])))
+}
+
+/// The forward pass on any backend's storage: in bf16 cast down, multiply, cast up; in
+/// f32 the product as candle's `Tensor::matmul` computes it.
+fn forward<S: BackendStorage>(
+    a: &S,
+    la: &Layout,
+    b: &S,
+    lb: &Layout,
+    node: &MatmulNode,
+) -> Result<(S, Shape)> {
+    let takes = |d: DType| d == DType::F32 || (node.bf16 && d == DType::BF16);
+    if !takes(a.dtype()) || !takes(b.dtype()) {
+        candle_core::bail!("matmul node: takes f32 operands (or bf16 ones in bf16)");
+    }
+    let (bmnk, shape) = dims(la, lb)?;
+    if !node.bf16 {
+        return Ok((a.matmul(b, bmnk, la, lb)?, shape));
+    }
+    let a16 = a.to_dtype(la, DType::BF16)?;
+    let b16 = b.to_dtype(lb, DType::BF16)?;
+    // The casts wrote contiguous copies.
+    let (ca, cb) = (
+        Layout::contiguous(la.shape()),
+        Layout::contiguous(lb.shape()),
+    );
+    let y16 = a16.matmul(&b16, bmnk, &ca, &cb)?;
+    if node.low {
+        return Ok((y16, shape));
+    }
+    let y = y16.to_dtype(&Layout::contiguous(&shape), DType::F32)?;
+    Ok((y, shape))
+}
+
+impl CustomOp2 for MatmulNode {
+    fn name(&self) -> &'static str {
+        "osrt-matmul"
+    }
+
+    fn cpu_fwd(
+        &self,
+        a: &CpuStorage,
+        la: &Layout,
+        b: &CpuStorage,
+        lb: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        forward(a, la, b, lb, self)
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        a: &candle_core::CudaStorage,
+        la: &Layout,
+        b: &candle_core::CudaStorage,
+        lb: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        forward(a, la, b, lb, self)
+    }
+
+    /// What candle's backward pass of the composed version computes (in bf16: the
+    /// gradient cast to bf16, multiplied with the other operand's bf16 copy, cast back to
+    /// f32, or left in bf16 for a bf16 operand), on detached operands (see the module
+    /// docs).
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (ad, bd) = (a.detach(), b.detach());
+        let low = |t: &Tensor| match self.bf16 && t.dtype() != DType::BF16 {
+            true => t.to_dtype(DType::BF16),
+            false => Ok(t.clone()),
+        };
+        // A gradient in its operand's type.
+        let high = |t: Tensor, like: &Tensor| match self.bf16 && like.dtype() == DType::F32 {
+            true => t.to_dtype(DType::F32),
+            false => Ok(t),
+        };
+        let g = low(&grad.detach())?;
+        let da = match a.track_op() {
+            true => Some(high(g.matmul(&low(&bd)?.t()?)?, a)?),
+            false => None,
+        };
+        let db = match b.track_op() {
+            true => Some(high(low(&ad)?.t()?.matmul(&g)?, b)?),
+            false => None,
+        };
+        Ok((da, db))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::randn;
+    use candle_core::Var;
+
+    /// The composed version: candle's product, in bf16 what `in_precision` builds from
+    /// candle's ops.
+    fn composed(a: &Tensor, b: &Tensor, bf16: bool) -> Result<Tensor> {
+        match bf16 {
+            true => a
+                .to_dtype(DType::BF16)?
+                .matmul(&b.to_dtype(DType::BF16)?)?
+                .to_dtype(DType::F32),
+            false => a.matmul(b),
+        }
+    }
+
+    fn bits(t: &Tensor) -> Vec<u32> {
+        let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// Values and both gradients equal the composed version's bit for bit, in f32 and
+    /// bf16, for plain, batched and transposed operands and for extreme inputs (tiny,
+    /// huge, a mixture), and the node's gradients carry no graph (candle's own do); an
+    /// operand that carries no gradient gets none.
+    #[test]
+    fn the_node_gives_the_composed_bits_forward_and_backward() {
+        for bf16 in [false, true] {
+            for (scale_a, scale_b) in [(1.0f32, 1.0f32), (1e-30, 1e-8), (1e18, 1e19), (1e-3, 3e4)] {
+                for (sa, sb, transpose) in [
+                    (&[7usize, 5][..], &[5usize, 3][..], false),
+                    (&[2, 9, 6][..], &[2, 6, 4][..], false),
+                    (&[2, 9, 6][..], &[2, 4, 6][..], true),
+                ] {
+                    let a = Var::from_tensor(&randn(sa, scale_a, 1)).unwrap();
+                    let b = Var::from_tensor(&randn(sb, scale_b, 2)).unwrap();
+                    let bt = |b: &Var| match transpose {
+                        true => b.as_tensor().t().unwrap(),
+                        false => b.as_tensor().clone(),
+                    };
+                    let g = Tensor::new(0.7f32, &candle_core::Device::Cpu).unwrap();
+                    let run = |f: &dyn Fn(&Tensor, &Tensor) -> Result<Tensor>| {
+                        let y = f(a.as_tensor(), &bt(&b)).unwrap();
+                        let w = randn(y.dims(), 1.0, 4);
+                        let loss = (y.clone() * &w).unwrap().sum_all().unwrap();
+                        let grads = loss.broadcast_mul(&g).unwrap().backward().unwrap();
+                        let ga = grads.get(a.as_tensor()).unwrap().clone();
+                        let gb = grads.get(b.as_tensor()).unwrap().clone();
+                        (y, ga, gb)
+                    };
+                    let (y0, ga0, gb0) = run(&|a, b| composed(a, b, bf16));
+                    let (y1, ga1, gb1) = run(&|a, b| matmul_node(a, b, bf16));
+                    let case = format!(
+                        "bf16 {bf16}: {sa:?}×{sb:?} t{transpose} at {scale_a:e}, {scale_b:e}"
+                    );
+                    assert!(bf16 || ga0.track_op() || gb0.track_op(), "{case}");
+                    assert!(!ga1.track_op() && !gb1.track_op(), "{case}");
+                    assert_eq!(bits(&y1), bits(&y0), "values, {case}");
+                    assert_eq!(bits(&ga1), bits(&ga0), "gradient of a, {case}");
+                    assert_eq!(bits(&gb1), bits(&gb0), "gradient of b, {case}");
+                    assert_eq!(y1.dtype(), DType::F32);
+                }
+            }
+        }
+        // A constant operand: its gradient is not computed, the other one's is.
+        let a = randn(&[4, 3], 1.0, 5);
+        let b = Var::from_tensor(&randn(&[3, 2], 1.0, 6)).unwrap();
+        let grads = matmul_node(&a, b.as_tensor(), true)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        assert!(grads.get(&a).is_none() && grads.get(b.as_tensor()).is_some());
+        assert!(matmul_node(&a, &randn(&[2, 2], 1.0, 7), true).is_err());
+    }
+
+    /// A product stored in bf16 and read by the next bf16 product gives the values and
+    /// gradients of the same chain stored in f32, bit for bit, in half the bytes.
+    #[test]
+    fn a_product_stored_in_bf16_gives_the_f32_stored_bits() {
+        for scale in [1.0f32, 1e-30, 1e18] {
+            let x = Var::from_tensor(&randn(&[2, 5, 6], scale, 11)).unwrap();
+            let w1 = Var::from_tensor(&randn(&[2, 6, 4], 1.0, 12)).unwrap();
+            let w2 = Var::from_tensor(&randn(&[2, 4, 3], 1.0, 13)).unwrap();
+            let run = |stored_low: bool| {
+                let h = match stored_low {
+                    true => matmul_node_low(x.as_tensor(), w1.as_tensor()).unwrap(),
+                    false => matmul_node(x.as_tensor(), w1.as_tensor(), true).unwrap(),
+                };
+                let want = if stored_low { DType::BF16 } else { DType::F32 };
+                assert_eq!(h.dtype(), want);
+                let y = matmul_node(&h, w2.as_tensor(), true).unwrap();
+                let w = randn(y.dims(), 1.0, 14);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let mut out = vec![bits(&y), bits(&h.to_dtype(DType::F32).unwrap())];
+                for v in [&x, &w1, &w2] {
+                    let gv = g.get(v.as_tensor()).unwrap();
+                    assert_eq!(gv.dtype(), DType::F32);
+                    out.push(bits(gv));
+                }
+                out
+            };
+            assert_eq!(run(true), run(false), "scale {scale:e}");
+        }
+        // Without bf16 products, a bf16 operand is refused.
+        let h = randn(&[3, 4], 1.0, 15).to_dtype(DType::BF16).unwrap();
+        assert!(matmul_node(&h, &randn(&[4, 2], 1.0, 16), false).is_err());
+    }
+}
