@@ -58,6 +58,12 @@ pub struct TrainArgs {
     /// Override the peak learning rate.
     #[arg(long)]
     pub lr: Option<f64>,
+    /// Where the learning rate's decay ends (`train.horizon`): `fixed` (the config's
+    /// decay_steps), `budget` (the job's last step: --max-steps, or measured from
+    /// --max-minutes over the warm-up and recorded in run.json) or a step count (a
+    /// budget run's recorded horizon reruns it to the bit on any host).
+    #[arg(long)]
+    pub horizon: Option<osrt_trainer::schedule::Horizon>,
     /// Override scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -83,6 +89,11 @@ pub struct TrainArgs {
     /// Override slot-attention iterations.
     #[arg(long)]
     pub iterations: Option<usize>,
+    /// How the gradient flows through the slot iterations: full (the paper's), implicit
+    /// (the last iteration only) or bilevel (the last, passed straight to the initial
+    /// slots: BO-QSA).
+    #[arg(long)]
+    pub slot_gradient: Option<osrt_model::slot_attention::SlotGradient>,
     /// Override the slot init: learned, random, or tokens (an option beyond the paper).
     #[arg(long)]
     pub slot_init: Option<String>,
@@ -162,6 +173,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     if let Some(v) = a.lr {
         t.lr = v;
     }
+    if let Some(v) = a.horizon {
+        t.horizon = v;
+    }
     if let Some(v) = a.batch_size {
         t.batch_size = v;
     }
@@ -212,6 +226,9 @@ fn job_config(a: &TrainArgs) -> Result<JobConfig> {
     }
     if let Some(v) = a.iterations {
         sa.iterations = v;
+    }
+    if let Some(v) = a.slot_gradient {
+        sa.gradient = v;
     }
     if let Some(v) = &a.slot_init {
         sa.init = v.parse::<SlotInit>().map_err(anyhow::Error::msg)?;

@@ -259,6 +259,73 @@ fn resume_is_bit_identical_to_a_straight_run() {
 }
 
 #[test]
+fn a_budget_horizon_is_measured_recorded_and_reruns_to_the_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_dataset(dir.path(), 64);
+    let budget = dir.path().join("budget");
+    let (d, b) = (data.to_str().unwrap(), budget.to_str().unwrap());
+    // A deadline and no step limit: rank 0 measures the horizon over the warm-up (2 steps).
+    osrt_env(
+        &[
+            "train",
+            "--preset",
+            "tiny",
+            "--workers",
+            "2",
+            "--threads",
+            "1",
+            "--data",
+            d,
+            "--run",
+            b,
+            "--max-minutes",
+            "0.2",
+            "--horizon",
+            "budget",
+        ],
+        &[],
+    );
+    let info = read_json(&budget.join("run.json")).unwrap();
+    let h = info["horizon"]
+        .as_u64()
+        .expect("the measured horizon is in run.json");
+    let job = read_json(&budget.join("job.json")).unwrap();
+    let last = job["last_checkpoint"].as_u64().unwrap();
+    assert!(h > 2 && last > 2, "horizon {h}, last step {last}");
+    let state = read_json(&checkpoint_file(&budget, last, "state.json")).unwrap();
+    assert_eq!(state["horizon"].as_u64(), Some(h), "{state}");
+    // Every step after the warm-up decayed towards the floor at the horizon (the tiny
+    // preset: peak 1e-3, 2 warm-up steps, floor 0.16 × the peak).
+    let records = read_jsonl(&budget.join("metrics.jsonl"));
+    let lrs: Vec<(u64, f64)> = records
+        .iter()
+        .filter_map(|r| Some((r["step"].as_u64()?, r.get("lr")?.as_f64()?)))
+        .collect();
+    assert_eq!(lrs.len() as u64, last, "one training record per step");
+    for &(step, lr) in &lrs {
+        let s = step - 1;
+        let want = if s < 2 {
+            1e-3 * (s + 1) as f64 / 2.0
+        } else {
+            1e-3 * 0.16f64.powf(((s - 2) as f64 / (h - 2) as f64).min(1.0))
+        };
+        assert!(
+            (lr - want).abs() <= 1e-9 * want,
+            "step {step}: lr {lr}, want {want}"
+        );
+    }
+    // The same config given the recorded horizon takes the same steps to the bit.
+    let rerun = dir.path().join("rerun");
+    train(&data, &rerun, last, &["--horizon", &h.to_string()]);
+    for file in ["model.safetensors", "optimizer.safetensors"] {
+        assert!(
+            checkpoint_bytes(&budget, last, file) == checkpoint_bytes(&rerun, last, file),
+            "{file} differs in the rerun with horizon {h}"
+        );
+    }
+}
+
+#[test]
 fn a_torn_or_corrupt_checkpoint_is_skipped() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_dataset(dir.path(), 32);

@@ -372,6 +372,7 @@ impl Coordinator {
             data: spec.data.clone(),
             parameters: None,
             workers: spec.cluster.min_workers,
+            horizon: None,
         };
         write_file(
             run,

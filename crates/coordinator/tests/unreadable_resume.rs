@@ -51,6 +51,7 @@ async fn trained_run() -> (Arc<ChaosStore>, Location, Vec<u8>) {
             config_hash: checkpoint::config_hash(TOML),
             val_fg_ari: None,
             val_psnr: None,
+            horizon: None,
         };
         let files = vec![
             (MODEL, Bytes::from(vec![step as u8; 64])),

@@ -64,6 +64,7 @@ impl Config {
                 iterations: 3,
                 init: SlotInit::Learned,
                 eps: 1e-8,
+                gradient: Default::default(),
             },
             decoder: decoder::Config::SlotMixer(decoder::slot_mixer::Config {
                 query_hidden: 192,
@@ -109,6 +110,7 @@ impl Config {
                 iterations: 2,
                 init: SlotInit::Learned,
                 eps: 1e-8,
+                gradient: Default::default(),
             },
             decoder: decoder::Config::SlotMixer(decoder::slot_mixer::Config {
                 query_hidden: 12,

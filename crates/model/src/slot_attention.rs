@@ -40,6 +40,46 @@ impl std::str::FromStr for SlotInit {
     }
 }
 
+/// How the training gradient flows through the slot iterations (the values are the same
+/// in all three).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SlotGradient {
+    /// Through every iteration (the paper's).
+    #[default]
+    Full,
+    /// Through the last iteration only: the slots are detached before it, treating the
+    /// earlier iterations as finding a fixed point (Chang et al. 2022, "Object
+    /// Representations as Fixed Points"). The initial slots get no gradient.
+    Implicit,
+    /// As `implicit`, with the last iteration's gradient passed straight through to the
+    /// initial slots (`slots.detach() + init − init.detach()`), so that learned initial
+    /// slots still learn (BO-QSA: Jia et al. 2023, "Improving Object-centric Learning
+    /// with Query Optimization"). With one iteration, the same as `full`.
+    Bilevel,
+}
+
+impl SlotGradient {
+    pub fn is_full(&self) -> bool {
+        *self == SlotGradient::Full
+    }
+}
+
+impl std::str::FromStr for SlotGradient {
+    type Err = String;
+    /// The names the configs use: `full`, `implicit`, `bilevel`.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "full" => Ok(Self::Full),
+            "implicit" => Ok(Self::Implicit),
+            "bilevel" => Ok(Self::Bilevel),
+            other => Err(format!(
+                "unknown slot gradient `{other}`: expected full, implicit or bilevel"
+            )),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Config {
     pub num_slots: usize,
@@ -48,6 +88,10 @@ pub struct Config {
     pub iterations: usize,
     pub init: SlotInit,
     pub eps: f64,
+    /// How the gradient flows through the iterations ([`SlotGradient`]); serialised only
+    /// when not `full`, so configs written before it keep their hashes.
+    #[serde(default, skip_serializing_if = "SlotGradient::is_full")]
+    pub gradient: SlotGradient,
 }
 
 impl Config {
@@ -60,6 +104,7 @@ impl Config {
             iterations: 1,
             init: SlotInit::Learned,
             eps: 1e-8,
+            gradient: SlotGradient::Full,
         }
     }
 }
@@ -231,9 +276,19 @@ impl SlotAttention {
         let v = self.to_v.forward(&x)?; // [b, n, ds]
         let kt = k.t()?.contiguous()?; // [b, ds, n]
         let scale = 1.0 / (self.cfg.slot_dim as f64).sqrt();
-        let mut slots = self.initial_slots_from(b, noise, Some(&x))?;
+        let init = self.initial_slots_from(b, noise, Some(&x))?;
+        let mut slots = init.clone();
         let mut attention = None;
-        for _ in 0..self.cfg.iterations.max(1) {
+        let iterations = self.cfg.iterations.max(1);
+        for i in 0..iterations {
+            if i + 1 == iterations {
+                slots = match self.cfg.gradient {
+                    SlotGradient::Full => slots,
+                    SlotGradient::Implicit => slots.detach(),
+                    // init − init.detach() is exactly 0: the values are unchanged.
+                    SlotGradient::Bilevel => (slots.detach() + (&init - init.detach())?)?,
+                };
+            }
             let prev = slots.clone();
             let q = self.to_q.forward(&self.norm_slots.forward(&slots)?)?; // [b, k, ds]
             let logits = (q.matmul(&kt)? * scale)?; // [b, k, n]

@@ -61,6 +61,10 @@ pub struct CheckpointState {
     /// Latest validation FG-ARI and PSNR before this step (retention keeps the best).
     pub val_fg_ari: Option<f64>,
     pub val_psnr: Option<f64>,
+    /// The learning rate's decay horizon in force (a budget job's, once measured): a
+    /// resume keeps it. Absent: none (a fixed schedule, or not measured yet).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub horizon: Option<u64>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

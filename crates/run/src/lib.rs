@@ -43,6 +43,10 @@ pub struct RunInfo {
     #[serde(default)]
     pub parameters: Option<usize>,
     pub workers: usize,
+    /// The learning rate's decay horizon a budget job measured (rank 0, when every rank
+    /// has it): `osrt train --horizon N` reruns the job to the bit on any host.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub horizon: Option<u64>,
 }
 
 /// Records the model's parameter count in `RUN/run.json` (rank 0, at a generation's
@@ -59,6 +63,21 @@ pub async fn record_parameters(run: &Location, parameters: usize) -> Result<()> 
         return Ok(());
     }
     info.parameters = Some(parameters);
+    let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
+    write_file(run, INFO_FILE, bytes).await
+}
+
+/// Records a budget job's measured decay horizon in `RUN/run.json` (rank 0); a no-op when
+/// the file is absent.
+pub async fn record_horizon(run: &Location, horizon: u64) -> Result<()> {
+    let Some(bytes) = read_file(run, INFO_FILE).await? else {
+        return Ok(());
+    };
+    let mut info: RunInfo = serde_json::from_slice(&bytes).map_err(|e| RunError::Run {
+        path: run.describe(&run.path(INFO_FILE)),
+        reason: format!("unreadable: {e}"),
+    })?;
+    info.horizon = Some(horizon);
     let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
     write_file(run, INFO_FILE, bytes).await
 }

@@ -29,6 +29,7 @@ fn state(step: u64) -> CheckpointState {
         config_hash: "c".into(),
         val_fg_ari: None,
         val_psnr: None,
+        horizon: None,
     }
 }
 

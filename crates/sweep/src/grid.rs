@@ -52,7 +52,7 @@ pub struct SweepFile {
 }
 
 /// The settings a point may make, in the order names list them.
-const AXES: [&str; 12] = [
+const AXES: [&str; 16] = [
     "decoder",
     "poses",
     "input_views",
@@ -65,6 +65,10 @@ const AXES: [&str; 12] = [
     "lr",
     "batch_size",
     "micro_batch_size",
+    "rays_per_scene",
+    "warmup_steps",
+    "horizon",
+    "slot_gradient",
 ];
 
 /// An explicit point's settings as text, in [`AXES`] order; `i` names it in errors.
@@ -145,6 +149,17 @@ pub struct Axes {
     pub batch_size: Vec<usize>,
     #[serde(default)]
     pub micro_batch_size: Vec<usize>,
+    /// Target rays per scene and step.
+    #[serde(default)]
+    pub rays_per_scene: Vec<usize>,
+    #[serde(default)]
+    pub warmup_steps: Vec<u64>,
+    /// Where the learning rate's decay ends: `fixed`, `budget` or a step count.
+    #[serde(default)]
+    pub horizon: Vec<String>,
+    /// How the gradient flows through the slot iterations: `full`, `implicit`, `bilevel`.
+    #[serde(default)]
+    pub slot_gradient: Vec<String>,
 }
 
 impl Axes {
@@ -174,6 +189,10 @@ impl Axes {
             ("lr", text(&self.lr)),
             ("batch_size", text(&self.batch_size)),
             ("micro_batch_size", text(&self.micro_batch_size)),
+            ("rays_per_scene", text(&self.rays_per_scene)),
+            ("warmup_steps", text(&self.warmup_steps)),
+            ("horizon", self.horizon.clone()),
+            ("slot_gradient", self.slot_gradient.clone()),
         ]
         .into_iter()
         .filter(|(_, v)| !v.is_empty())
@@ -234,6 +253,12 @@ impl Point {
                 "input_views" => job.train.input_views = int()?,
                 "batch_size" => job.train.batch_size = int()?,
                 "micro_batch_size" => job.train.micro_batch_size = Some(int()?),
+                "rays_per_scene" => job.train.rays_per_scene = int()?,
+                "warmup_steps" => job.train.warmup_steps = int()? as u64,
+                "horizon" => job.train.horizon = value.parse().map_err(err)?,
+                "slot_gradient" => {
+                    job.model.slot_attention.gradient = value.parse().map_err(err)?
+                }
                 "slots" => job.model.slot_attention.num_slots = int()?,
                 "iterations" => job.model.slot_attention.iterations = int()?,
                 "slot_init" => {

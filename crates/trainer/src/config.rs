@@ -4,6 +4,7 @@
 
 use crate::device::DeviceSpec;
 use crate::error::{Result, TrainError};
+use crate::schedule::{Horizon, MAX_HORIZON, Schedule};
 use osrt_dataset::{InputSelection, Manifest, RayFrame, TargetViews};
 use osrt_kernels::{Kernels, Precision};
 use osrt_model::decoder::Config as DecoderConfig;
@@ -75,9 +76,15 @@ pub struct TrainConfig {
     /// Peak learning rate after warm-up.
     pub lr: f64,
     pub warmup_steps: u64,
-    /// After warm-up: `lr · decay_rate^((step − warmup) / decay_steps)`.
+    /// After warm-up: `lr · decay_rate^((step − warmup) / decay_steps)`, or with a
+    /// horizon `H`, `lr · decay_rate^min(1, (step − warmup) / (H − warmup))`.
     pub decay_rate: f64,
     pub decay_steps: f64,
+    /// Where the decay ends: `fixed` (`decay_steps`, on and on), `budget` (the job's last
+    /// step, measured from `--max-minutes` or given by `--max-steps`) or a step count
+    /// (`crate::schedule`).
+    #[serde(default, skip_serializing_if = "Horizon::is_fixed")]
+    pub horizon: Horizon,
     pub beta1: f64,
     pub beta2: f64,
     pub adam_eps: f64,
@@ -134,6 +141,7 @@ impl TrainConfig {
             warmup_steps: 5000,
             decay_rate: 0.16,
             decay_steps: 4e6,
+            horizon: Horizon::Fixed,
             beta1: 0.9,
             beta2: 0.999,
             adam_eps: 1e-8,
@@ -151,16 +159,22 @@ impl TrainConfig {
         }
     }
 
-    /// Learning rate at `step` (0-based): linear warm-up, then exponential decay.
-    pub fn lr_at(&self, step: u64) -> f64 {
-        if step < self.warmup_steps {
-            self.lr * (step + 1) as f64 / self.warmup_steps as f64
-        } else {
-            self.lr
-                * self
-                    .decay_rate
-                    .powf((step - self.warmup_steps) as f64 / self.decay_steps)
+    /// The learning-rate schedule's settings.
+    pub fn schedule(&self) -> Schedule {
+        Schedule {
+            lr: self.lr,
+            warmup_steps: self.warmup_steps,
+            decay_rate: self.decay_rate,
+            decay_steps: self.decay_steps,
+            horizon: self.horizon,
         }
+    }
+
+    /// Learning rate at `step` (0-based) before any measured horizon: linear warm-up,
+    /// then exponential decay (`crate::schedule`).
+    pub fn lr_at(&self, step: u64) -> f64 {
+        let s = self.schedule();
+        s.lr_at(step, s.initial_horizon(None, false))
     }
 }
 
@@ -375,6 +389,13 @@ impl JobConfig {
         // At most 2^8: stelzner/osrt's `downsample` is a power of two, and views are at
         // most a few thousand pixels wide.
         within("train.input_stride", t.input_stride, 1..=256)?;
+        if let Horizon::Steps(h) = t.horizon
+            && !(1..=MAX_HORIZON).contains(&h)
+        {
+            return Err(format!(
+                "train.horizon must be fixed, budget or a step count in 1..={MAX_HORIZON}, got {h}"
+            ));
+        }
         for (name, v) in [
             ("log_every", t.log_every),
             ("max_consecutive_skips", t.max_consecutive_skips),

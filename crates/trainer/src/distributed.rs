@@ -3,15 +3,16 @@
 //! together with a few control values, so that every replica derives the same averaged
 //! gradient, loss and decisions from the same bytes.
 //!
-//! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop, bad,
-//! bad_rank + 1]` where `n` is the rank's scene count ([`CONTROL_FLOATS`] after the
-//! gradient). `evaluate` and `stop` are set by rank 0 only (its clock decides), so after
-//! the sum every rank sees rank 0's decision. `bad` is 1 on a rank whose loss or gradient
+//! Buffer layout (f32): `[g₀·n, g₁·n, …, g_{P−1}·n, n, loss·n, evaluate, stop, horizon,
+//! bad, bad_rank + 1]` where `n` is the rank's scene count ([`CONTROL_FLOATS`] after the
+//! gradient). `evaluate`, `stop` and `horizon` (0: none) are set by rank 0 only (its
+//! clock decides), so after the sum every rank sees rank 0's decision. `bad` is 1 on a rank whose loss or gradient
 //! is not finite: the sums say how many and, when one, which. A non-finite value on any
 //! rank makes the sum non-finite on every rank, so all replicas skip the step together.
 
 use crate::error::Result;
 use crate::optim::GradSummary;
+use crate::schedule::MAX_HORIZON;
 use crate::step::{Gradient, StepGradients};
 
 /// Floats appended after the gradient.
@@ -22,6 +23,9 @@ pub use crate::step::CONTROL_FLOATS;
 pub struct Signals {
     pub evaluate: bool,
     pub stop: bool,
+    /// The learning rate's decay horizon rank 0 measured (`crate::schedule`): at most
+    /// `schedule::MAX_HORIZON`, exact in f32.
+    pub horizon: Option<u64>,
 }
 
 /// The step every replica takes.
@@ -118,6 +122,7 @@ pub fn control(
         loss as f32 * n,
         f32::from(u8::from(mine.evaluate)),
         f32::from(u8::from(mine.stop)),
+        mine.horizon.map_or(0.0, |h| h.min(MAX_HORIZON) as f32),
         f32::from(u8::from(bad)),
         if bad { (rank + 1) as f32 } else { 0.0 },
     ]
@@ -137,7 +142,15 @@ pub fn reduced_from(mut buf: Vec<f32>) -> Reduced {
 /// The step every rank derives from the summed control values, with `grads` the summed
 /// gradient already divided by the scene count (`sums[0]`).
 pub fn reduced_with(grads: Gradient, sums: &[f32; CONTROL_FLOATS]) -> Reduced {
-    let [total, loss_sum, evaluate, stop, bad_count, bad_rank_sum] = *sums;
+    let [
+        total,
+        loss_sum,
+        evaluate,
+        stop,
+        horizon,
+        bad_count,
+        bad_rank_sum,
+    ] = *sums;
     let (bad_count, bad_rank_sum) = (bad_count as u32, bad_rank_sum as usize);
     let nonfinite = NonFiniteRanks {
         count: bad_count,
@@ -151,6 +164,7 @@ pub fn reduced_with(grads: Gradient, sums: &[f32; CONTROL_FLOATS]) -> Reduced {
         signals: Signals {
             evaluate: evaluate > 0.5,
             stop: stop > 0.5,
+            horizon: (horizon >= 1.0).then_some(horizon as u64),
         },
         nonfinite,
     }

@@ -110,11 +110,13 @@ pub async fn import_stelzner(
         config_hash: checkpoint::config_hash(&toml),
         val_fg_ari: None,
         val_psnr: None,
+        horizon: None,
     };
     let info = RunInfo {
         data: data.unwrap_or_default().to_string(),
         parameters: Some(trainer.num_parameters()),
         workers: 1,
+        horizon: None,
     };
     write_file(run, CONFIG_FILE, toml.into_bytes()).await?;
     write_file(

@@ -18,6 +18,7 @@ use crate::error::{Result, TrainError};
 use crate::eval::{EvalOptions, EvalResult, evaluate};
 use crate::feed::Feed;
 use crate::retry::{READ_RETRY_BUDGET, retry_transient};
+use crate::schedule::{Horizon, RateClock};
 use crate::shard::{EpochPlan, scene_rng};
 use crate::step::{ApplyOutcome, Gradient, StepGradients, Trainer};
 use candle_core::Device;
@@ -42,6 +43,9 @@ pub struct Start {
     pub config_hash: String,
     /// Generations the coordinator formed again before this one (for the records).
     pub restarts: u32,
+    /// The job's budget: its step limit and deadline (Unix seconds).
+    pub max_steps: Option<u64>,
+    pub deadline_unix_s: Option<f64>,
 }
 
 /// What a finished step asks of the shell.
@@ -54,6 +58,9 @@ pub struct StepEnd {
     pub snapshot: Option<Snapshot>,
     /// The job's last step (the step limit or the deadline).
     pub last: bool,
+    /// The decay horizon this step decided (a budget job's, measured on rank 0): the
+    /// shell records it in `run.json`.
+    pub horizon_decided: Option<u64>,
 }
 
 /// The epoch in progress: its sequence, this rank's scenes of it, its first step.
@@ -114,6 +121,10 @@ pub struct Learner {
     step_start: Instant,
     window: Window,
     restarts: u32,
+    max_steps: Option<u64>,
+    deadline_unix_s: Option<f64>,
+    /// Rank 0's step rate, for a budget job's horizon (`crate::schedule`).
+    rate: RateClock,
     /// Pictures of validations for the run folder (rank 0), `(step, name, PNG)`, until
     /// the shell takes them.
     pictures: Vec<(u64, &'static str, Vec<u8>)>,
@@ -153,6 +164,8 @@ impl Learner {
             "ChaCha8 per scene and step from (seed {}, step, scene id)",
             t.seed
         );
+        trainer.horizon = starting_horizon(t, state.horizon, &s);
+        state.horizon = trainer.horizon;
         let data = s.data;
         let groups = Arc::new(
             retry_transient("listing the train split", READ_RETRY_BUDGET, || {
@@ -210,6 +223,9 @@ impl Learner {
             step_start: now,
             window: Window::new(),
             restarts: s.restarts,
+            max_steps: s.max_steps,
+            deadline_unix_s: s.deadline_unix_s,
+            rate: RateClock::default(),
             pictures: Vec::new(),
         })
     }
@@ -240,20 +256,39 @@ impl Learner {
         self.gen_start = Instant::now();
         self.last_eval = Instant::now();
         self.window = Window::new();
+        let warmup = self.train().warmup_steps;
         if self.trainer.step != 0 {
+            self.rate.start(self.trainer.step, unix_now(), warmup);
             return Ok(None);
         }
         let r = self.evaluate()?;
+        self.rate.evaluated(self.last_eval.elapsed().as_secs_f64());
+        self.rate.start(0, unix_now(), warmup);
         self.keep_pictures(0, &r);
         Ok((self.rank == 0).then(|| eval_record(0, 0.0, 0.0, &r).into()))
     }
 
     /// Rank 0's clock decides for every rank: validate now (the interval has passed),
-    /// stop now (the deadline has passed).
-    pub fn signals(&self, deadline_unix_s: Option<f64>) -> Signals {
+    /// stop now (the deadline has passed), the decay's horizon (a budget job's, from the
+    /// last warm-up step on, until one is decided).
+    pub fn signals(&self) -> Signals {
+        let t = self.train();
+        let now = unix_now();
+        let horizon = match (t.horizon, self.trainer.horizon, self.deadline_unix_s) {
+            (Horizon::Budget, None, Some(d)) => self.rate.propose(
+                self.trainer.step,
+                now,
+                d,
+                t.warmup_steps,
+                t.eval_every_s,
+                self.max_steps,
+            ),
+            _ => None,
+        };
         Signals {
-            evaluate: self.last_eval.elapsed().as_secs_f64() >= self.train().eval_every_s,
-            stop: deadline_unix_s.is_some_and(|d| unix_now() >= d),
+            evaluate: self.last_eval.elapsed().as_secs_f64() >= t.eval_every_s,
+            stop: self.deadline_unix_s.is_some_and(|d| now >= d),
+            horizon,
         }
     }
 
@@ -298,14 +333,20 @@ impl Learner {
     /// decides what the step leaves: a training record every `log_every` steps, a
     /// validation when rank 0's clock asked or at the end, the parameter hash every
     /// `hash_every` steps, a checkpoint snapshot every `checkpoint_every` steps.
-    pub fn finish_step(&mut self, reduced: Reduced, max_steps: Option<u64>) -> Result<StepEnd> {
+    pub fn finish_step(&mut self, reduced: Reduced) -> Result<StepEnd> {
         let t = self.job.train.clone();
         let c = self.job.cluster.clone();
+        let max_steps = self.max_steps;
+        // Before the step's learning rate is taken.
+        let horizon_decided = self.take_horizon(reduced.signals.horizon);
         let outcome = tokio::task::block_in_place(|| {
             self.trainer
                 .apply_summarized(reduced.loss, reduced.grads, reduced.summary)
         })?;
         self.train_s += self.step_start.elapsed().as_secs_f64();
+        if self.rank == 0 {
+            self.rate.stepped(self.trainer.step, unix_now());
+        }
         if let ApplyOutcome::Applied { grad_norm, .. } = outcome {
             self.window.grad_norm += grad_norm;
             self.window.applied += 1;
@@ -332,7 +373,7 @@ impl Learner {
                 epoch: self.epoch.plan().epoch,
                 grad_norm: (w.applied > 0).then(|| w.grad_norm / w.applied as f64),
                 loss: self.window.loss / self.window.steps as f64,
-                lr: t.lr_at(step - 1),
+                lr: self.trainer.lr_at(step - 1),
                 micro_batches: crate::step::micro_batches(
                     crate::shard::share(t.batch_size, self.world, self.rank).len(),
                     t.micro_batch_size,
@@ -353,7 +394,9 @@ impl Learner {
         if reduced.signals.evaluate || last {
             // Every rank evaluates (identical weights, identical result): nobody idles in
             // the next all-reduce waiting for rank 0.
+            let t0 = Instant::now();
             let r = self.evaluate()?;
+            self.rate.evaluated(t0.elapsed().as_secs_f64());
             self.state.val_fg_ari = r.fg_ari;
             self.state.val_psnr = Some(r.psnr);
             self.keep_pictures(step, &r);
@@ -386,7 +429,26 @@ impl Learner {
             hash,
             snapshot,
             last,
+            horizon_decided: horizon_decided.filter(|_| self.rank == 0),
         })
+    }
+
+    /// Takes rank 0's proposed decay horizon (every rank has it from the all-reduce) where
+    /// a budget job has none yet; returns it when taken.
+    fn take_horizon(&mut self, proposed: Option<u64>) -> Option<u64> {
+        let h = proposed.filter(|_| {
+            self.trainer.horizon.is_none() && self.train().horizon == Horizon::Budget
+        })?;
+        self.trainer.horizon = Some(h);
+        self.state.horizon = Some(h);
+        if self.rank == 0 {
+            tracing::info!(
+                horizon = h,
+                step = self.trainer.step,
+                "decay horizon measured: the learning rate reaches its floor at step {h}, the deadline"
+            );
+        }
+        Some(h)
     }
 
     /// Rank 0 keeps the pictures of the validation at `step` for the run folder.
@@ -411,6 +473,33 @@ impl Learner {
     }
 }
 
+/// The decay horizon a generation starts with: one a budget job decided before holds for
+/// the rest of the job; else the config's or the step limit's, if any. Rank 0 says which.
+fn starting_horizon(t: &TrainConfig, recorded: Option<u64>, s: &Start) -> Option<u64> {
+    let schedule = t.schedule();
+    let horizon = match (schedule.horizon, recorded) {
+        (Horizon::Budget, Some(h)) => Some(h),
+        _ => schedule.initial_horizon(s.max_steps, s.deadline_unix_s.is_some()),
+    };
+    if s.rank == 0 && schedule.horizon == Horizon::Budget {
+        match (horizon, s.deadline_unix_s) {
+            (Some(h), _) => tracing::info!(
+                horizon = h,
+                "the learning rate decays to its floor at step {h}"
+            ),
+            (None, Some(_)) => tracing::info!(
+                "the learning rate's decay horizon is measured over the warm-up ({} steps) from the time left",
+                t.warmup_steps
+            ),
+            (None, None) => tracing::warn!(
+                decay_steps = t.decay_steps,
+                "horizon = \"budget\" without --max-steps or --max-minutes: the decay follows decay_steps"
+            ),
+        }
+    }
+    horizon
+}
+
 /// The state of a job that starts from fresh weights.
 fn fresh_state(world: usize, config_hash: &str) -> CheckpointState {
     CheckpointState {
@@ -426,6 +515,7 @@ fn fresh_state(world: usize, config_hash: &str) -> CheckpointState {
         config_hash: config_hash.to_string(),
         val_fg_ari: None,
         val_psnr: None,
+        horizon: None,
     }
 }
 

@@ -22,6 +22,7 @@ pub mod pictures;
 pub mod predict;
 pub mod render;
 pub mod retry;
+pub mod schedule;
 pub mod shard;
 pub mod staging;
 pub mod step;

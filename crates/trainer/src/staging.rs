@@ -643,14 +643,14 @@ mod tests {
         let e = Staging::new(&Device::Cpu, 10, vec![5..10, 0..5])
             .err()
             .unwrap();
-        assert!(e.to_string().contains("cover 10 of the buffer's 16"), "{e}");
+        assert!(e.to_string().contains("cover 10 of the buffer's 17"), "{e}");
         let e = Staging::new(&Device::Cpu, 10, vec![8..20, 0..8])
             .err()
             .unwrap();
-        assert!(e.to_string().contains("beyond the buffer's 16"), "{e}");
-        let mut s = Staging::new(&Device::Cpu, 10, ring_buckets(16, 5)).unwrap();
-        assert!(s.fits(&Device::Cpu, 10, &ring_buckets(16, 5)));
-        assert!(!s.fits(&Device::Cpu, 10, &ring_buckets(16, 4)));
+        assert!(e.to_string().contains("beyond the buffer's 17"), "{e}");
+        let mut s = Staging::new(&Device::Cpu, 10, ring_buckets(17, 5)).unwrap();
+        assert!(s.fits(&Device::Cpu, 10, &ring_buckets(17, 5)));
+        assert!(!s.fits(&Device::Cpu, 10, &ring_buckets(17, 4)));
         let g = Tensor::zeros(11, candle_core::DType::F32, &Device::Cpu).unwrap();
         let e = s.round_trip(&g).err().unwrap();
         assert!(

@@ -251,7 +251,7 @@ impl Gradient {
 
 /// Floats the reduction appends after a flat gradient (`crate::distributed`'s control
 /// values): a flat gradient is allocated with room for them, so appending does not move it.
-pub const CONTROL_FLOATS: usize = 6;
+pub const CONTROL_FLOATS: usize = 7;
 
 /// What [`Trainer::apply`] did.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -309,6 +309,9 @@ pub struct Trainer {
     pub step: u64,
     pub skipped_total: u64,
     pub skipped_in_a_row: u64,
+    /// Where the learning rate's decay ends, once known (`crate::schedule`): the config's
+    /// step count, or a budget job's step limit or measured horizon.
+    pub horizon: Option<u64>,
     /// Synchronise the device after the forward and the backward pass and report their
     /// times in [`StepGradients::phases`] (benchmarks; costs a synchronisation on a GPU).
     pub time_phases: bool,
@@ -334,6 +337,7 @@ impl Trainer {
         } else {
             Optimizer::Device(DeviceAdamW::new(n, hyper, &device)?)
         };
+        let horizon = cfg.train.schedule().initial_horizon(None, false);
         Ok(Self {
             cfg,
             params,
@@ -343,6 +347,7 @@ impl Trainer {
             step: 0,
             skipped_total: 0,
             skipped_in_a_row: 0,
+            horizon,
             time_phases: false,
             device,
         })
@@ -354,6 +359,11 @@ impl Trainer {
 
     pub fn num_parameters(&self) -> usize {
         self.num_parameters
+    }
+
+    /// The learning rate of step `step` (0-based) with the horizon now in force.
+    pub fn lr_at(&self, step: u64) -> f64 {
+        self.cfg.train.schedule().lr_at(step, self.horizon)
     }
 
     /// Standard-normal slot noise for random slot init (from the caller's seeded RNG).
@@ -794,7 +804,7 @@ impl Trainer {
             };
             summary = grads.summary()?;
         }
-        let lr = self.cfg.train.lr_at(step);
+        let lr = self.lr_at(step);
         let vars: Vec<Var> = self.params.vars().into_iter().map(|(_, v)| v).collect();
         let version = self.params.version();
         let n = self.num_parameters;

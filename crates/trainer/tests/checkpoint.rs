@@ -22,6 +22,7 @@ fn state(step: u64, fg_ari: Option<f64>) -> CheckpointState {
         config_hash: "h".into(),
         val_fg_ari: fg_ari,
         val_psnr: Some(20.0),
+        horizon: None,
     }
 }
 

@@ -100,9 +100,9 @@ pub(crate) async fn run_generation(
             Ok(r) => r,
             Err(e) => return aborted(&live, e),
         };
-        let end = learner.finish_step(reduced, plan.max_steps)?;
+        let end = learner.finish_step(reduced)?;
         // Before the record that names them reaches the coordinator.
-        put_pictures(&run, learner.take_pictures()).await;
+        put_step_files(&run, learner.take_pictures(), end.horizon_decided).await;
         let step = learner.step();
         live.step.store(step, Ordering::Relaxed);
         unsent.extend(end.records);
@@ -145,7 +145,7 @@ async fn reduced_step(
     staging: &mut Option<Staging>,
     plan: &WorkerPlan,
 ) -> Result<Result<osrt_trainer::distributed::Reduced>> {
-    let (step, rank, deadline_unix_s) = (learner.step(), plan.rank, plan.deadline_unix_s);
+    let (step, rank) = (learner.step(), plan.rank);
     let t = Instant::now();
     let g = learner.gradients().await?;
     let gradients_s = t.elapsed().as_secs_f64();
@@ -154,7 +154,7 @@ async fn reduced_step(
         // this rank is done (a long step, micro-batches), for about as long again.
         ring.set_peer_grace(t.elapsed().saturating_mul(2));
     }
-    let signals = learner.signals(deadline_unix_s);
+    let signals = learner.signals();
     let reduced = reduce(ring.as_mut(), staging, step + 1, rank, g, signals).await;
     let reduce_s = t.elapsed().as_secs_f64() - gradients_s;
     tracing::debug!(
@@ -164,6 +164,22 @@ async fn reduced_step(
         "step's gradients and all-reduce"
     );
     Ok(reduced)
+}
+
+/// What a step leaves in the run folder besides its checkpoint: validation pictures, and a
+/// budget job's measured decay horizon in `run.json` (rank 0's step that decided it; a
+/// failure is logged, not fatal: every checkpoint records it too).
+async fn put_step_files(
+    run: &Location,
+    pictures: Vec<(u64, &'static str, Vec<u8>)>,
+    decided: Option<u64>,
+) {
+    put_pictures(run, pictures).await;
+    if let Some(h) = decided
+        && let Err(e) = osrt_run::record_horizon(run, h).await
+    {
+        tracing::warn!(error = %e, horizon = h, "could not record the decay horizon in run.json");
+    }
 }
 
 /// Where the plan's generation starts, and this rank in it.
@@ -176,6 +192,8 @@ fn start_of(plan: &WorkerPlan, run: &Location) -> Result<Start> {
         resume_step: plan.resume_step,
         config_hash: checkpoint::config_hash(&plan.job_config_toml),
         restarts: plan.restarts,
+        max_steps: plan.max_steps,
+        deadline_unix_s: plan.deadline_unix_s,
     })
 }
 

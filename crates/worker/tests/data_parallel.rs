@@ -224,6 +224,7 @@ async fn a_staged_device_gradient_reduces_to_the_host_paths_bits() {
             let signals = Signals {
                 evaluate: step == 1,
                 stop: step == 2,
+                horizon: (step == 1).then_some(16_000_001),
             };
             let g = |rank: usize, device: bool| StepGradients {
                 loss: 0.25 + rank as f64 + step as f64,

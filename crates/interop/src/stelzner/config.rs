@@ -257,6 +257,7 @@ impl PeerConfig {
             iterations: k.slot_iters,
             init: slot_attention::SlotInit::Learned,
             eps: 1e-8,
+            gradient: Default::default(),
         };
         if slot_attention.num_slots != k.num_slots {
             return Err(InteropError::Mismatch {

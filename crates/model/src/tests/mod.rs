@@ -10,7 +10,7 @@ use crate::encoder::{Poses, RayInput};
 use crate::nn::{Block, TransformerConfig};
 use crate::params::{Params, normal_samples};
 use crate::ray_encoding::RayEncoding;
-use crate::slot_attention::{SlotAttention, SlotInit};
+use crate::slot_attention::{SlotAttention, SlotGradient, SlotInit};
 use crate::{Config, Osrt, add_slot, drop_slot};
 use candle_core::{DType, Device, Result, Tensor, Var};
 use rand::{Rng, SeedableRng};
@@ -329,6 +329,88 @@ fn gradcheck_slot_attention() {
         let f = || sa.forward(&x, Some(&z))?.slots.mul(&w)?.sum_all();
         gradcheck(&p.vars(), &f, 3);
     }
+}
+
+/// One slot-attention forward of 3 iterations (learned init) under a weighted sum:
+/// the slots' values and each parameter's gradient (`None`: no gradient reached it).
+fn slot_gradients(
+    gradient: SlotGradient,
+    iterations: usize,
+) -> (Vec<f64>, Vec<(String, Option<Vec<f64>>)>) {
+    let p = Params::new(3);
+    let mut cfg = Config::tiny().slot_attention;
+    (cfg.iterations, cfg.gradient) = (iterations, gradient);
+    let sa = SlotAttention::new(&cfg, 5, p.var_builder_dtype(DType::F64, &CPU)).unwrap();
+    let x = randn(&[2, 6, 5], 6, DType::F64);
+    let w = randn(&[2, cfg.num_slots, cfg.slot_dim], 8, DType::F64);
+    let slots = sa.forward(&x, None).unwrap().slots;
+    let g = slots
+        .mul(&w)
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap();
+    let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f64>().unwrap();
+    let mut grads: Vec<_> = p
+        .vars()
+        .into_iter()
+        .map(|(name, v)| (name, g.get(v.as_tensor()).map(flat)))
+        .collect();
+    grads.sort_by(|a, b| a.0.cmp(&b.0));
+    (flat(&slots), grads)
+}
+
+#[test]
+fn slot_gradients_keep_the_values_and_cut_the_paths_they_name() {
+    let (full_v, full) = slot_gradients(SlotGradient::Full, 3);
+    let (implicit_v, implicit) = slot_gradients(SlotGradient::Implicit, 3);
+    let (bilevel_v, bilevel) = slot_gradients(SlotGradient::Bilevel, 3);
+    assert!(
+        full_v == implicit_v && full_v == bilevel_v,
+        "the forward values are the same"
+    );
+    let is_init = |name: &str| name.ends_with("init_slots");
+    assert!(
+        full.iter().any(|(n, _)| is_init(n)),
+        "learned init has init_slots"
+    );
+    let zero = |g: &Option<Vec<f64>>| g.as_ref().is_none_or(|g| g.iter().all(|x| *x == 0.0));
+    for (((name, f), (_, i)), (_, b)) in full.iter().zip(&implicit).zip(&bilevel) {
+        if is_init(name) {
+            // Implicit: nothing reaches the initial slots; bilevel: the last iteration's.
+            assert!(
+                zero(i),
+                "{name}: implicit gives the initial slots no gradient"
+            );
+            assert!(
+                !zero(b) && b != f,
+                "{name}: bilevel passes the last iteration's gradient"
+            );
+        } else {
+            // Both differentiate the last iteration only, with the same inputs.
+            assert_eq!(
+                i, b,
+                "{name}: implicit and bilevel agree off the initial slots"
+            );
+        }
+    }
+    assert!(
+        full.iter().zip(&implicit).any(|((_, f), (_, i))| f != i),
+        "cutting the earlier iterations changes some gradient"
+    );
+    // With one iteration there is nothing to cut: bilevel is full, to the bit.
+    assert_eq!(
+        slot_gradients(SlotGradient::Bilevel, 1),
+        slot_gradients(SlotGradient::Full, 1)
+    );
+    assert_eq!("bilevel".parse::<SlotGradient>(), Ok(SlotGradient::Bilevel));
+    assert!(
+        "exact"
+            .parse::<SlotGradient>()
+            .unwrap_err()
+            .contains("full, implicit or bilevel")
+    );
 }
 
 #[test]
