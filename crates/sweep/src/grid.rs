@@ -575,4 +575,36 @@ targets = ["novel", "input"]
             "5 input views need more than 4 views"
         );
     }
+
+    /// The shipped time-to-quality study: each change against the preset, three seeds
+    /// each, the changes made where they say.
+    #[test]
+    fn the_time_to_quality_sweep_changes_one_thing_per_point() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../configs/sweeps/time-to-quality.toml");
+        let f = SweepFile::load(&path).unwrap();
+        let base = f.base_job(path.parent().unwrap()).unwrap();
+        let points = f.check(&base, 3).unwrap();
+        let names: Vec<String> = points.iter().map(|(p, _)| p.name()).collect();
+        let want: Vec<String> = ["horizon=fixed", "horizon=budget", "slot_gradient=bilevel"]
+            .iter()
+            .flat_map(|c| (0..3).map(move |s| format!("{c},seed={s}")))
+            .collect();
+        assert_eq!(names, want);
+        for (p, job) in &points {
+            let seed: u64 = p.get("seed").unwrap().parse().unwrap();
+            assert_eq!(job.train.seed, seed);
+            let changed = (
+                job.train.horizon != base.train.horizon,
+                job.model.slot_attention.gradient != base.model.slot_attention.gradient,
+            );
+            let want = match (p.get("horizon"), p.get("slot_gradient")) {
+                (Some("budget"), None) => (true, false),
+                (Some("fixed"), None) => (false, false),
+                (None, Some("bilevel")) => (false, true),
+                other => panic!("unexpected point {other:?}"),
+            };
+            assert_eq!(changed, want, "{}", p.name());
+        }
+    }
 }
