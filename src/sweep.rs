@@ -7,11 +7,15 @@ use osrt_dataset::Manifest;
 use osrt_store::Location;
 use osrt_sweep::html::{self, Report};
 use osrt_sweep::results::RESULT_FILE;
+use osrt_sweep::seeds::{Group, Member, SeedReport, Target};
 use osrt_sweep::{Curve, PointResult, RunSummary, SweepFile};
 use std::path::{Path, PathBuf};
 
 /// A copy of the sweep file in its output folder: marks the folder as a sweep.
 const SWEEP_COPY: &str = "sweep.toml";
+/// In a report folder: each seed group's mean curves as TensorBoard events, in
+/// `tensorboard/<group>/tb/` (`tensorboard --logdir REPORT/tensorboard`).
+const TENSORBOARD_DIR: &str = "tensorboard";
 
 #[derive(Args)]
 pub struct SweepArgs {
@@ -23,6 +27,11 @@ pub struct SweepArgs {
     /// List the points and what is already finished, train nothing.
     #[arg(long)]
     pub dry_run: bool,
+    /// A validation figure to time each seed to, METRIC=VALUE with METRIC fg_ari or psnr
+    /// (`--target fg_ari=0.85`); repeat for several. The report gives each seed's first
+    /// evaluation at or above it and each seed group's mean over the seeds that got there.
+    #[arg(long = "target", value_name = "METRIC=VALUE")]
+    pub targets: Vec<Target>,
 }
 
 #[derive(Args)]
@@ -43,6 +52,12 @@ pub struct ReportArgs {
     /// With --watch: seconds between rewrites of the page.
     #[arg(long, default_value_t = 30, requires = "watch")]
     pub every: u64,
+    /// A validation figure to time each seed to, METRIC=VALUE with METRIC fg_ari or psnr
+    /// (`--target psnr=28`); repeat for several. Runs that differ only in their seed (a
+    /// sweep's points, or run folders whose job configs differ only in `train.seed`) are
+    /// one group.
+    #[arg(long = "target", value_name = "METRIC=VALUE", conflicts_with = "watch")]
+    pub targets: Vec<Target>,
 }
 
 fn budget(f: &SweepFile) -> String {
@@ -167,11 +182,12 @@ pub async fn sweep(a: SweepArgs) -> Result<()> {
     if a.dry_run {
         return Ok(());
     }
-    let page = sweep_report(&out, &out).await?;
+    let page = sweep_report(&out, &out, &a.targets).await?;
     println!(
-        "results: {} and {}; report: {}",
+        "results: {}, {} and {}; report: {}",
         out.join("results.md").display(),
         out.join("results.csv").display(),
+        out.join(html::GROUPS_CSV).display(),
         page.display()
     );
     Ok(())
@@ -214,48 +230,92 @@ async fn evaluate_point(
     Ok((row, r))
 }
 
-/// Tables, charts and page of the sweep in `dir`, written into `out`.
-async fn sweep_report(dir: &Path, out: &Path) -> Result<PathBuf> {
+/// Tables, charts and page of the sweep in `dir`, written into `out`: its points, and its
+/// seed groups timed to `targets`.
+async fn sweep_report(dir: &Path, out: &Path, targets: &[Target]) -> Result<PathBuf> {
     let file = SweepFile::load(&dir.join(SWEEP_COPY))?;
-    let mut rows = Vec::new();
-    let mut curves: Vec<Curve> = Vec::new();
-    let mut strips = Vec::new();
+    let (mut rows, mut curves, mut strips, mut members) = (vec![], vec![], vec![], vec![]);
     for point in file.points() {
         let name = point.name();
         let run_dir = dir.join(&name);
-        if let Ok(s) = RunSummary::load(&run_dir) {
-            curves.push(s.curve(&name));
-        }
-        let result = run_dir.join(RESULT_FILE);
-        if result.exists() {
-            rows.push(PointResult::load(&result)?);
+        let curve = RunSummary::load(&run_dir).ok().map(|s| s.curve(&name));
+        curves.extend(curve.clone());
+        let result_path = run_dir.join(RESULT_FILE);
+        let result = match result_path.exists() {
+            true => Some(PointResult::load(&result_path)?),
+            false => None,
+        };
+        if result.is_some() {
             let png = format!("render-{name}.png");
-            strips.push(
-                render_strip(
-                    &run_dir,
-                    Some(&file.data),
-                    &file.eval_split,
-                    out,
-                    &png,
-                    &name,
-                )
-                .await,
+            let (split, data) = (&file.eval_split, Some(file.data.as_str()));
+            strips.push(render_strip(&run_dir, data, split, out, &png, &name).await);
+        }
+        rows.extend(result.clone());
+        // A point not started yet is no seed of its group.
+        if curve.is_some() || result.is_some() {
+            let curve = curve.unwrap_or_else(|| Curve {
+                label: name,
+                points: Vec::new(),
+            });
+            members.push((point, curve, result));
+        }
+    }
+    let seeds = SeedReport::new(&Group::by_settings(members), targets);
+    let strips = strips.into_iter().flatten().collect();
+    let report = Report {
+        title: format!("sweep {}", file.name),
+        note: note(&file),
+        rows: &rows,
+        curves: &curves,
+        strips,
+        refresh_s: None,
+    };
+    let page = html::write_with_seeds(out, &report, &seeds)?;
+    write_tensorboard(out, &seeds).await?;
+    say_targets(&seeds);
+    Ok(page)
+}
+
+/// Each seed group's mean curves as TensorBoard scalars in `out/tensorboard/<group>/tb/`
+/// (the event writer of run folders, which keeps its files in `tb/`). A report drawn
+/// again replaces the events rather than adding to them.
+async fn write_tensorboard(out: &Path, seeds: &SeedReport) -> Result<()> {
+    for g in &seeds.groups {
+        let events = g.tensorboard_events();
+        if events.is_empty() {
+            continue;
+        }
+        let dir = out.join(TENSORBOARD_DIR).join(g.folder_name());
+        let loc = Location::parse(&dir.to_string_lossy())?;
+        let (mut log, _) = osrt_run::tensorboard::EventLog::open(&loc, true).await?;
+        log.cut_after(None);
+        for (step, wall_s, values) in events {
+            log.add(step, wall_s, values);
+        }
+        log.flush()
+            .await
+            .with_context(|| format!("writing TensorBoard events of group {}", g.name))?;
+    }
+    Ok(())
+}
+
+/// Each group's time to each target, on stderr.
+fn say_targets(seeds: &SeedReport) {
+    for g in &seeds.groups {
+        for t in &g.targets {
+            let mean = t.mean().map_or(String::new(), |(s, k)| {
+                format!(", after {s:.1} s (step {k:.0}) on average")
+            });
+            eprintln!(
+                "{}: {} reached by {} of {} seed{}{mean}",
+                g.name,
+                t.target,
+                t.reached(),
+                t.hits.len(),
+                if t.hits.len() == 1 { "" } else { "s" },
             );
         }
     }
-    let strips = strips.into_iter().flatten().collect();
-    let page = html::write(
-        out,
-        &Report {
-            title: format!("sweep {}", file.name),
-            note: note(&file),
-            rows: &rows,
-            curves: &curves,
-            strips,
-            refresh_s: None,
-        },
-    )?;
-    Ok(page)
 }
 
 /// The report's render strip of a run (first scene of `split`: truth | render | slots per
@@ -290,11 +350,11 @@ pub async fn report(a: ReportArgs) -> Result<()> {
     }
     let page = match a.paths.as_slice() {
         [one] if one.join(SWEEP_COPY).exists() => {
-            sweep_report(one, a.out.as_deref().unwrap_or(one)).await?
+            sweep_report(one, a.out.as_deref().unwrap_or(one), &a.targets).await?
         }
         [one] => {
             let out = a.out.clone().unwrap_or_else(|| one.join("report"));
-            runs_report(&a.paths, &out).await?
+            runs_report(&a.paths, &out, &a.targets).await?
         }
         several => {
             if let Some(sweep) = several.iter().find(|p| p.join(SWEEP_COPY).exists()) {
@@ -309,7 +369,7 @@ pub async fn report(a: ReportArgs) -> Result<()> {
                     several.len()
                 );
             };
-            runs_report(several, out).await?
+            runs_report(several, out, &a.targets).await?
         }
     };
     println!("report: {}", page.display());
@@ -317,8 +377,9 @@ pub async fn report(a: ReportArgs) -> Result<()> {
 }
 
 /// Page of one or more run folders: their curves in one chart, each run's final
-/// evaluation as a row where it has one, and a render strip per run.
-async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
+/// evaluation as a row where it has one, a render strip per run, and the runs that differ
+/// only in their seed as groups timed to `targets`.
+async fn runs_report(runs: &[PathBuf], out: &Path, targets: &[Target]) -> Result<PathBuf> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let mut labels: Vec<String> = runs
         .iter()
@@ -336,6 +397,7 @@ async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
         labels = runs.iter().map(|p| p.display().to_string()).collect();
     }
     let (mut rows, mut curves, mut strips, mut notes) = (vec![], vec![], vec![], vec![]);
+    let mut members = Vec::new();
     for (i, (run, label)) in runs.iter().zip(&labels).enumerate() {
         let summary = RunSummary::load(run).with_context(|| {
             format!(
@@ -343,29 +405,19 @@ async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
                 run.display()
             )
         })?;
-        let result = run.join(RESULT_FILE);
-        if result.exists() {
-            rows.push(PointResult::load(&result)?);
-        }
-        let last = summary.evaluations.last();
-        notes.push(format!(
-            "{label}: {} steps in {:.0} s of training at {:.2} scenes/s{}; last validation: {}.",
-            summary.steps,
-            summary.wall_s,
-            summary.scenes_per_s,
-            summary
-                .peak_rss_mb
-                .map_or(String::new(), |m| format!(", peak RSS {m:.0} MiB")),
-            last.map_or("none yet".into(), |e| format!(
-                "PSNR {:.2} dB{}, FG-ARI {}",
-                e.psnr,
-                e.baseline_psnr.map_or(String::new(), |b| format!(
-                    " (mean-colour baseline {b:.2} dB)"
-                )),
-                e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
-            ))
-        ));
+        let result_path = run.join(RESULT_FILE);
+        let result = match result_path.exists() {
+            true => Some(PointResult::load(&result_path)?),
+            false => None,
+        };
+        rows.extend(result.clone());
+        notes.push(run_note(label, &summary));
         curves.push(summary.curve(label));
+        members.push(Member {
+            label: label.clone(),
+            curve: summary.curve(label),
+            result,
+        });
         let png = if runs.len() == 1 {
             "render.png".to_string()
         } else {
@@ -373,20 +425,75 @@ async fn runs_report(runs: &[PathBuf], out: &Path) -> Result<PathBuf> {
         };
         strips.extend(render_strip(run, None, "test", out, &png, label).await);
     }
+    let seeds = SeedReport::new(&run_groups(runs, members), targets);
     let title = match labels.as_slice() {
         [one] => format!("run {one}"),
         several => format!("runs {}", several.join(", ")),
     };
-    html::write(
-        out,
-        &Report {
-            title,
-            note: notes.join(" "),
-            rows: &rows,
-            curves: &curves,
-            strips,
-            refresh_s: None,
-        },
+    let report = Report {
+        title,
+        note: notes.join(" "),
+        rows: &rows,
+        curves: &curves,
+        strips,
+        refresh_s: None,
+    };
+    let page = html::write_with_seeds(out, &report, &seeds)?;
+    write_tensorboard(out, &seeds).await?;
+    say_targets(&seeds);
+    Ok(page)
+}
+
+/// What a run's records say: its training and its last validation.
+fn run_note(label: &str, summary: &RunSummary) -> String {
+    let last = summary.evaluations.last();
+    format!(
+        "{label}: {} steps in {:.0} s of training at {:.2} scenes/s{}; last validation: {}.",
+        summary.steps,
+        summary.wall_s,
+        summary.scenes_per_s,
+        summary
+            .peak_rss_mb
+            .map_or(String::new(), |m| format!(", peak RSS {m:.0} MiB")),
+        last.map_or("none yet".into(), |e| format!(
+            "PSNR {:.2} dB{}, FG-ARI {}",
+            e.psnr,
+            e.baseline_psnr.map_or(String::new(), |b| format!(
+                " (mean-colour baseline {b:.2} dB)"
+            )),
+            e.fg_ari.map_or("n/a".into(), |v| format!("{v:.3}"))
+        ))
     )
-    .map_err(Into::into)
+}
+
+/// Run folders (`members` in the same order) grouped by their job config with the seed
+/// cleared: runs whose configs differ only in `train.seed` are one group, named by its
+/// runs' labels joined with `+`; a run without a readable config is a group of its own.
+fn run_groups(runs: &[PathBuf], members: Vec<Member>) -> Vec<Group> {
+    let keys: Vec<Option<osrt_trainer::JobConfig>> = runs
+        .iter()
+        .map(|run| {
+            let mut job = osrt_trainer::JobConfig::load(&run.join(osrt_run::CONFIG_FILE)).ok()?;
+            job.train.seed = 0;
+            Some(job)
+        })
+        .collect();
+    // Each run's group: the first run with an equal config (itself if none).
+    let first: Vec<usize> = keys
+        .iter()
+        .enumerate()
+        .map(|(i, k)| match k {
+            Some(k) => keys.iter().position(|o| o.as_ref() == Some(k)).unwrap_or(i),
+            None => i,
+        })
+        .collect();
+    let names: Vec<String> = (0..runs.len())
+        .map(|i| {
+            let same = members.iter().zip(&first).filter(|(_, f)| **f == first[i]);
+            same.map(|(m, _)| m.label.as_str())
+                .collect::<Vec<_>>()
+                .join("+")
+        })
+        .collect();
+    Group::by_name(names.into_iter().zip(members))
 }

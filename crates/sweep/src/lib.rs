@@ -4,6 +4,8 @@
 //! - [`results`]: one row per finished point, the `results.csv` / `results.md` tables,
 //!   and the error-against-run-time curves read from each run's `metrics.jsonl`.
 //! - [`plot`]: those curves as SVG and PNG charts (no system fonts needed).
+//! - [`seeds`]: points that differ only in their seed as one group: mean and spread of
+//!   their curves and test figures, and each seed's time to a target.
 //! - [`pictures`]: render frames and slot segmentations as PNG strips and GIFs.
 //! - [`html`]: one static page that opens from disk with no server and no network.
 //! - [`live`]: where a running job stands, for a page kept current while it runs.
@@ -16,6 +18,7 @@ pub mod live;
 pub mod pictures;
 pub mod plot;
 pub mod results;
+pub mod seeds;
 
 pub use grid::{Point, SweepFile, Targets};
 pub use results::{Curve, PointResult, RunSummary};

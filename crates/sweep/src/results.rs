@@ -214,8 +214,8 @@ pub fn table(rows: &[PointResult]) -> (Vec<String>, Vec<Vec<String>>) {
     (header, rows.iter().map(|r| cells(r, &axes)).collect())
 }
 
-/// `results.csv` text (RFC 4180 quoting where a cell needs it).
-pub fn csv(rows: &[PointResult]) -> String {
+/// CSV text of a header and rows (RFC 4180 quoting where a cell needs it).
+pub(crate) fn csv_text(header: &[String], body: &[Vec<String>]) -> String {
     let quote = |s: &str| {
         if s.contains([',', '"', '\n']) {
             format!("\"{}\"", s.replace('"', "\"\""))
@@ -223,19 +223,17 @@ pub fn csv(rows: &[PointResult]) -> String {
             s.to_string()
         }
     };
-    let (header, body) = table(rows);
     let mut out = String::new();
-    for line in std::iter::once(&header).chain(&body) {
+    for line in std::iter::once(header).chain(body.iter().map(Vec::as_slice)) {
         let cells: Vec<String> = line.iter().map(|c| quote(c)).collect();
         let _ = writeln!(out, "{}", cells.join(","));
     }
     out
 }
 
-/// `results.md` text: a note on the evaluation and the table.
-pub fn markdown(title: &str, note: &str, rows: &[PointResult]) -> String {
-    let (header, body) = table(rows);
-    let mut out = format!("# {title}\n\n{note}\n\n");
+/// A Markdown table of a header and rows; an empty cell reads `n/a`.
+pub(crate) fn markdown_table(header: &[String], body: &[Vec<String>]) -> String {
+    let mut out = String::new();
     let _ = writeln!(out, "| {} |", header.join(" | "));
     let _ = writeln!(
         out,
@@ -243,19 +241,25 @@ pub fn markdown(title: &str, note: &str, rows: &[PointResult]) -> String {
         header.iter().map(|_| "---").collect::<Vec<_>>().join("|")
     );
     for line in body {
-        let cells: Vec<String> = line
+        let cells: Vec<&str> = line
             .iter()
-            .map(|c| {
-                if c.is_empty() {
-                    "n/a".into()
-                } else {
-                    c.clone()
-                }
-            })
+            .map(|c| if c.is_empty() { "n/a" } else { c.as_str() })
             .collect();
         let _ = writeln!(out, "| {} |", cells.join(" | "));
     }
     out
+}
+
+/// `results.csv` text (RFC 4180 quoting where a cell needs it).
+pub fn csv(rows: &[PointResult]) -> String {
+    let (header, body) = table(rows);
+    csv_text(&header, &body)
+}
+
+/// `results.md` text: a note on the evaluation and the table.
+pub fn markdown(title: &str, note: &str, rows: &[PointResult]) -> String {
+    let (header, body) = table(rows);
+    format!("# {title}\n\n{note}\n\n{}", markdown_table(&header, &body))
 }
 
 #[cfg(test)]

@@ -331,12 +331,12 @@ fn gradcheck_slot_attention() {
     }
 }
 
-/// One slot-attention forward of 3 iterations (learned init) under a weighted sum:
-/// the slots' values and each parameter's gradient (`None`: no gradient reached it).
-fn slot_gradients(
-    gradient: SlotGradient,
-    iterations: usize,
-) -> (Vec<f64>, Vec<(String, Option<Vec<f64>>)>) {
+/// Each parameter's name and gradient (`None`: no gradient reached it).
+type NamedGradients = Vec<(String, Option<Vec<f64>>)>;
+
+/// One slot-attention forward (learned init) under a weighted sum: the slots' values and
+/// each parameter's gradient.
+fn slot_gradients(gradient: SlotGradient, iterations: usize) -> (Vec<f64>, NamedGradients) {
     let p = Params::new(3);
     let mut cfg = Config::tiny().slot_attention;
     (cfg.iterations, cfg.gradient) = (iterations, gradient);
