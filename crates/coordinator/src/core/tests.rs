@@ -1,6 +1,9 @@
 //! The state machine's unit tests: membership, generations, plans, records, hashes.
 
 use super::*;
+use osrt_proto::convert::{Directive, PlanState};
+use osrt_proto::{MAX_RECORDS_PER_REPORT, PROTOCOL_VERSION};
+use std::time::Duration;
 
 pub(super) fn spec(min: usize, max: usize, restarts: u32) -> JobSpec {
     // The `tiny` preset's cluster table: short timeouts, frequent hashes and checkpoints.

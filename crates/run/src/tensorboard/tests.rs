@@ -1,5 +1,6 @@
+use super::frames::masked_crc;
 use super::*;
-use crate::records::{EvalRecord, ObjectCountRecord};
+use crate::records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord};
 
 fn train(step: u64, loss: f64, train_s: f64) -> MetricsRecord {
     MetricsRecord::Train(TrainRecord {

@@ -26,8 +26,13 @@ use crate::error::{Result, RunError};
 use object_store::{ObjectStoreExt, PutMode, PutOptions, PutPayload, PutResult, UpdateVersion};
 use osrt_store::Location;
 use serde::{Deserialize, Serialize};
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+mod keeper;
+mod probe;
+
+pub use keeper::Keeper;
+pub use probe::probe_store;
 
 pub const LEASE_FILE: &str = "lease.json";
 
@@ -408,217 +413,6 @@ fn refusal(run: &Location, now: Option<LeaseFile>) -> RunError {
     )
 }
 
-/// A lease renewed by a task of its own, so that no other store traffic delays a
-/// renewal, and that knows when its holder must stop: at once when the lease was lost,
-/// and once [`LeaseTiming::expiry`] has passed since the start of the last renewal the
-/// store took.
-pub struct Keeper {
-    lease: Arc<tokio::sync::Mutex<Option<Lease>>>,
-    state: Arc<Mutex<KeeperState>>,
-    task: tokio::task::JoinHandle<()>,
-    path: String,
-    token: String,
-    wake: Arc<tokio::sync::Notify>,
-}
-
-struct KeeperState {
-    valid_until: Instant,
-    last_ok: Instant,
-    lost: Option<String>,
-    /// The generation to record in the lease, and the newest one the store took.
-    want_generation: u64,
-    written_generation: u64,
-}
-
-impl Keeper {
-    /// Starts renewing `lease` (just acquired or renewed: valid from now).
-    pub fn start(lease: Lease) -> Self {
-        let timing = lease.timing;
-        let path = lease.run.describe(&lease.run.path(LEASE_FILE));
-        let token = lease.file.holder.token.clone();
-        let now = Instant::now();
-        let state = Arc::new(Mutex::new(KeeperState {
-            valid_until: now + timing.expiry(),
-            last_ok: now,
-            lost: None,
-            want_generation: lease.file.generation,
-            written_generation: lease.file.generation,
-        }));
-        let lease = Arc::new(tokio::sync::Mutex::new(Some(lease)));
-        let wake = Arc::new(tokio::sync::Notify::new());
-        let task = tokio::spawn(renewals(lease.clone(), state.clone(), wake.clone(), timing));
-        Self {
-            lease,
-            state,
-            task,
-            path,
-            token,
-            wake,
-        }
-    }
-
-    /// Records `generation` in the lease at once (a renewal out of turn); true once a
-    /// renewal carrying it (or a newer one) was taken by the store, from when on ranks
-    /// of older generations cannot commit ([`check_fence`]).
-    pub fn fence(&self, generation: u64) -> bool {
-        let mut s = self.state.lock().expect("lease state");
-        if s.written_generation >= generation {
-            return true;
-        }
-        if s.want_generation < generation {
-            s.want_generation = generation;
-            self.wake.notify_one();
-        }
-        false
-    }
-
-    /// The holder's token (for [`still_held`]).
-    pub fn token(&self) -> &str {
-        &self.token
-    }
-
-    /// Whether this holder may still drive the job: an error once the lease was lost or
-    /// has expired without a renewal the store took.
-    pub fn check(&self) -> Result<()> {
-        let s = self.state.lock().expect("lease state");
-        if let Some(holder) = &s.lost {
-            return Err(RunError::LeaseLost {
-                path: self.path.clone(),
-                holder: holder.clone(),
-            });
-        }
-        if Instant::now() >= s.valid_until {
-            return Err(RunError::Run {
-                path: self.path.clone(),
-                reason: format!(
-                    "the lease could not be renewed for {:.1} s: stopping, so that no two \
-                     coordinators drive the folder (a newcomer may take it over now)",
-                    s.last_ok.elapsed().as_secs_f64()
-                ),
-            });
-        }
-        Ok(())
-    }
-
-    /// Stops renewing and removes the lease where it is still this holder's.
-    pub async fn release(self) -> Result<()> {
-        self.task.abort();
-        let _ = self.task.await;
-        match self.lease.lock().await.take() {
-            Some(lease) => lease.release().await,
-            None => Ok(()),
-        }
-    }
-}
-
-async fn renewals(
-    lease: Arc<tokio::sync::Mutex<Option<Lease>>>,
-    state: Arc<Mutex<KeeperState>>,
-    wake: Arc<tokio::sync::Notify>,
-    timing: LeaseTiming,
-) {
-    loop {
-        tokio::select! {
-            _ = tokio::time::sleep(timing.renew_every) => {}
-            _ = wake.notified() => {}
-        }
-        let started = Instant::now();
-        let generation = state.lock().expect("lease state").want_generation;
-        let mut guard = lease.lock().await;
-        let Some(l) = guard.as_mut() else { return };
-        match l.renew_for(generation).await {
-            Ok(()) => {
-                let mut s = state.lock().expect("lease state");
-                s.valid_until = started + timing.expiry();
-                s.last_ok = started;
-                s.written_generation = s.written_generation.max(generation);
-            }
-            Err(RunError::LeaseLost { holder, .. }) => {
-                state.lock().expect("lease state").lost = Some(holder);
-                // Never released: it is another holder's now.
-                guard.take();
-                return;
-            }
-            Err(e) => tracing::warn!(error = %e, "renewing the run folder's lease"),
-        }
-    }
-}
-
-/// Checks that `run`'s store honours create-only and conditional writes, which keep one
-/// writer per run folder: a probe object is written create-only twice (the second must
-/// be refused), then updated on a version it does not have (must be refused); refused
-/// with the store's name and the remedy otherwise.
-pub async fn probe_store(run: &Location) -> Result<()> {
-    let name = format!(".osrt-probe-{:016x}", rand::random::<u64>());
-    let path = run.path(&name);
-    let err = |what: &str| {
-        lease_err(
-            run,
-            format!(
-                "the store {} {what}: osrt keeps one writer per run folder and every \
-                 checkpoint file by create-only and conditional writes. Use a store that \
-                 honours If-None-Match and If-Match (AWS S3, MinIO, Cloudflare R2, Google \
-                 Cloud Storage) with AWS_CONDITIONAL_PUT=etag (the default)",
-                run.store
-            ),
-        )
-    };
-    let create = || PutOptions {
-        mode: PutMode::Create,
-        ..Default::default()
-    };
-    let io = |e: object_store::Error| lease_err(run, format!("probing the store: {e}"));
-    let first = run
-        .store
-        .put_opts(&path, PutPayload::from_static(b"1"), create())
-        .await;
-    let outcome = async {
-        match first {
-            Ok(_) => {}
-            Err(object_store::Error::NotImplemented { .. }) => {
-                return Err(err("does not offer create-only writes"));
-            }
-            Err(e) => return Err(io(e)),
-        }
-        match run
-            .store
-            .put_opts(&path, PutPayload::from_static(b"2"), create())
-            .await
-        {
-            Err(object_store::Error::AlreadyExists { .. }) => {}
-            Ok(_) => return Err(err("overwrote an object written create-only")),
-            Err(e) => return Err(io(e)),
-        }
-        let stale = UpdateVersion {
-            e_tag: Some("\"osrt-probe-no-such-version\"".into()),
-            version: None,
-        };
-        let opts = PutOptions {
-            mode: PutMode::Update(stale),
-            ..Default::default()
-        };
-        match run
-            .store
-            .put_opts(&path, PutPayload::from_static(b"3"), opts)
-            .await
-        {
-            Err(object_store::Error::Precondition { .. }) => Ok(()),
-            Ok(_) => Err(err(
-                "took a conditional write on a version it does not hold",
-            )),
-            Err(object_store::Error::NotImplemented { .. }) => {
-                Err(err("does not offer conditional writes"))
-            }
-            Err(e) => Err(io(e)),
-        }
-    }
-    .await;
-    if let Err(e) = run.store.delete(&path).await {
-        tracing::debug!(error = %e, "removing the store probe");
-    }
-    outcome
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -741,22 +535,6 @@ mod tests {
         assert!(e.contains("taken over by job b"), "{e}");
         keeper.release().await.unwrap();
         still_held(&run, &_b.holder().token).await.unwrap();
-    }
-
-    /// Local folders and memory stores honour create-only and conditional writes.
-    #[tokio::test]
-    async fn the_stores_osrt_opens_pass_the_probe() {
-        let dir = tempfile::tempdir().unwrap();
-        let local = Location::parse(dir.path().to_str().unwrap()).unwrap();
-        probe_store(&local).await.unwrap();
-        probe_store(&Location::parse("memory://lease-probe/run").unwrap())
-            .await
-            .unwrap();
-        assert_eq!(
-            std::fs::read_dir(dir.path()).unwrap().count(),
-            0,
-            "no probe left"
-        );
     }
 
     #[tokio::test]

@@ -16,12 +16,20 @@
 //!
 //! Names are `events.out.tfevents.<µs since the epoch, 16 digits>.osrt`, always later
 //! than every name already there; files of other names are left alone.
+//!
+//! The TFRecord framing is in `frames`; the records' figures as summaries in `summaries`.
 
-use crate::records::{MetricsRecord, TrainRecord};
 use crate::{Result, RunError};
+use frames::{frame, malformed};
 use object_store::{ObjectStore, ObjectStoreExt};
 use osrt_store::Location;
 use prost::Message;
+
+mod frames;
+mod summaries;
+
+pub use frames::{BadRecord, read_events, scan_events};
+pub use summaries::{image, scalars};
 
 /// TensorBoard's messages (`proto/tensorflow/event.proto`).
 pub mod proto {
@@ -46,172 +54,6 @@ pub fn eval_picture(step: u64, name: &str) -> String {
 
 /// The pictures an evaluation may leave, in the order they are shown.
 pub const EVAL_PICTURES: [&str; 2] = ["render", "segmentation"];
-
-/// TFRecord's checksum: CRC-32C (Castagnoli), rotated right by 15 bits plus a constant.
-fn masked_crc(data: &[u8]) -> u32 {
-    const CRC32C: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISCSI);
-    CRC32C
-        .checksum(data)
-        .rotate_right(15)
-        .wrapping_add(0xa282_ead8)
-}
-
-/// One TFRecord frame around `payload`.
-fn frame(payload: &[u8], out: &mut Vec<u8>) {
-    let len = (payload.len() as u64).to_le_bytes();
-    out.extend_from_slice(&len);
-    out.extend_from_slice(&masked_crc(&len).to_le_bytes());
-    out.extend_from_slice(payload);
-    out.extend_from_slice(&masked_crc(payload).to_le_bytes());
-}
-
-/// Where and why an event file stops being readable.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct BadRecord {
-    /// The offset of the frame that cannot be read.
-    pub offset: usize,
-    pub reason: String,
-}
-
-/// The events of an event file's bytes, each with the end offset of its frame, and the
-/// frame reading stopped at (`None`: the bytes end with a whole frame). A torn frame (a
-/// write cut short), a failed checksum or a payload that is no `Event` ends the read:
-/// what follows cannot be framed. A frame's declared length is compared with the bytes
-/// there before anything is sliced, so no length, however crafted, sizes an allocation
-/// or reaches past the end.
-pub fn scan_events(bytes: &[u8]) -> (Vec<(Event, usize)>, Option<BadRecord>) {
-    let mut out = Vec::new();
-    let mut at = 0usize;
-    while at < bytes.len() {
-        let rest = bytes.len() - at;
-        let bad = |reason: String| Some(BadRecord { offset: at, reason });
-        if rest < 12 {
-            let reason = format!("a torn frame: {rest} bytes of its 12-byte header");
-            return (out, bad(reason));
-        }
-        let head = &bytes[at..at + 12];
-        let len = u64::from_le_bytes(head[..8].try_into().expect("8 bytes"));
-        let crc = u32::from_le_bytes(head[8..].try_into().expect("4 bytes"));
-        if masked_crc(&head[..8]) != crc {
-            return (out, bad("the length's checksum does not match".into()));
-        }
-        // The header, the record, its 4-byte checksum.
-        let fits = |l: &usize| rest.checked_sub(16).is_some_and(|room| *l <= room);
-        let Some(len) = usize::try_from(len).ok().filter(fits) else {
-            let reason = format!(
-                "its header declares a record of {len} bytes and its 4-byte checksum, {} \
-                 bytes follow",
-                rest - 12
-            );
-            return (out, bad(reason));
-        };
-        let body = &bytes[at + 12..at + 12 + len];
-        let tail = &bytes[at + 12 + len..at + 16 + len];
-        if masked_crc(body).to_le_bytes() != tail {
-            return (out, bad("the record's checksum does not match".into()));
-        }
-        match Event::decode(body) {
-            Ok(e) => {
-                at += 16 + len;
-                out.push((e, at));
-            }
-            Err(e) => return (out, bad(format!("the record is no tensorflow.Event: {e}"))),
-        }
-    }
-    (out, None)
-}
-
-/// The events of the event file `path` (as shown in errors) whose bytes are `bytes`,
-/// each with the end offset of its frame; a file that is not whole frames throughout is
-/// an error naming it.
-pub fn read_events(path: &str, bytes: &[u8]) -> Result<Vec<(Event, usize)>> {
-    match scan_events(bytes) {
-        (events, None) => Ok(events),
-        (_, Some(bad)) => Err(malformed(path, &bad)),
-    }
-}
-
-fn malformed(path: &str, bad: &BadRecord) -> RunError {
-    RunError::Run {
-        path: path.to_string(),
-        reason: format!(
-            "event file unreadable from byte {}: {}",
-            bad.offset, bad.reason
-        ),
-    }
-}
-
-fn scalar(tag: &str, v: f64) -> Option<summary::Value> {
-    v.is_finite().then(|| summary::Value {
-        tag: tag.into(),
-        value: Some(summary::value::Value::SimpleValue(v as f32)),
-    })
-}
-
-/// A PNG's size from its header (`None`: not a PNG).
-fn png_size(png: &[u8]) -> Option<(i32, i32)> {
-    const SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
-    if png.len() < 24 || &png[..8] != SIGNATURE || &png[12..16] != b"IHDR" {
-        return None;
-    }
-    let w = u32::from_be_bytes(png[16..20].try_into().ok()?);
-    let h = u32::from_be_bytes(png[20..24].try_into().ok()?);
-    Some((i32::try_from(w).ok()?, i32::try_from(h).ok()?))
-}
-
-/// An image summary of PNG bytes (`None`: not a PNG).
-pub fn image(tag: &str, png: Vec<u8>) -> Option<summary::Value> {
-    let (width, height) = png_size(&png)?;
-    Some(summary::Value {
-        tag: tag.into(),
-        value: Some(summary::value::Value::Image(summary::Image {
-            height,
-            width,
-            colorspace: 3,
-            encoded_image_string: png,
-        })),
-    })
-}
-
-/// The scalar summaries of a record. `previous`: the training record before it (the
-/// step time is the train seconds between the two over their steps). Non-finite figures
-/// (a window whose every step was skipped) are left out: TensorBoard draws no NaN.
-pub fn scalars(record: &MetricsRecord, previous: Option<&TrainRecord>) -> Vec<summary::Value> {
-    let mut v = Vec::new();
-    match record {
-        MetricsRecord::Train(r) => {
-            v.push(scalar("train/loss", r.loss));
-            v.push(scalar("train/lr", r.lr));
-            v.push(scalar("train/scenes_per_s", r.scenes_per_s));
-            if let Some(p) = previous.filter(|p| p.step < r.step) {
-                let s = (r.train_s - p.train_s) / (r.step - p.step) as f64;
-                v.push(scalar("train/step_s", s));
-            }
-            v.push(r.grad_norm.and_then(|g| scalar("train/grad_norm", g)));
-            v.push(scalar("train/skipped_steps", r.skipped as f64));
-            v.push(scalar("train/epoch", r.epoch as f64));
-            v.push(scalar("train/workers", r.workers as f64));
-            v.push(r.peak_rss_mb.and_then(|m| scalar("train/peak_rss_mb", m)));
-            v.push(scalar("job/restarts", r.restarts as f64));
-        }
-        MetricsRecord::Eval(r) => {
-            v.push(scalar("eval/psnr", r.psnr));
-            v.push(
-                r.baseline_psnr
-                    .and_then(|x| scalar("eval/baseline_psnr", x)),
-            );
-            v.push(r.fg_ari.and_then(|x| scalar("eval/fg_ari", x)));
-            v.push(r.fg_ari_2d.and_then(|x| scalar("eval/fg_ari_2d", x)));
-            v.push(r.ari.and_then(|x| scalar("eval/ari", x)));
-            v.push(scalar("eval/render_fps", r.render_fps));
-            for o in &r.by_objects {
-                let tag = format!("eval/fg_ari_by_objects/{}", o.objects);
-                v.push(o.fg_ari.and_then(|x| scalar(&tag, x)));
-            }
-        }
-    }
-    v.into_iter().flatten().collect()
-}
 
 /// The step of an event that carries data (`None` for the file-version event).
 fn data_step(e: &Event) -> Option<u64> {
