@@ -52,24 +52,20 @@ pub struct RunInfo {
 /// Records the model's parameter count in `RUN/run.json` (rank 0, at a generation's
 /// start); a no-op when it is there already.
 pub async fn record_parameters(run: &Location, parameters: usize) -> Result<()> {
-    let Some(bytes) = read_file(run, INFO_FILE).await? else {
-        return Ok(());
-    };
-    let mut info: RunInfo = serde_json::from_slice(&bytes).map_err(|e| RunError::Run {
-        path: run.describe(&run.path(INFO_FILE)),
-        reason: format!("unreadable: {e}"),
-    })?;
-    if info.parameters == Some(parameters) {
-        return Ok(());
-    }
-    info.parameters = Some(parameters);
-    let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
-    write_file(run, INFO_FILE, bytes).await
+    update_info(run, |info| {
+        info.parameters.replace(parameters) != Some(parameters)
+    })
+    .await
 }
 
-/// Records a budget job's measured decay horizon in `RUN/run.json` (rank 0); a no-op when
-/// the file is absent.
+/// Records a budget job's measured decay horizon in `RUN/run.json` (rank 0).
 pub async fn record_horizon(run: &Location, horizon: u64) -> Result<()> {
+    update_info(run, |info| info.horizon.replace(horizon) != Some(horizon)).await
+}
+
+/// Reads `RUN/run.json`, lets `change` edit it and writes it back where `change` says it
+/// changed anything; a no-op when the file is absent (the coordinator writes it first).
+async fn update_info(run: &Location, change: impl FnOnce(&mut RunInfo) -> bool) -> Result<()> {
     let Some(bytes) = read_file(run, INFO_FILE).await? else {
         return Ok(());
     };
@@ -77,7 +73,9 @@ pub async fn record_horizon(run: &Location, horizon: u64) -> Result<()> {
         path: run.describe(&run.path(INFO_FILE)),
         reason: format!("unreadable: {e}"),
     })?;
-    info.horizon = Some(horizon);
+    if !change(&mut info) {
+        return Ok(());
+    }
     let bytes = serde_json::to_vec_pretty(&info).expect("serialises");
     write_file(run, INFO_FILE, bytes).await
 }
