@@ -270,9 +270,15 @@ async fn sweep_report(dir: &Path, out: &Path, targets: &[Target]) -> Result<Path
         strips,
         refresh_s: None,
     };
-    let page = html::write_with_seeds(out, &report, &seeds)?;
-    write_tensorboard(out, &seeds).await?;
-    say_targets(&seeds);
+    publish(out, &report, &seeds).await
+}
+
+/// One report's page, its seed groups' TensorBoard events and their times to the
+/// targets on stderr.
+async fn publish(out: &Path, report: &Report<'_>, seeds: &SeedReport) -> Result<PathBuf> {
+    let page = html::write_with_seeds(out, report, seeds)?;
+    write_tensorboard(out, seeds).await?;
+    say_targets(seeds);
     Ok(page)
 }
 
@@ -438,10 +444,7 @@ async fn runs_report(runs: &[PathBuf], out: &Path, targets: &[Target]) -> Result
         strips,
         refresh_s: None,
     };
-    let page = html::write_with_seeds(out, &report, &seeds)?;
-    write_tensorboard(out, &seeds).await?;
-    say_targets(&seeds);
-    Ok(page)
+    publish(out, &report, &seeds).await
 }
 
 /// What a run's records say: its training and its last validation.
