@@ -11,7 +11,7 @@ f32 or bf16 autocast. Run by hand; CI does not install PyTorch.
                                 [--batch-size 16,256] [--dtypes f32,bf16 | --bf16]
                                 [--image-size N] [--input-views N] [--rays-per-scene N]
                                 [--cases 1x8192,5x2304] [--warmup N] [--tf32] [--no-render]
-                                [--list]
+                                [--micro-batch-size M] [--list]
 
 Mirrors crates/model (ray_encoding, encoder, nn, slot_attention, decoder/slot_mixer) with
 the sizes of `Config::cpu()` (preset `clevr-lite-cpu`) or `Config::paper()` (preset
@@ -341,6 +341,7 @@ def run_case(torch, case):
     opt = torch.optim.AdamW(model.parameters(), lr=c["lr"], betas=(c["beta1"], c["beta2"]),
                             eps=c["adam_eps"], weight_decay=c["weight_decay"])
     b, s = case["batch_size"], case["image_size"]
+    micro = case.get("micro_batch_size") or b
     r, v = case["rays_per_scene"], case["input_views"]
     # Random inputs of the benchmark's shapes: one camera per view (origin of norm 10, the
     # same for all its pixels), unit ray directions; r target rays per scene.
@@ -365,10 +366,18 @@ def run_case(torch, case):
             heap.reset_peak()  # each step's peak from what is live before it, as osrt's
         sync()
         t0 = time.perf_counter()
-        with autocast():
-            rgb, _ = model.decode(model.encode(images, origins, directions), t_orig, t_dir)
-            loss = ((rgb.float() - target) ** 2).mean()  # .float(): a no-op in f32
-        loss.backward()
+        # The batch in passes of at most `micro` scenes, each pass's mean weighted by its
+        # scenes and its gradient accumulated in `.grad` (PyTorch's gradient accumulation).
+        loss = 0.0
+        for lo in range(0, b, micro):
+            hi = min(b, lo + micro)
+            with autocast():
+                rgb, _ = model.decode(model.encode(images[lo:hi], origins[lo:hi],
+                                                   directions[lo:hi]), t_orig[lo:hi], t_dir[lo:hi])
+                # .float(): a no-op in f32
+                part = ((rgb.float() - target[lo:hi]) ** 2).mean() * ((hi - lo) / b)
+            part.backward()
+            loss += part.detach()
         sync()
         t1 = time.perf_counter()
         opt.step()
@@ -402,7 +411,7 @@ def run_case(torch, case):
         parameters=params,
         parameters_by_module={k: count(getattr(model, k))
                               for k in ("encoder", "slot_attention", "decoder")},
-        batch_size=b, input_views=v, rays_per_scene=r, image_size=s,
+        batch_size=b, micro_batch_size=micro, input_views=v, rays_per_scene=r, image_size=s,
         steps=case["steps"], warmup_steps=case["warmup"],
         median_step_s=m, median_forward_backward_s=statistics.median(fb_s),
         median_optimizer_s=statistics.median(opt_s),
@@ -615,7 +624,8 @@ def plan(a, ap):
                         preset=p, batch_size=bs, input_views=v, rays_per_scene=r,
                         image_size=a.image_size or c["image_size"], dtype=d,
                         device=a.device, steps=a.steps, warmup=a.warmup,
-                        render=not a.no_render, profile=a.profile))
+                        render=not a.no_render, profile=a.profile,
+                        micro_batch_size=a.micro_batch_size))
     return cases
 
 
@@ -641,6 +651,10 @@ def main():
                     help=f"comma list of {', '.join(PRESETS)}")
     ap.add_argument("--batch-size", help="comma list of batch sizes replacing each "
                                          "preset's (clevr-lite-cpu 16, paper 32)")
+    ap.add_argument("--micro-batch-size", type=int,
+                    help="run each step's batch in passes of at most this many scenes, "
+                         "their gradients accumulated in .grad (as osrt's "
+                         "--micro-batch-size)")
     ap.add_argument("--image-size", type=int,
                     help="input-view side in pixels (default: clevr-lite-cpu 32, paper 128)")
     ap.add_argument("--input-views", type=int,
@@ -677,6 +691,8 @@ def main():
         ap.error("--warmup must be at least 2 on cuda (the first steps load kernels)")
     if a.warmup < 0:
         ap.error("--warmup must not be negative")
+    if a.micro_batch_size is not None and a.micro_batch_size < 1:
+        ap.error("--micro-batch-size must be at least 1")
     if a.child:
         print(json.dumps(child(a.child, json.loads(a.child_case))))
         return

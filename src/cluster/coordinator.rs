@@ -5,8 +5,7 @@ use super::{health_listener, report_end, shutdown_signal};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_coordinator::{Coordinator, OpenOptions};
-use osrt_proto::auth::Token;
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use osrt_run::ClusterOverrides;
 use osrt_trainer::JobConfig;
 use std::net::SocketAddr;
@@ -61,7 +60,7 @@ pub struct CoordinatorArgs {
 }
 
 pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
-    let token = Token::from_env()?;
+    let credentials = Credentials::from_env()?;
     let mut job = JobConfig::load_or_preset(a.config.as_deref(), &a.preset)?;
     let overrides = ClusterOverrides {
         min_workers: a.min_workers,
@@ -101,8 +100,7 @@ pub async fn coordinator(a: CoordinatorArgs) -> Result<()> {
     let status = coord
         .serve(
             listener,
-            token,
-            Tls::from_env()?,
+            credentials,
             Duration::from_secs_f64(a.linger_s),
             shutdown_signal(),
         )

@@ -8,6 +8,7 @@ use anyhow::{Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use osrt_coordinator::{Coordinator, JobSpec, OpenOptions};
 use osrt_proto::auth::{TOKEN_ENV, Token};
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1;
 use osrt_run::MetricsRecord;
 use osrt_trainer::{DeviceSpec, JobConfig};
@@ -138,8 +139,7 @@ pub async fn run_local(job: LocalJob) -> Result<v1::JobStatus> {
         // Loopback only: no TLS.
         coord.serve(
             listener,
-            token.clone(),
-            None,
+            Credentials::new(token.clone(), None),
             Duration::from_secs(2),
             stopped,
         ),

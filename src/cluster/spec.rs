@@ -54,28 +54,30 @@ pub async fn memory_check(
         return Ok(());
     };
     let image = manifest.image_size;
-    let Some(mut m) = osrt_trainer::footprint::estimate(job, image, world, threads) else {
+    let fit_of = |job: &JobConfig| osrt_trainer::footprint::check(job, image, world, threads, here);
+    let Some(mut fit) = fit_of(job) else {
         eprintln!("no memory estimate for this model (a volumetric decoder)");
         return Ok(());
     };
-    eprintln!("{}", m.describe());
+    eprintln!("{}", fit.memory.describe());
     if here == 0 {
         return Ok(());
     }
-    let micro = osrt_trainer::footprint::micro_batch_that_fits(job, image, world, threads, here);
-    if let Some(size) = micro.filter(|_| check.pick_micro_batch && !skip)
+    if let Some(size) = fit.micro.filter(|_| check.pick_micro_batch && !skip)
         && job.train.micro_batch_size.is_none()
     {
         job.train.micro_batch_size = Some(size);
-        m = osrt_trainer::footprint::estimate(job, image, world, threads).unwrap_or(m);
+        if let Some(picked) = fit_of(job) {
+            fit = picked;
+        }
         eprintln!(
             "a worker's share of {} scenes does not fit in one pass: micro-batches of {size} \
              (--micro-batch-size {size}; the same step, one all-reduce): {}",
-            m.share,
-            m.describe()
+            fit.memory.share,
+            fit.memory.describe()
         );
     }
-    match osrt_trainer::footprint::fit_here(&m, here, micro) {
+    match fit.verdict {
         Ok(None) => Ok(()),
         Ok(Some(why)) => {
             eprintln!("warning: {why}");

@@ -4,8 +4,7 @@
 use super::{health_listener, shutdown_signal};
 use anyhow::{Context, Result};
 use clap::Args;
-use osrt_proto::auth::Token;
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use osrt_trainer::DeviceSpec;
 use osrt_worker::{WorkerOptions, run_worker_until};
 use std::net::SocketAddr;
@@ -109,7 +108,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
     if let Some(n) = a.threads {
         reexec_with_threads(n)?;
     }
-    let token = Token::from_env()?;
+    let credentials = Credentials::from_env()?;
     let threads = std::env::var("RAYON_NUM_THREADS")
         .ok()
         .and_then(|s| s.parse().ok())
@@ -127,8 +126,7 @@ pub async fn worker(a: WorkerArgs) -> Result<()> {
             advertise: a.advertise,
             threads,
             device: a.device,
-            token,
-            tls: Tls::from_env()?,
+            credentials,
             name: format!("{host}:{}", std::process::id()),
             coordinator_timeout: Duration::from_secs_f64(a.coordinator_timeout_s),
             memory_check: !a.skip_memory_check,

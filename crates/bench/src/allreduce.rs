@@ -176,7 +176,8 @@ impl TcpRing {
 async fn loopback_rings(chunk_floats: usize) -> Vec<Option<Ring>> {
     let mut addrs = Vec::new();
     let mut mailboxes = Vec::new();
-    let token = osrt_proto::auth::Token::generate();
+    let credentials =
+        osrt_proto::credentials::Credentials::new(osrt_proto::auth::Token::generate(), None);
     for _ in 0..2 {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
@@ -186,8 +187,7 @@ async fn loopback_rings(chunk_floats: usize) -> Vec<Option<Ring>> {
         tokio::spawn(serve(
             listener,
             m.clone(),
-            token.clone(),
-            None,
+            credentials.clone(),
             std::future::pending(),
         ));
         mailboxes.push(m);
@@ -203,8 +203,7 @@ async fn loopback_rings(chunk_floats: usize) -> Vec<Option<Ring>> {
                 bucket_floats: 25 << 20,
                 chunk_floats,
                 timeout: Duration::from_secs(60),
-                token: token.clone(),
-                tls: None,
+                credentials: credentials.clone(),
             };
             Some(Ring::new(cfg, mailboxes[rank].clone()).expect("ring"))
         })

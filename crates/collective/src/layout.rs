@@ -2,8 +2,7 @@
 //! chunks (`Layout`): both ends of a connection compute the same cut from the same numbers.
 
 use osrt_proto::MAX_CHUNK_FLOATS;
-use osrt_proto::auth::Token;
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1::Phase;
 use std::ops::Range;
 use std::time::Duration;
@@ -24,10 +23,9 @@ pub struct RingConfig {
     pub chunk_floats: usize,
     /// Deadline of every RPC and of every wait for a chunk.
     pub timeout: Duration,
-    /// The job's shared token, attached to every chunk sent.
-    pub token: Token,
-    /// TLS for the connection to the next rank (peers are then `https://`).
-    pub tls: Option<Tls>,
+    /// The job's shared token, attached to every chunk sent, and TLS for the connection
+    /// to the next rank where set (peers are then `https://`).
+    pub credentials: Credentials,
 }
 
 impl RingConfig {

@@ -17,7 +17,7 @@ use std::time::Duration;
 use tokio::time::timeout;
 use tonic::Status;
 use tonic::metadata::{Ascii, MetadataValue};
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 
 /// One rank's side of the ring.
 pub struct Ring {
@@ -94,10 +94,7 @@ impl Ring {
             addr: addr.clone(),
             reason: e.to_string(),
         };
-        let mut endpoint = Endpoint::from_shared(addr.clone()).map_err(connect_err)?;
-        if let Some(tls) = &cfg.tls {
-            endpoint = endpoint.tls_config(tls.client()).map_err(connect_err)?;
-        }
+        let endpoint = cfg.credentials.endpoint(&addr).map_err(connect_err)?;
         let endpoint = endpoint
             .connect_timeout(cfg.timeout)
             // No channel-wide request timeout: a `PushChunks` call lasts as long as its
@@ -114,7 +111,7 @@ impl Ring {
             .tcp_nodelay(true);
         mailbox.set_generation(cfg.generation, cfg.rank, cfg.first_step);
         Ok(Self {
-            auth: cfg.token.header(),
+            auth: cfg.credentials.authorization().clone(),
             cfg,
             mailbox,
             next: endpoint.connect_lazy(),

@@ -5,8 +5,7 @@
 use crate::Mailbox;
 use crate::chunk_wire::PushChunkServer;
 use osrt_proto::MAX_CHUNK_FLOATS;
-use osrt_proto::auth::{CheckToken, Token};
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use std::sync::Arc;
 use std::time::Duration;
 use tonic::service::interceptor::InterceptedService;
@@ -23,27 +22,27 @@ pub(crate) const FRAME_BYTES: u32 = (MAX_CHUNK_FLOATS * 4 + 4096) as u32;
 pub const CALL_LIMIT: Duration = Duration::from_secs(3600);
 
 /// Serves a collective mailbox on `listener` until `shutdown` resolves, with the standard
-/// gRPC health service beside it; every collective call must carry `token`; with `tls`,
-/// connections are mutual TLS.
+/// gRPC health service beside it; every collective call must carry the job's token; with
+/// TLS in `credentials`, connections are mutual TLS.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     mailbox: Arc<Mailbox>,
-    token: Token,
-    tls: Option<Tls>,
+    credentials: Credentials,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
     let health_service =
         osrt_proto::server::CheckOnly::server(&[osrt_proto::v1::collective_server::SERVICE_NAME]);
     let accept = move |chunk| mailbox.accept(chunk);
     let service = PushChunkServer::new(accept, MAX_CHUNK_FLOATS * 4 + 4096);
-    osrt_proto::server::builder(tls.as_ref(), CALL_LIMIT)?
+    credentials
+        .server(CALL_LIMIT)?
         .initial_stream_window_size(WINDOW_BYTES)
         .initial_connection_window_size(WINDOW_BYTES)
         .max_frame_size(FRAME_BYTES)
         .add_service(health_service)
         .add_service(InterceptedService::new(
             service,
-            CheckToken::new(token, "collective"),
+            credentials.check("collective"),
         ))
         .serve_with_incoming_shutdown(
             // Our own listener: its sockets need TCP_NODELAY here (the builder's setting

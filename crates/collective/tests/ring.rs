@@ -6,6 +6,7 @@ use bytes::Bytes;
 use osrt_collective::chunk_wire;
 use osrt_collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, Stage, serve};
 use osrt_proto::auth::{AttachToken, Token};
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1::collective_client::CollectiveClient;
 use osrt_proto::v1::collective_server::{Collective, CollectiveServer};
 use osrt_proto::v1::{Chunk, ChunkAck, ChunkTag, Phase};
@@ -33,8 +34,7 @@ async fn start(n: usize, job: &str) -> Vec<Node> {
         let server = tokio::spawn(serve(
             listener,
             mailbox.clone(),
-            token(),
-            None,
+            credentials(),
             async move {
                 let _ = rx.await;
             },
@@ -65,8 +65,7 @@ fn config(
         bucket_floats: bucket,
         chunk_floats: chunk,
         timeout,
-        token: token(),
-        tls: None,
+        credentials: credentials(),
     }
 }
 
@@ -88,6 +87,11 @@ async fn client_of(
 fn token() -> Token {
     static T: std::sync::OnceLock<Token> = std::sync::OnceLock::new();
     T.get_or_init(Token::generate).clone()
+}
+
+/// [`token`], without TLS.
+fn credentials() -> Credentials {
+    Credentials::new(token(), None)
 }
 
 fn random(n: usize, seed: u64) -> Vec<f32> {

@@ -5,6 +5,7 @@ use object_store::ObjectStoreExt;
 use object_store::memory::InMemory;
 use osrt_coordinator::{Coordinator, JobSpec};
 use osrt_proto::auth::Token;
+use osrt_proto::credentials::Credentials;
 use osrt_run::ClusterConfig;
 use osrt_run::ClusterOverrides;
 use osrt_store::Location;
@@ -41,8 +42,7 @@ async fn failed_writes_of_the_run_folder_are_retried_not_fatal() {
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     let serving = tokio::spawn(coord.serve(
         listener,
-        Token::generate(),
-        None,
+        Credentials::new(Token::generate(), None),
         Duration::from_secs(1),
         async move {
             let _ = stopped.await;
@@ -98,8 +98,7 @@ async fn a_slow_upload_does_not_hold_up_lost_worker_detection() {
     let token = Token::generate();
     let serving = tokio::spawn(coord.clone().serve(
         listener,
-        token.clone(),
-        None,
+        Credentials::new(token.clone(), None),
         Duration::from_secs(1),
         std::future::pending(),
     ));

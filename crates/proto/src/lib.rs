@@ -1,10 +1,11 @@
 //! The osrt gRPC protocol (`proto/osrt/v1/osrt.proto`), generated at build time with a
-//! vendored protoc; the shared-token authentication both services use ([`auth`]); and the
-//! one place where protocol messages become domain types ([`convert`]), rejecting missing
-//! fields with typed errors.
+//! vendored protoc; the shared-token authentication both services use ([`auth`]), held
+//! with the optional TLS in one value ([`credentials`]); and the one place where protocol
+//! messages become domain types ([`convert`]), rejecting missing fields with typed errors.
 
 pub mod auth;
 pub mod convert;
+pub mod credentials;
 pub mod health;
 pub mod server;
 pub mod tls;

@@ -83,9 +83,4 @@ impl Tls {
             .ca_certificate(self.ca.clone())
             .identity(self.identity.clone())
     }
-
-    /// The scheme of addresses under this setting.
-    pub fn scheme(tls: Option<&Tls>) -> &'static str {
-        if tls.is_some() { "https" } else { "http" }
-    }
 }

@@ -107,6 +107,12 @@ pub fn estimate(
         rays: t.rays_per_scene,
         threads,
         recompute: t.recompute,
+        // Passes summed on the host take each segment's gradients as it ends
+        // (`step::HostSum`); a gradient kept on the device (a GPU, or the device graph's
+        // ring) sums whole passes.
+        summed: batch < share
+            && !t.device.is_cuda()
+            && !(world > 1 && t.kernels == Kernels::Device),
     };
     let gpu = t.device.is_cuda();
     // `device` kernels build the GPU's graph on any device.
@@ -192,6 +198,36 @@ fn host_memory() -> Option<f64> {
 /// presets at 32–256 px, 2026-11-27), the binary, its runtime and its data.
 pub fn with_headroom(step: f64) -> f64 {
     1.35 * step + 0.5 * GIB
+}
+
+/// A job's step held against this machine: the estimate, the largest micro-batch that
+/// would fit where the job as it is does not ([`micro_batch_that_fits`]), and the verdict
+/// ([`fit_here`]).
+#[derive(Debug, Clone)]
+pub struct Fit {
+    pub memory: StepMemory,
+    pub micro: Option<usize>,
+    pub verdict: Result<Option<String>, String>,
+}
+
+/// [`estimate`], [`micro_batch_that_fits`] and [`fit_here`] for `workers` workers of
+/// `job` on this machine (`world` in the job, `threads` each, on `image`-sized inputs);
+/// `None` where the model has no estimate.
+pub fn check(
+    job: &JobConfig,
+    image: [u32; 2],
+    world: usize,
+    threads: usize,
+    workers: usize,
+) -> Option<Fit> {
+    let memory = estimate(job, image, world, threads)?;
+    let micro = micro_batch_that_fits(job, image, world, threads, workers);
+    let verdict = fit_here(&memory, workers, micro);
+    Some(Fit {
+        memory,
+        micro,
+        verdict,
+    })
 }
 
 /// Whether `workers` workers of `m` fit this machine ([`machine_memory`]): `Ok(None)`

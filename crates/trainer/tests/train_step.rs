@@ -481,3 +481,39 @@ fn micro_batches_give_the_whole_batchs_gradient() {
         }
     }
 }
+
+/// On the CPU a step's passes go into the flat host gradient segment by segment, as each
+/// backward pass makes them (the store never holds a whole pass's gradients beside the
+/// sum); the sums are those of adding each pass's whole per-parameter gradients (the
+/// path of a gradient kept on the device), to the bit, with the backward pass in a few
+/// segments and in many (recomputed blocks, a parameter read by several of them).
+#[test]
+fn passes_summed_as_they_are_made_give_the_per_parameter_sums() {
+    use osrt_kernels::{Kernels, Precision};
+    let data = scenes(6);
+    let b = batch(&data, 3);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for kernels in [Kernels::Fused, Kernels::Composed, Kernels::Device] {
+        for recompute in [false, true] {
+            for m in [2, 4] {
+                let mut cfg = tiny();
+                cfg.train.kernels = kernels;
+                cfg.train.precision = Precision::F32;
+                cfg.train.recompute = recompute;
+                cfg.train.micro_batch_size = Some(m);
+                let t = Trainer::new(cfg, Device::Cpu).unwrap();
+                let host = t.gradients(&b, &mut ChaCha8Rng::seed_from_u64(5)).unwrap();
+                let kept = t
+                    .gradients_kept(&b, &mut ChaCha8Rng::seed_from_u64(5), true)
+                    .unwrap();
+                assert!(kept.grads.host().is_none(), "kept on the device");
+                let kept_loss = kept.loss;
+                let kept = kept.grads.into_host().unwrap();
+                let case = format!("{kernels:?} recompute={recompute} m={m}");
+                assert_eq!(host.grads.len(), kept.len(), "{case}");
+                assert_eq!(bits(&host.grads), bits(&kept), "{case}");
+                assert_eq!(host.loss.to_bits(), kept_loss.to_bits(), "{case}");
+            }
+        }
+    }
+}

@@ -251,19 +251,12 @@ async fn check_memory(job: &JobConfig, plan: &WorkerPlan, threads: usize) -> Res
     let Ok(manifest) = osrt_dataset::Manifest::read(&data).await else {
         return Ok(());
     };
-    let Some(m) =
-        osrt_trainer::footprint::estimate(job, manifest.image_size, plan.world(), threads)
+    let Some(fit) =
+        osrt_trainer::footprint::check(job, manifest.image_size, plan.world(), threads, 1)
     else {
         return Ok(());
     };
-    let micro = osrt_trainer::footprint::micro_batch_that_fits(
-        job,
-        manifest.image_size,
-        plan.world(),
-        threads,
-        1,
-    );
-    match osrt_trainer::footprint::fit_here(&m, 1, micro) {
+    match fit.verdict {
         Ok(None) => Ok(()),
         Ok(Some(why)) => {
             tracing::warn!("{why}");
@@ -334,8 +327,7 @@ fn open_ring(
         bucket_floats: c.bucket_floats,
         chunk_floats: c.chunk_floats,
         timeout: Duration::from_secs_f64(c.rpc_timeout_s),
-        token: opts.token.clone(),
-        tls: opts.tls.clone(),
+        credentials: opts.credentials.clone(),
     };
     Ok(Some(Ring::new(cfg, mailbox.clone())?))
 }

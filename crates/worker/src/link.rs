@@ -5,28 +5,24 @@
 
 use crate::error::{Result, WorkerError};
 use osrt_proto::MAX_RECORDS_PER_REPORT;
-use osrt_proto::auth::{AttachToken, Token};
+use osrt_proto::auth::AttachToken;
 use osrt_proto::convert::{Directive, WorkerPlan};
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
 use osrt_retry::RetryPolicy;
 use osrt_run::MetricsRecord;
 use std::time::Duration;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 
 pub type Client = CoordinatorClient<InterceptedService<Channel, AttachToken>>;
 
 /// Connects to the coordinator with the job's token on every call.
-pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result<Client> {
-    let bad = |e: tonic::transport::Error| {
-        WorkerError::Cluster(format!("coordinator address {addr}: {e}"))
-    };
-    let mut endpoint = Endpoint::from_shared(addr.to_string()).map_err(bad)?;
-    if let Some(tls) = tls {
-        endpoint = endpoint.tls_config(tls.client()).map_err(bad)?;
-    }
+pub fn coordinator_client(addr: &str, credentials: &Credentials) -> Result<Client> {
+    let endpoint = credentials
+        .endpoint(addr)
+        .map_err(|e| WorkerError::Cluster(format!("coordinator address {addr}: {e}")))?;
     let endpoint = endpoint
         .connect_timeout(Duration::from_secs(5))
         .timeout(Duration::from_secs(30))
@@ -36,7 +32,7 @@ pub fn coordinator_client(addr: &str, token: Token, tls: Option<&Tls>) -> Result
         .tcp_nodelay(true);
     Ok(CoordinatorClient::with_interceptor(
         endpoint.connect_lazy(),
-        AttachToken(token),
+        credentials.attach(),
     ))
 }
 

@@ -46,26 +46,6 @@ async fn register(
     Ok((reply.job, reply.worker_id))
 }
 
-/// The host the other workers dial this one at: `--advertise`, else the listen address,
-/// else (listening on every interface, whose address `0.0.0.0` would make a peer dial
-/// itself) this machine's host name.
-pub(crate) fn advertised_host(advertise: Option<&str>, listen: std::net::IpAddr) -> Result<String> {
-    if let Some(h) = advertise {
-        return Ok(h.to_string());
-    }
-    if !listen.is_unspecified() {
-        return Ok(listen.to_string());
-    }
-    let name = osrt_run::lease::host_name().ok_or_else(|| {
-        WorkerError::Cluster(format!(
-            "listening on {listen} (every interface) and this machine has no host name: \
-             pass --advertise HOST, the address the other workers reach this one at"
-        ))
-    })?;
-    tracing::warn!(host = %name, "listening on every interface: advertising this machine's host name (--advertise sets it)");
-    Ok(name)
-}
-
 /// Who this worker is to the coordinator, and in which generation.
 #[derive(Debug, Clone)]
 pub(crate) struct Membership {
@@ -293,22 +273,5 @@ pub(crate) fn aborted(live: &Liveness, e: WorkerError) -> Result<Ended> {
             report: true,
         }),
         other => Err(other),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_worker_listening_everywhere_advertises_a_name_not_0_0_0_0() {
-        let any: std::net::IpAddr = "0.0.0.0".parse().unwrap();
-        let lo: std::net::IpAddr = "127.0.0.1".parse().unwrap();
-        assert_eq!(advertised_host(Some("w-3.osrt"), any).unwrap(), "w-3.osrt");
-        assert_eq!(advertised_host(None, lo).unwrap(), "127.0.0.1");
-        match advertised_host(None, any) {
-            Ok(h) => assert!(!h.is_empty() && h != "0.0.0.0", "{h}"),
-            Err(e) => assert!(e.to_string().contains("--advertise"), "{e}"),
-        }
     }
 }

@@ -21,11 +21,10 @@
 
 use crate::error::{Result, WorkerError};
 use crate::link::coordinator_client;
-use crate::membership::{Membership, advertised_host, worker_loop};
+use crate::membership::{Membership, worker_loop};
 use osrt_collective::{Mailbox, serve};
 use osrt_proto::Shutdown;
-use osrt_proto::auth::Token;
-use osrt_proto::tls::Tls;
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1;
 use std::net::SocketAddr;
 use std::sync::Mutex;
@@ -41,9 +40,9 @@ pub struct WorkerOptions {
     pub threads: usize,
     /// Overrides the job config's `train.device` (each worker its own GPU).
     pub device: Option<osrt_trainer::device::DeviceSpec>,
-    pub token: Token,
-    /// Mutual TLS for both services (see `osrt_proto::tls`).
-    pub tls: Option<Tls>,
+    /// The job's token and, where set, mutual TLS, for both services
+    /// (`osrt_proto::credentials`).
+    pub credentials: Credentials,
     pub name: String,
     /// Give up when the coordinator cannot be reached for this long.
     pub coordinator_timeout: Duration,
@@ -76,7 +75,7 @@ pub async fn run_worker_until(
         .local_addr()
         .map_err(|e| WorkerError::Cluster(e.to_string()))?;
     let host = advertised_host(opts.advertise.as_deref(), local.ip())?;
-    let scheme = Tls::scheme(opts.tls.as_ref());
+    let scheme = opts.credentials.scheme();
     let collective_addr = format!("{scheme}://{host}:{}", local.port());
     // The job id is learnt at registration; the mailbox takes it then.
     let mailbox = Mailbox::new("");
@@ -84,11 +83,10 @@ pub async fn run_worker_until(
     let server = tokio::spawn(serve(
         listener,
         mailbox.clone(),
-        opts.token.clone(),
-        opts.tls.clone(),
+        opts.credentials.clone(),
         stopped,
     ));
-    let mut client = coordinator_client(&opts.coordinator, opts.token.clone(), opts.tls.as_ref())?;
+    let mut client = coordinator_client(&opts.coordinator, &opts.credentials)?;
     let member: Mutex<Option<Membership>> = Mutex::new(None);
     let mut reporter = client.clone();
     let result = tokio::select! {
@@ -118,4 +116,41 @@ pub async fn run_worker_until(
     stop_server.trigger();
     let _ = server.await;
     result
+}
+
+/// The host the other workers dial this one at: `--advertise`, else the listen address,
+/// else (listening on every interface, whose address `0.0.0.0` would make a peer dial
+/// itself) this machine's host name.
+pub(crate) fn advertised_host(advertise: Option<&str>, listen: std::net::IpAddr) -> Result<String> {
+    if let Some(h) = advertise {
+        return Ok(h.to_string());
+    }
+    if !listen.is_unspecified() {
+        return Ok(listen.to_string());
+    }
+    let name = osrt_run::lease::host_name().ok_or_else(|| {
+        WorkerError::Cluster(format!(
+            "listening on {listen} (every interface) and this machine has no host name: \
+             pass --advertise HOST, the address the other workers reach this one at"
+        ))
+    })?;
+    tracing::warn!(host = %name, "listening on every interface: advertising this machine's host name (--advertise sets it)");
+    Ok(name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_worker_listening_everywhere_advertises_a_name_not_0_0_0_0() {
+        let any: std::net::IpAddr = "0.0.0.0".parse().unwrap();
+        let lo: std::net::IpAddr = "127.0.0.1".parse().unwrap();
+        assert_eq!(advertised_host(Some("w-3.osrt"), any).unwrap(), "w-3.osrt");
+        assert_eq!(advertised_host(None, lo).unwrap(), "127.0.0.1");
+        match advertised_host(None, any) {
+            Ok(h) => assert!(!h.is_empty() && h != "0.0.0.0", "{h}"),
+            Err(e) => assert!(e.to_string().contains("--advertise"), "{e}"),
+        }
+    }
 }

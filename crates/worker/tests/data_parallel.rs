@@ -7,6 +7,7 @@ use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
 use osrt_proto::auth::Token;
+use osrt_proto::credentials::Credentials;
 use osrt_trainer::distributed::Signals;
 use osrt_trainer::{JobConfig, Trainer};
 use osrt_worker::reduce::reduce;
@@ -37,8 +38,7 @@ async fn rings(job: &str, bucket_floats: usize, chunk_floats: usize) -> Vec<Ring
         tokio::spawn(serve(
             l,
             m.clone(),
-            token.clone(),
-            None,
+            Credentials::new(token.clone(), None),
             std::future::pending(),
         ));
         boxes.push(m);
@@ -55,8 +55,7 @@ async fn rings(job: &str, bucket_floats: usize, chunk_floats: usize) -> Vec<Ring
                     bucket_floats,
                     chunk_floats,
                     timeout: Duration::from_secs(10),
-                    token: token.clone(),
-                    tls: None,
+                    credentials: Credentials::new(token.clone(), None),
                 },
                 boxes[rank].clone(),
             )

@@ -8,7 +8,7 @@ use crate::error::CoordinatorError;
 use crate::events::Events;
 use crate::persist::Persister;
 use grpc::Service;
-use osrt_proto::auth::{CheckToken, Token};
+use osrt_proto::credentials::Credentials;
 use osrt_proto::v1;
 use osrt_proto::v1::coordinator_server::CoordinatorServer;
 use osrt_run::lease::{self, Holder, Keeper, Lease, LeaseTiming};
@@ -183,8 +183,7 @@ impl Coordinator {
     pub async fn serve(
         self,
         listener: tokio::net::TcpListener,
-        token: Token,
-        tls: Option<osrt_proto::tls::Tls>,
+        credentials: Credentials,
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<StatusSnapshot, CoordinatorError> {
@@ -198,10 +197,10 @@ impl Coordinator {
             // Reports carry at most MAX_RECORDS_PER_REPORT records of a few hundred bytes.
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES),
-            CheckToken::new(token, "coordinator"),
+            credentials.check("coordinator"),
         );
         let (mut stop_server, stopped) = osrt_proto::Shutdown::new();
-        let mut builder = osrt_proto::server::builder(tls.as_ref(), CALL_LIMIT).map_err(|e| {
+        let mut builder = credentials.server(CALL_LIMIT).map_err(|e| {
             CoordinatorError::Cluster(format!("coordinator TLS configuration: {e}"))
         })?;
         let server = tokio::spawn(

@@ -192,7 +192,22 @@ impl Cuts {
     /// before the next one's backward pass. The caller drops the last segment's graph
     /// (the loss) before calling this.
     pub fn backward(self, grads: &mut GradStore) -> Result<()> {
+        self.backward_flushing(grads, |_| Ok(()))
+    }
+
+    /// [`Cuts::backward`], handing `grads` to `flush` once the last segment's gradients
+    /// are in (before the first boundary's backward pass) and again after each segment's
+    /// backward pass, its graph freed: a caller that takes the gradients it has finished
+    /// with out of the store there (a running sum over micro-batches) holds no more than a
+    /// segment's at a time beside them. `flush` must leave the boundaries' gradients (the
+    /// copies' variables) in the store: the segments before them need them.
+    pub fn backward_flushing(
+        self,
+        grads: &mut GradStore,
+        mut flush: impl FnMut(&mut GradStore) -> Result<()>,
+    ) -> Result<()> {
         detach_all(grads);
+        flush(grads)?;
         let mut cuts = self.0;
         while let Some(Cut { upstream, copy }) = cuts.pop() {
             let Some(d) = grads.remove(copy.as_tensor()) else {
@@ -219,7 +234,9 @@ impl Cuts {
             // factor (`upstream` times one): it would hold this segment's graph.
             more.remove(&d);
             detach_all(&mut more);
+            drop((segment, d));
             grads.extend(more)?;
+            flush(grads)?;
         }
         Ok(())
     }
@@ -308,6 +325,50 @@ mod tests {
         assert_eq!(cut(&tracked).unwrap().id(), tracked.id());
         let (_, cuts) = with_cuts(false, || cut(&x).unwrap());
         assert!(cuts.0.is_empty());
+    }
+
+    /// The flushing backward pass hands the store over once per segment, last segment
+    /// first, each time with that segment's parameter gradients in it: taken out there,
+    /// they are the uncut graph's to the bit, and the segments before still get their
+    /// boundaries' gradients.
+    #[test]
+    fn each_segments_gradients_can_be_taken_as_it_ends() {
+        let w = [[5, 4], [4, 3], [3, 2]]
+            .iter()
+            .enumerate()
+            .map(|(i, s)| Var::from_tensor(&randn(s, 0.5, i as u64 + 1)).unwrap())
+            .collect::<Vec<_>>();
+        let x = randn(&[6, 5], 1.0, 4);
+        let forward = || -> Result<Tensor> {
+            let h1 = cut(&x.matmul(w[0].as_tensor())?.tanh()?)?;
+            let h2 = cut(&h1.matmul(w[1].as_tensor())?.gelu_erf()?)?;
+            h2.matmul(w[2].as_tensor())?.sqr()?.sum_all()
+        };
+        let bits = |g: &Tensor| {
+            let v = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            v.iter().map(|f| f.to_bits()).collect::<Vec<_>>()
+        };
+        let plain = forward().unwrap().backward().unwrap();
+        let (loss, cuts) = with_cuts(false, forward);
+        let mut grads = loss.unwrap().backward().unwrap();
+        let mut taken = Vec::new();
+        let mut calls = 0;
+        cuts.backward_flushing(&mut grads, |g| {
+            for (i, w) in w.iter().enumerate() {
+                if let Some(t) = g.remove(w.as_tensor()) {
+                    taken.push((calls, i, bits(&t)));
+                }
+            }
+            calls += 1;
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(calls, 3);
+        let order = taken.iter().map(|(c, i, _)| (*c, *i)).collect::<Vec<_>>();
+        assert_eq!(order, [(0, 2), (1, 1), (2, 0)]);
+        for (_, i, got) in &taken {
+            assert_eq!(got, &bits(plain.get(w[*i].as_tensor()).unwrap()));
+        }
     }
 
     /// Recomputed segments give the gradients of cuts at the same places to the bit; the

@@ -49,6 +49,10 @@ pub struct StepShape {
     /// Whether the transformer blocks', the convolutions' and the render MLP's
     /// activations are made again in the backward pass (`train.recompute`).
     pub recompute: bool,
+    /// Whether the pass's parameter gradients leave the store as each backward segment
+    /// ends, into a running sum held elsewhere (micro-batches summed on the host): then
+    /// no segment's gradients stay past it.
+    pub summed: bool,
 }
 
 /// Which implementation of the ops the step runs: they keep different tensors.
@@ -76,6 +80,7 @@ pub struct Footprint {
 /// (volumetric).
 pub fn step(cfg: &Config, shape: &StepShape, path: OpPath) -> Option<Footprint> {
     let mut l = Ledger::new(path, shape.threads, shape.recompute);
+    l.summed = shape.summed;
     encode(&mut l, cfg, shape);
     decode(&mut l, cfg, shape)?;
     Some(Footprint {
@@ -122,6 +127,8 @@ struct Ledger {
     /// The ops (`start..end` in `ops`) of each segment made again in the backward pass
     /// (`osrt_kernels::recompute`), in order.
     recomputed: Vec<std::ops::Range<usize>>,
+    /// Whether each segment's parameter gradients leave at its end ([`StepShape::summed`]).
+    summed: bool,
 }
 
 impl Ledger {
@@ -136,6 +143,7 @@ impl Ledger {
             cuts: Vec::new(),
             recompute,
             recomputed: Vec::new(),
+            summed: false,
         }
     }
 
@@ -223,11 +231,20 @@ impl Ledger {
 
     /// The largest sum: the forward pass's, or the backward pass's, which starts from
     /// everything held, frees each op's saved buffers as it passes the op and each
-    /// segment's graph once past the segment.
+    /// segment's graph once past the segment (and, where [`Self::summed`], the segment's
+    /// parameter gradients).
     fn peak(&self) -> f64 {
         let mut live = self.live;
         let mut peak = self.forward_peak;
         let mut segment = 0.0;
+        // Parameter gradients made since the last segment's end.
+        let mut grads = 0.0;
+        let flush = |live: &mut f64, grads: &mut f64| {
+            if self.summed {
+                *live -= *grads;
+                *grads = 0.0;
+            }
+        };
         let mut cuts = self.cuts.clone();
         let mut recomputed = self.recomputed.clone();
         // What the recomputed segment being passed holds, freed at its start.
@@ -241,6 +258,7 @@ impl Ledger {
                 peak = peak.max(live + ops.iter().map(|o| o.forward_extra).fold(0.0, f64::max));
             }
             live += f32s(op.params);
+            grads += f32s(op.params);
             peak = peak.max(live + op.backward_extra);
             live -= op.saved;
             match inside {
@@ -250,6 +268,7 @@ impl Ledger {
                         live -= remade;
                         remade = 0.0;
                         recomputed.pop();
+                        flush(&mut live, &mut grads);
                     }
                 }
                 None => segment += op.held,
@@ -258,6 +277,7 @@ impl Ledger {
                 cuts.pop();
                 live -= segment;
                 segment = 0.0;
+                flush(&mut live, &mut grads);
             }
         }
         peak

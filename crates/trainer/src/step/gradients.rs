@@ -4,6 +4,7 @@
 //! memory measured where asked. Its own file because it is the step's one long pipeline;
 //! what it hands on is a flat gradient (`flat`).
 
+use super::flat::HostSum;
 use super::{BatchTensors, Gradient, Trainer};
 use crate::error::{Result, TrainError};
 use candle_core::{Device, Tensor};
@@ -306,10 +307,12 @@ impl Trainer {
         };
         let parts = micro_batches(n, self.cfg.train.micro_batch_size);
         // Passes on the CPU add their gradients straight into the flat host gradient (the
-        // buffer the step hands on anyway), so no per-parameter sum is held beside it.
+        // buffer the step hands on anyway) as their backward passes make them, so no
+        // per-parameter sum, and no whole pass's gradients, are held beside it.
         let host_sum = crate::device::is_cpu(&self.device) && !keep && parts.len() > 1;
         let mut sum: Vec<Option<Tensor>> = Vec::new();
-        let mut flat_sum: Option<Vec<f32>> = None;
+        let mut flat_sum =
+            host_sum.then(|| HostSum::new(self.params.vars().into_iter().map(|(_, v)| v)));
         let (mut loss_value, mut forward_kept_bytes) = (0.0, None);
         for scenes in &parts {
             let rows = |t: &Option<Tensor>| -> Result<Option<Tensor>> {
@@ -326,18 +329,17 @@ impl Trainer {
                 offsets: rows(&offsets)?,
                 weight,
             };
-            let (loss, grads, kept) = self.micro_step(batch, mb, &mut clock, &probe)?;
+            let (loss, grads, kept) =
+                self.micro_step(batch, mb, &mut clock, &probe, flat_sum.as_mut())?;
             loss_value += loss;
             forward_kept_bytes = forward_kept_bytes.max(kept);
-            match (host_sum, &mut flat_sum) {
-                (true, None) => flat_sum = Some(self.flatten_host(grads)?),
-                (true, Some(flat)) => self.add_into(flat, grads)?,
-                (false, _) => sum = accumulate(sum, grads)?,
+            if flat_sum.is_none() {
+                sum = accumulate(sum, grads)?;
             }
         }
         let peak_bytes = probe.peak();
         let flat = match flat_sum {
-            Some(flat) => Gradient::Host(flat),
+            Some(flat) => Gradient::Host(flat.into_flat()),
             None => self.flatten(sum, keep)?,
         };
         let flatten_s = clock.lap()?;
@@ -371,13 +373,15 @@ impl Trainer {
 
     /// The forward and backward pass of one micro-batch: its loss (weighted), the
     /// parameters' gradients in [`Params::vars`](osrt_model::Params::vars) order (`None`
-    /// where the loss does not reach one), and the bytes its forward pass left held.
+    /// where the loss does not reach one; none where they went into `host_sum`), and the
+    /// bytes its forward pass left held.
     fn micro_step(
         &self,
         batch: &Batch,
         mb: MicroBatch,
         clock: &mut Clock,
         probe: &MemoryProbe,
+        host_sum: Option<&mut HostSum>,
     ) -> Result<(f64, Vec<Option<Tensor>>, Option<u64>)> {
         let t = BatchTensors::scenes(batch, mb.scenes.clone(), &self.device)?;
         // The forward pass in segments (`osrt_kernels::cut`: encoder, slot attention,
@@ -409,6 +413,14 @@ impl Trainer {
         // The last segment's graph (the outputs hold it) goes before the earlier
         // segments' backward passes; the batch goes with it.
         drop((loss, out, slots, t));
+        if let Some(sum) = host_sum {
+            cuts.backward_flushing(&mut grads, |g| sum.take(g, false))?;
+            sum.take(&mut grads, true)?;
+            sum.end_pass();
+            drop(grads);
+            clock.backward()?;
+            return Ok((loss_value, Vec::new(), kept));
+        }
         cuts.backward(&mut grads)?;
         // The parameters' gradients, in order, out of candle's store and detached; the rest
         // of it goes: candle also writes gradients for constants (the data, a product's
