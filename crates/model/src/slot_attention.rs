@@ -291,11 +291,13 @@ impl SlotAttention {
             }
             let prev = slots.clone();
             let q = self.to_q.forward(&self.norm_slots.forward(&slots)?)?; // [b, k, ds]
-            let logits = (q.matmul(&kt)? * scale)?; // [b, k, n]
+            // Products in the thread's precision (bf16 operands where the step asks for
+            // them, as autocast runs them), f32 otherwise to candle's bits.
+            let logits = (osrt_kernels::matmul(&q, &kt)? * scale)?; // [b, k, n]
             let attn = osrt_kernels::softmax(&logits, 1)?; // over slots
             let weights = (&attn + self.cfg.eps)?;
             let weights = weights.broadcast_div(&weights.sum_keepdim(D::Minus1)?)?; // mean over inputs
-            let updates = weights.matmul(&v)?; // [b, k, ds]
+            let updates = osrt_kernels::matmul(&weights, &v)?; // [b, k, ds]
             slots = self.gru.forward(&updates, &prev)?;
             slots = (&slots + self.mlp.forward(&self.norm_mlp.forward(&slots)?)?)?;
             attention = Some(attn);

@@ -586,10 +586,15 @@ targets = ["novel", "input"]
         let base = f.base_job(path.parent().unwrap()).unwrap();
         let points = f.check(&base, 3).unwrap();
         let names: Vec<String> = points.iter().map(|(p, _)| p.name()).collect();
-        let want: Vec<String> = ["horizon=fixed", "horizon=budget", "slot_gradient=bilevel"]
-            .iter()
-            .flat_map(|c| (0..3).map(move |s| format!("{c},seed={s}")))
-            .collect();
+        let want: Vec<String> = [
+            "horizon=fixed",
+            "horizon=budget",
+            "slot_gradient=bilevel",
+            "slot_gradient=implicit",
+        ]
+        .iter()
+        .flat_map(|c| (0..3).map(move |s| format!("{c},seed={s}")))
+        .collect();
         assert_eq!(names, want);
         for (p, job) in &points {
             let seed: u64 = p.get("seed").unwrap().parse().unwrap();
@@ -601,7 +606,7 @@ targets = ["novel", "input"]
             let want = match (p.get("horizon"), p.get("slot_gradient")) {
                 (Some("budget"), None) => (true, false),
                 (Some("fixed"), None) => (false, false),
-                (None, Some("bilevel")) => (false, true),
+                (None, Some("bilevel" | "implicit")) => (false, true),
                 other => panic!("unexpected point {other:?}"),
             };
             assert_eq!(changed, want, "{}", p.name());

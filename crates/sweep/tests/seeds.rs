@@ -457,9 +457,9 @@ fn tensorboard_events_carry_the_mean_curves_in_time_order() {
     assert_eq!(g.folder_name(), "lr=0.001");
 }
 
-/// The shipped time-to-quality sweep: three changes, three seeds each.
+/// The shipped time-to-quality sweep: four settings, three seeds each.
 #[test]
-fn the_time_to_quality_sweep_has_three_groups_of_three_seeds() {
+fn the_time_to_quality_sweep_has_groups_of_three_seeds() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/sweeps/time-to-quality.toml");
     let f = SweepFile::load(&path).unwrap();
@@ -477,7 +477,8 @@ fn the_time_to_quality_sweep_has_three_groups_of_three_seeds() {
         [
             ("horizon=fixed", seeds.clone()),
             ("horizon=budget", seeds.clone()),
-            ("slot_gradient=bilevel", seeds),
+            ("slot_gradient=bilevel", seeds.clone()),
+            ("slot_gradient=implicit", seeds),
         ]
     );
 }
