@@ -86,17 +86,32 @@ fn note(f: &SweepFile) -> String {
 }
 
 /// Makes `out` the folder of the sweep in `file` (a copy of the file goes there); a folder
-/// holding another sweep is refused.
+/// holding another sweep is refused, one holding this sweep with fewer points is kept
+/// (its finished points are not run again).
 fn claim_folder(file: &Path, out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let copy = out.join(SWEEP_COPY);
     let text = std::fs::read_to_string(file)?;
     match std::fs::read_to_string(&copy) {
-        Ok(old) if old != text => bail!(
-            "{} holds a different sweep ({}); choose another --out or remove it",
-            out.display(),
-            copy.display()
-        ),
+        Ok(old) if old != text => {
+            let extends = match (SweepFile::load(file), SweepFile::load(&copy)) {
+                (Ok(now), Ok(was)) => now.extends(&was),
+                _ => false,
+            };
+            if !extends {
+                bail!(
+                    "{} holds a different sweep ({}): a sweep file may add points to the one \
+                     there, nothing else; choose another --out or remove it",
+                    out.display(),
+                    copy.display()
+                );
+            }
+            eprintln!(
+                "{} holds this sweep with fewer points: its finished points are kept",
+                out.display()
+            );
+            std::fs::write(&copy, &text)?
+        }
         _ => std::fs::write(&copy, &text)?,
     }
     Ok(())

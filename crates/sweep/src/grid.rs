@@ -291,6 +291,24 @@ impl Point {
 }
 
 impl SweepFile {
+    /// Whether this file is `earlier` with points added: every setting outside the points
+    /// and axes the same, and every point of `earlier` among this file's (compared by
+    /// name, which is how a sweep's folder names its points' runs). A sweep folder of
+    /// `earlier` then keeps its finished points for this file.
+    pub fn extends(&self, earlier: &SweepFile) -> bool {
+        let base = |f: &SweepFile| {
+            let mut f = f.clone();
+            f.points.clear();
+            f.axes = Axes::default();
+            toml::to_string(&f).ok()
+        };
+        let names = |f: &SweepFile| f.points().iter().map(Point::name).collect::<Vec<_>>();
+        let now = names(self);
+        base(self).is_some()
+            && base(self) == base(earlier)
+            && names(earlier).iter().all(|n| now.contains(n))
+    }
+
     pub fn load(path: &Path) -> Result<Self> {
         let text = crate::read_text(path)?;
         Self::parse(&text, &path.display().to_string())
@@ -394,6 +412,27 @@ impl SweepFile {
 
 #[cfg(test)]
 mod tests {
+    /// A file that only adds points (or axis values, or comments) extends the earlier one;
+    /// one that changes a setting outside the points, or drops a point, does not.
+    #[test]
+    fn a_file_with_points_added_extends_the_earlier_one() {
+        let f = |text: &str| super::SweepFile::parse(text, "test").unwrap();
+        let earlier =
+            f("name = \"s\"\nmax_minutes = 10.0\n[[points]]\nlr = 0.001\n[axes]\nseed = [0, 1]\n");
+        let more = f(
+            "# a comment\nname = \"s\"\nmax_minutes = 10.0\n[[points]]\nlr = 0.001\n[[points]]\nlr = 0.002\n[axes]\nseed = [0, 1, 2]\n",
+        );
+        assert!(more.extends(&earlier));
+        assert!(earlier.extends(&earlier));
+        assert!(!earlier.extends(&more), "points dropped");
+        let longer =
+            f("name = \"s\"\nmax_minutes = 20.0\n[[points]]\nlr = 0.001\n[axes]\nseed = [0, 1]\n");
+        assert!(!longer.extends(&earlier), "another budget");
+        let other =
+            f("name = \"t\"\nmax_minutes = 10.0\n[[points]]\nlr = 0.001\n[axes]\nseed = [0, 1]\n");
+        assert!(!other.extends(&earlier), "another name");
+    }
+
     use super::*;
 
     const FILE: &str = r#"
