@@ -96,7 +96,11 @@ impl Trainer {
         let mut flat = Vec::with_capacity(cap);
         for ((_, var), g) in self.params.vars().into_iter().zip(param_grads) {
             match g {
-                Some(g) => extend_with(&mut flat, &g)?,
+                Some(g) => {
+                    let at = flat.len();
+                    flat.resize(at + var.elem_count(), 0.0);
+                    write_into(&mut flat[at..], &g, false)?;
+                }
                 // A parameter the loss does not reach (e.g. unused init of another mode).
                 None => flat.extend(std::iter::repeat_n(0.0, var.elem_count())),
             }
@@ -204,26 +208,6 @@ fn write_into(place: &mut [f32], g: &Tensor, add: bool) -> candle_core::Result<(
         .to_dtype(candle_core::DType::F32)?
         .to_vec1::<f32>()?;
     write(place, &values);
-    Ok(())
-}
-
-/// Appends a gradient's values to `flat`: straight from a contiguous f32 CPU tensor's
-/// storage, through a copy otherwise.
-fn extend_with(flat: &mut Vec<f32>, g: &Tensor) -> candle_core::Result<()> {
-    {
-        let (storage, layout) = g.storage_and_layout();
-        if let (Storage::Cpu(CpuStorage::F32(data)), Some((a, b))) =
-            (&*storage, layout.contiguous_offsets())
-        {
-            flat.extend_from_slice(&data[a..b]);
-            return Ok(());
-        }
-    }
-    flat.extend(
-        g.flatten_all()?
-            .to_dtype(candle_core::DType::F32)?
-            .to_vec1::<f32>()?,
-    );
     Ok(())
 }
 
