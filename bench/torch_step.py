@@ -428,6 +428,16 @@ def run_case(torch, case):
             model.encode(images, origins, directions), t_orig, t_dir)[0], target, autocast,
             sync, cuda)
         opt.zero_grad(set_to_none=True)
+    if case.get("ledger"):
+        import torch_ledger
+
+        def step():
+            with autocast():
+                rgb, _ = model.decode(model.encode(images, origins, directions), t_orig, t_dir)
+                part = ((rgb.float() - target) ** 2).mean()
+            part.backward()
+        out["ledger"] = torch_ledger.record(torch, step, opt.step)
+        opt.zero_grad(set_to_none=True)
     del opt, images, origins, directions, t_orig, t_dir, target, rgb, loss
     if case["render"]:
         # Render: one whole input view (s·s rays) from the model's slots, no gradients;
@@ -624,7 +634,7 @@ def plan(a, ap):
                         preset=p, batch_size=bs, input_views=v, rays_per_scene=r,
                         image_size=a.image_size or c["image_size"], dtype=d,
                         device=a.device, steps=a.steps, warmup=a.warmup,
-                        render=not a.no_render, profile=a.profile,
+                        render=not a.no_render, profile=a.profile, ledger=a.ledger,
                         micro_batch_size=a.micro_batch_size))
     return cases
 
@@ -676,6 +686,10 @@ def main():
                     help="after the timed steps, one forward and backward pass under the "
                     "PyTorch profiler: its ops by self time (the counterpart of "
                     "`osrt bench model --profile`)")
+    ap.add_argument("--ledger", action="store_true",
+                    help="after the timed steps, one more step's ledger: every product, cast "
+                    "and copy (bench/torch_ledger.py; the counterpart of "
+                    "`osrt bench model --ledger`)")
     ap.add_argument("--list", action="store_true", help="print the cases and exit")
     ap.add_argument("--out", default="target/bench/torch.json")
     ap.add_argument("--worker-allocator", action="store_true",
@@ -784,6 +798,13 @@ def main():
     for r in results:
         if "profile" in r:
             print_profile(r)
+        if "ledger" in r:
+            t = r["ledger"]["totals"]
+            print(f"ledger of {label(r, False)}: {t['products']} products, "
+                  + ", ".join(f"{k} {v / 1e9:.2f} GFLOP" for k, v in sorted(t['flops'].items()))
+                  + "; " + ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in sorted(t['bytes'].items()))
+                  + f"; at {r['ledger']['rates']['name']}: products {t['product_s'] * 1e3:.3f} ms, "
+                  f"moves {t['movement_s'] * 1e3:.3f} ms")
     by_threads = a.device == "cpu" and len(cases) == 1
     saved = {label(r, by_threads): r for r in results}
     os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)

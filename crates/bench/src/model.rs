@@ -28,6 +28,8 @@ pub struct ModelReport {
     pub renders: Vec<RenderFigures>,
     #[serde(default)]
     pub profiles: Vec<ProfileFigures>,
+    #[serde(default)]
+    pub ledgers: Vec<LedgerFigures>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -329,6 +331,83 @@ pub fn profile_step(
         step_peak_bytes: last.and_then(|p| p.peak_bytes),
         kinds: profile::by_kind(&ops),
         ops,
+    })
+}
+
+/// One train step's ledger (`osrt bench model --ledger`): its products, casts, copies and
+/// other ops' bytes (`osrt_kernels::ledger`), and their totals per op kind with the time
+/// they would take at an H200's rates.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LedgerFigures {
+    pub preset: String,
+    pub batch_size: usize,
+    pub input_views: usize,
+    pub rays_per_scene: usize,
+    pub image_size: u32,
+    pub device: String,
+    pub precision: String,
+    pub kernels: String,
+    pub recompute: bool,
+    pub parameters: usize,
+    pub rates: osrt_kernels::ledger::Rates,
+    pub entries: osrt_kernels::ledger::Entries,
+    /// Per op kind, largest predicted time first, then the step's.
+    pub totals: Vec<osrt_kernels::ledger::Totals>,
+}
+
+/// The ledger of one of `job`'s train steps on `device` (after one step, so that
+/// whatever a first step does once is not counted), with the job's kernels and precision.
+/// The optimiser's update is entered from the parameter count: AdamW reads each
+/// parameter, its gradient and both moments and writes the parameter and the moments
+/// (f32, no products).
+pub fn ledger_step(
+    preset: &str,
+    job: &JobConfig,
+    image_size: u32,
+    device: &Device,
+) -> Result<LedgerFigures> {
+    use osrt_kernels::ledger::{self, H200, Ledger, Moved, Movement, Phase};
+    let (scenes, cfg) = bench_data(job, image_size)?;
+    let refs: Vec<&Scene> = scenes.iter().cycle().take(job.train.batch_size).collect();
+    let mut trainer = Trainer::new(job.clone(), device.clone())?;
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = build_batch(&refs, &cfg, &mut rng)?;
+    let g = trainer.gradients(&batch, &mut rng)?;
+    trainer.apply(g.loss, g.grads)?;
+    let book = Ledger::default();
+    let batch = build_batch(&refs, &cfg, &mut rng)?;
+    ledger::recording(Some(book.clone()), || {
+        trainer.gradients(&batch, &mut rng).map(drop)
+    })?;
+    let mut entries = book.take();
+    let parameters = trainer.num_parameters();
+    let f32_bytes = 4 * parameters as u64;
+    entries.movements.push((
+        Movement {
+            kind: "optimiser".into(),
+            phase: Phase::Backward,
+            moved: Moved::Op,
+            what: "AdamW".into(),
+            read: 4 * f32_bytes,
+            written: 3 * f32_bytes,
+        },
+        1,
+    ));
+    let totals = entries.totals(&H200);
+    Ok(LedgerFigures {
+        preset: preset.to_string(),
+        batch_size: job.train.batch_size,
+        input_views: job.train.input_views,
+        rays_per_scene: job.train.rays_per_scene,
+        image_size,
+        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
+        precision: job.train.precision.to_string(),
+        kernels: job.train.kernels.to_string(),
+        recompute: job.train.recompute,
+        parameters,
+        rates: H200,
+        entries,
+        totals,
     })
 }
 

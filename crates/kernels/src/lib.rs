@@ -20,8 +20,9 @@
 //! - `cuda`: the CUDA kernels' source and launch geometry, their launcher (a `cuda`
 //!   build) and, in the tests, an emulator that runs them on the host;
 //! - `dispatch`: the public ops, each choosing between those and candle's ops;
-//! - `profile`, `device_check` and `testing`: the per-op profile, the check of a device's
-//!   ops against the CPU's, and the tests' helpers.
+//! - `profile`, `ledger`, `device_check` and `testing`: the per-op profile, the ledger of
+//!   a step's products, casts and copies, the check of a device's ops against the CPU's,
+//!   and the tests' helpers.
 //!
 //! This file is the hub: the thread's switches, [`Kernels`] (applied per thread with
 //! [`with_kernels`]) and [`Precision`] ([`with_precision`]), and the public API. The
@@ -36,6 +37,7 @@ pub mod device_check;
 mod dispatch;
 mod graph;
 mod kept;
+pub mod ledger;
 pub mod profile;
 #[cfg(test)]
 mod testing;
@@ -194,7 +196,14 @@ pub fn with_fused<T>(on: bool, f: impl FnOnce() -> T) -> T {
 /// interleaved runs: docs/performance.md).
 pub fn on_device_pool<T: Send>(device: &candle_core::Device, f: impl FnOnce() -> T + Send) -> T {
     let (k, p, r) = (kernels(), precision(), profile::current());
-    device.with_context(|| with_kernels(k, || with_precision(p, || profile::recording(r, f))))
+    let (l, at) = (ledger::current(), ledger::context());
+    device.with_context(|| {
+        with_kernels(k, || {
+            with_precision(p, || {
+                profile::recording(r, || ledger::recording(l, || ledger::in_context(at, f)))
+            })
+        })
+    })
 }
 
 #[cfg(test)]

@@ -84,9 +84,9 @@ pub fn op(
 ) -> Result<Tensor> {
     let owned: Vec<Tensor> = inputs.iter().map(|t| (*t).clone()).collect();
     let Some(rec) = current() else {
-        return rerun(&owned);
+        return crate::ledger::within(kind, || rerun(&owned));
     };
-    let y = nested(|| rerun(&owned))?;
+    let y = crate::ledger::within(kind, || nested(|| rerun(&owned)))?;
     record(&rec, kind, inputs, Arc::new(move |t| Ok(vec![rerun(t)?])));
     Ok(y)
 }

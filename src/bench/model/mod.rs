@@ -2,12 +2,13 @@
 //! each decoder at 6 and 32 slots. Each thread count runs in its own child process (the
 //! thread pools are sized once per process), and the parent prints and saves the union.
 
+mod ledger;
 mod report;
 
 use super::save_json;
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use osrt_bench::model::{ModelReport, bench_render, bench_step, profile_step};
+use osrt_bench::model::{ModelReport, bench_render, bench_step, ledger_step, profile_step};
 use osrt_kernels::{Kernels, Precision};
 use osrt_trainer::{DeviceSpec, JobConfig};
 use report::print_model_report;
@@ -41,6 +42,11 @@ pub struct BenchModelArgs {
     /// step's own passes (no renders, no composed-vs-fused comparison).
     #[arg(long, conflicts_with = "render_only")]
     pub profile: bool,
+    /// Print the ledger of one train step: every matrix product (shape, operand and output
+    /// types, transposes, copies), cast, copy and other op's bytes, per op kind, with the
+    /// time each would take at an H200's rates (runs on any device; no timing).
+    #[arg(long, conflicts_with_all = ["render_only", "profile"])]
+    pub ledger: bool,
     /// Run in this process only (used by the parent, which sets the thread environment).
     #[arg(long, hide = true)]
     pub child: bool,
@@ -108,6 +114,18 @@ fn bench_job(a: &BenchModelArgs, preset: &str) -> Result<JobConfig> {
 
 fn measure(a: &BenchModelArgs) -> Result<ModelReport> {
     let device = a.device.open()?;
+    if a.ledger {
+        let mut ledgers = Vec::new();
+        for p in &a.presets {
+            let mut job = bench_job(a, p)?;
+            job.train.kernels = a.kernels.unwrap_or_default();
+            ledgers.push(ledger_step(p, &job, a.image_size, &device)?);
+        }
+        return Ok(ModelReport {
+            ledgers,
+            ..ModelReport::default()
+        });
+    }
     if a.profile {
         let mut profiles = Vec::new();
         for p in &a.presets {
@@ -152,7 +170,7 @@ fn measure(a: &BenchModelArgs) -> Result<ModelReport> {
     Ok(ModelReport {
         steps,
         renders,
-        profiles: Vec::new(),
+        ..ModelReport::default()
     })
 }
 
@@ -208,6 +226,7 @@ pub fn run(a: BenchModelArgs) -> Result<()> {
         .args(a.step_only.then_some("--step-only"))
         .args(a.render_only.then_some("--render-only"))
         .args(a.profile.then_some("--profile"))
+        .args(a.ledger.then_some("--ledger"))
         .args(a.recompute.then_some("--recompute"))
         .args(["--device", &a.device.to_string()])
         .args(["--precision", &a.precision.to_string()])

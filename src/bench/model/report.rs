@@ -148,6 +148,9 @@ pub(super) fn print_model_report(a: &BenchModelArgs, report: &[(usize, ModelRepo
         for p in &v.profiles {
             print_profile(p);
         }
+        for l in &v.ledgers {
+            super::ledger::print_ledger(l);
+        }
         for s in &v.steps {
             print_step(s);
         }

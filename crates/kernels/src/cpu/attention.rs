@@ -38,6 +38,15 @@ impl Dims {
         self.h * self.dh
     }
 
+    /// Enters the products of a pass in the ledger, each `(m, n, k, transposed)` per head
+    /// of every batch element.
+    fn enter(&self, products: &[(usize, usize, usize, [bool; 2])]) {
+        let f = candle_core::DType::F32;
+        for &(m, n, k, t) in products {
+            crate::ledger::product((self.b * self.h, m, n, k), (f, f, f), t, [false; 2]);
+        }
+    }
+
     /// Rows `len` of batch element `bi` of a `[b, len, row]` tensor (starting at `off`)
     /// as `[h, len, dh]`: head `j`'s row `i` is at `(bi·len + i)·row + j·dh` (`row` is
     /// `h·dh`, or wider where two tensors are packed side by side).
@@ -142,6 +151,11 @@ pub(crate) fn forward(
         QUERY_ROWS_PER_TASK.min(d.n)
     };
     let blocks = d.n.div_ceil(rows.max(1));
+    // Q·Kᵀ, then the weights times V.
+    d.enter(&[
+        (d.n, d.m, d.dh, [false, true]),
+        (d.n, d.dh, d.m, [false, false]),
+    ]);
     let tasks: Vec<(usize, usize, usize)> = (0..d.b)
         .flat_map(|bi| (0..blocks).map(move |j| (bi, j * rows, rows.min(d.n - j * rows))))
         .collect();
@@ -233,24 +247,26 @@ impl CustomOp3 for AttentionOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        // Taken, not cloned: a second backward through the same graph recomputes them.
-        let saved = self.saved.take();
-        let d = self.dims;
-        let bwd = AttentionBwd {
-            dims: d,
-            saved: Kept::new(saved),
-        };
-        // Keys and values travel as one tensor: the op takes three inputs.
-        let kv = Tensor::cat(&[k, v], D::Minus1)?;
-        let flat = q.apply_op3_no_bwd(&kv, &grad.contiguous()?, &bwd)?;
-        let (nq, nk) = (d.b * d.n * d.inner(), d.b * d.m * d.inner());
-        let part = |t: &Tensor, at: usize, len: usize| -> Result<Option<Tensor>> {
-            Ok(match t.track_op() {
-                true => Some(flat.narrow(0, at, len)?.reshape(t.shape())?),
-                false => None,
-            })
-        };
-        Ok((part(q, 0, nq)?, part(k, nq, nk)?, part(v, nq + nk, nk)?))
+        crate::ledger::backward("", "attention", || {
+            // Taken, not cloned: a second backward through the same graph recomputes them.
+            let saved = self.saved.take();
+            let d = self.dims;
+            let bwd = AttentionBwd {
+                dims: d,
+                saved: Kept::new(saved),
+            };
+            // Keys and values travel as one tensor: the op takes three inputs.
+            let kv = Tensor::cat(&[k, v], D::Minus1)?;
+            let flat = q.apply_op3_no_bwd(&kv, &grad.contiguous()?, &bwd)?;
+            let (nq, nk) = (d.b * d.n * d.inner(), d.b * d.m * d.inner());
+            let part = |t: &Tensor, at: usize, len: usize| -> Result<Option<Tensor>> {
+                Ok(match t.track_op() {
+                    true => Some(flat.narrow(0, at, len)?.reshape(t.shape())?),
+                    false => None,
+                })
+            };
+            Ok((part(q, 0, nq)?, part(k, nq, nk)?, part(v, nq + nk, nk)?))
+        })
     }
 }
 
@@ -304,6 +320,16 @@ impl AttentionBwd {
         let d = &self.dims;
         let inner = d.inner();
         let saved = self.saved.take();
+        if saved.is_none() {
+            d.enter(&[(d.n, d.m, d.dh, [false, true])]);
+        }
+        // dV = Pᵀ·dO, dP = dO·Vᵀ, dQ = dS·K, dK = dSᵀ·Q.
+        d.enter(&[
+            (d.m, d.dh, d.n, [true, false]),
+            (d.n, d.m, d.dh, [false, true]),
+            (d.n, d.dh, d.m, [false, false]),
+            (d.m, d.dh, d.n, [true, false]),
+        ]);
         let per: Vec<[Vec<f32>; 3]> = (0..d.b)
             .into_par_iter()
             .map(|bi| {

@@ -173,7 +173,9 @@ impl CustomOp1 for Im2Col {
     }
 
     fn bwd(&self, _x: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        Ok(Some(grad.contiguous()?.apply_op1_no_bwd(&Col2Im(self.0))?))
+        crate::ledger::backward("", "conv2d", || {
+            Ok(Some(grad.contiguous()?.apply_op1_no_bwd(&Col2Im(self.0))?))
+        })
     }
 }
 
@@ -299,23 +301,25 @@ impl CustomOp2 for ConvOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        // Taken, not cloned: a second backward through the same graph recomputes them.
-        let bwd = ConvBwd {
-            geom: self.geom,
-            co: self.co,
-            saved: Kept::new(self.saved.take()),
-            input_grad: x.track_op(),
-        };
-        let flat = x.apply_op3_no_bwd(kernel, &grad.contiguous()?, &bwd)?;
-        let nk = kernel.elem_count();
-        let dk = flat
-            .narrow(0, flat.dim(0)? - nk, nk)?
-            .reshape(kernel.shape())?;
-        let dx = match bwd.input_grad {
-            true => Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?),
-            false => None,
-        };
-        Ok((dx, Some(dk)))
+        crate::ledger::backward("", "conv2d", || {
+            // Taken, not cloned: a second backward through the same graph recomputes them.
+            let bwd = ConvBwd {
+                geom: self.geom,
+                co: self.co,
+                saved: Kept::new(self.saved.take()),
+                input_grad: x.track_op(),
+            };
+            let flat = x.apply_op3_no_bwd(kernel, &grad.contiguous()?, &bwd)?;
+            let nk = kernel.elem_count();
+            let dk = flat
+                .narrow(0, flat.dim(0)? - nk, nk)?
+                .reshape(kernel.shape())?;
+            let dx = match bwd.input_grad {
+                true => Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?),
+                false => None,
+            };
+            Ok((dx, Some(dk)))
+        })
     }
 }
 

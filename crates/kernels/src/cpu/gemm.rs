@@ -17,7 +17,7 @@
 
 #![allow(unsafe_code)]
 
-use candle_core::{CpuStorage, Layout, Result};
+use candle_core::{CpuStorage, DType, Layout, Result};
 use gemm::Parallelism;
 
 /// A strided `[rows, cols]` view of f32 values inside a slice: element `(i, j)` is
@@ -120,6 +120,11 @@ pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads) -> Result<Vec<f32>>
     let ((m, k), (k2, n)) = (a.dims(), b.dims());
     if k != k2 {
         candle_core::bail!("matmul: [{m}, {k}] · [{k2}, {n}]");
+    }
+    if threads == Threads::Pool {
+        // A product that is one of the step's (not a block of one, run as a task).
+        let f = DType::F32;
+        crate::ledger::product((1, m, n, k), (f, f, f), [a.rs == 1, b.rs == 1], [false; 2]);
     }
     let len = m * n;
     let mut dst: Vec<f32> = Vec::with_capacity(len);

@@ -46,11 +46,13 @@ impl CustomOp2 for BiasAddOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let db = grad
-            .contiguous()?
-            .apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?
-            .reshape(b.shape())?;
-        Ok((Some(grad.clone()), Some(db)))
+        crate::ledger::backward("", "linear", || {
+            let db = grad
+                .contiguous()?
+                .apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?
+                .reshape(b.shape())?;
+            Ok((Some(grad.clone()), Some(db)))
+        })
     }
 }
 
@@ -146,6 +148,8 @@ pub(crate) fn weight_grad(
     if blocks <= 1 {
         return block(0, rows, Threads::Pool);
     }
+    let (f, dims) = (candle_core::DType::F32, (1, a.dims().1, b.dims().1, rows));
+    crate::ledger::product(dims, (f, f, f), [true, false], [false; 2]);
     let parts: Vec<Vec<f32>> = (0..blocks)
         .into_par_iter()
         .map(|i| {
@@ -261,10 +265,12 @@ impl CustomOp3 for LinearOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let (dx, dw) = linear_grads(x, w, &grad)?;
-        let db = grad.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
-        Ok((dx, Some(dw), Some(db)))
+        crate::ledger::backward("", "linear", || {
+            let grad = grad.contiguous()?;
+            let (dx, dw) = linear_grads(x, w, &grad)?;
+            let db = grad.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
+            Ok((dx, Some(dw), Some(db)))
+        })
     }
 }
 
@@ -294,8 +300,10 @@ impl CustomOp2 for LinearNoBiasOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (dx, dw) = linear_grads(x, w, &grad.contiguous()?)?;
-        Ok((dx, Some(dw)))
+        crate::ledger::backward("", "linear", || {
+            let (dx, dw) = linear_grads(x, w, &grad.contiguous()?)?;
+            Ok((dx, Some(dw)))
+        })
     }
 }
 

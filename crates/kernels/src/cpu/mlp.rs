@@ -221,23 +221,25 @@ impl CustomOp2 for MlpOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        // Taken, not cloned: a second backward through the same graph recomputes them.
-        let saved = self.saved.take();
-        let bwd = MlpBwd {
-            plan: self.plan.clone(),
-            act: self.act,
-            saved: Kept::new(saved),
-            input_grad: x.track_op(),
-        };
-        let flat = x.apply_op3_no_bwd(p, &grad.contiguous()?, &bwd)?;
-        let n_p = self.plan.params();
-        let dp = flat.narrow(0, flat.dim(0)? - n_p, n_p)?;
-        let dx = if bwd.input_grad {
-            Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?)
-        } else {
-            None
-        };
-        Ok((dx, Some(dp)))
+        crate::ledger::backward("", "mlp", || {
+            // Taken, not cloned: a second backward through the same graph recomputes them.
+            let saved = self.saved.take();
+            let bwd = MlpBwd {
+                plan: self.plan.clone(),
+                act: self.act,
+                saved: Kept::new(saved),
+                input_grad: x.track_op(),
+            };
+            let flat = x.apply_op3_no_bwd(p, &grad.contiguous()?, &bwd)?;
+            let n_p = self.plan.params();
+            let dp = flat.narrow(0, flat.dim(0)? - n_p, n_p)?;
+            let dx = if bwd.input_grad {
+                Some(flat.narrow(0, 0, x.elem_count())?.reshape(x.shape())?)
+            } else {
+                None
+            };
+            Ok((dx, Some(dp)))
+        })
     }
 }
 
@@ -428,31 +430,33 @@ impl CustomOp3 for MlpCatOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let grad = grad.contiguous()?;
-        let op = &self.0;
-        let bwd = MlpBwd {
-            plan: op.plan.clone(),
-            act: op.act,
-            // Taken, not cloned: a second backward through the same graph recomputes it.
-            saved: Kept::new(op.saved.take()),
-            input_grad: a.track_op() || b.track_op(),
-        };
-        let (sa, la) = a.storage_and_layout();
-        let (sb, lb) = b.storage_and_layout();
-        let (sp, lp) = p.storage_and_layout();
-        let (sg, lg) = grad.storage_and_layout();
-        let (la, lb, lg) = (rows_layout(la)?, rows_layout(lb)?, rows_layout(lg)?);
-        let input = Input::Two([(cpu(&sa)?, &la), (cpu(&sb)?, &lb)]);
-        let (dx, dp) = bwd.backward(input, cpu(&sp)?, lp, (cpu(&sg)?, &lg))?;
-        let dev = a.device();
-        let mut dx = dx.into_iter();
-        let mut part = |t: &Tensor| -> Result<Option<Tensor>> {
-            match (dx.next().flatten(), t.track_op()) {
-                (Some(v), true) => Ok(Some(Tensor::from_vec(v, t.shape(), dev)?)),
-                _ => Ok(None),
-            }
-        };
-        let (da, db) = (part(a)?, part(b)?);
-        Ok((da, db, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
+        crate::ledger::backward("", "mlp", || {
+            let grad = grad.contiguous()?;
+            let op = &self.0;
+            let bwd = MlpBwd {
+                plan: op.plan.clone(),
+                act: op.act,
+                // Taken, not cloned: a second backward through the same graph recomputes it.
+                saved: Kept::new(op.saved.take()),
+                input_grad: a.track_op() || b.track_op(),
+            };
+            let (sa, la) = a.storage_and_layout();
+            let (sb, lb) = b.storage_and_layout();
+            let (sp, lp) = p.storage_and_layout();
+            let (sg, lg) = grad.storage_and_layout();
+            let (la, lb, lg) = (rows_layout(la)?, rows_layout(lb)?, rows_layout(lg)?);
+            let input = Input::Two([(cpu(&sa)?, &la), (cpu(&sb)?, &lb)]);
+            let (dx, dp) = bwd.backward(input, cpu(&sp)?, lp, (cpu(&sg)?, &lg))?;
+            let dev = a.device();
+            let mut dx = dx.into_iter();
+            let mut part = |t: &Tensor| -> Result<Option<Tensor>> {
+                match (dx.next().flatten(), t.track_op()) {
+                    (Some(v), true) => Ok(Some(Tensor::from_vec(v, t.shape(), dev)?)),
+                    _ => Ok(None),
+                }
+            };
+            let (da, db) = (part(a)?, part(b)?);
+            Ok((da, db, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
+        })
     }
 }

@@ -14,10 +14,11 @@ use candle_core::{Result, Tensor};
 /// # Shapes
 /// `x: [b, n, d]`, `ctx: [b, m, d_ctx]` → `[b, n, d]`
 pub fn block(x: &Tensor, ctx: Option<&Tensor>, p: &BlockParams) -> Result<Option<Tensor>> {
+    let here = || crate::ledger::within("block", || block_here(x, ctx, p));
     let Some(rec) = profile::current() else {
-        return block_here(x, ctx, p);
+        return here();
     };
-    let y = profile::nested(|| block_here(x, ctx, p))?;
+    let y = profile::nested(here)?;
     if y.is_some() {
         // The operands in one list: x, the eight attention-half tensors, the context if
         // any, then the MLP's layers.

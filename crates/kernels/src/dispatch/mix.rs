@@ -20,10 +20,11 @@ pub fn slot_mix(
     w_k: &Tensor,
     scale: f64,
 ) -> Result<Option<(Tensor, Tensor)>> {
+    let here = || crate::ledger::within("slot_mix", || slot_mix_here(x, slots, w_q, w_k, scale));
     let Some(rec) = profile::current() else {
-        return slot_mix_here(x, slots, w_q, w_k, scale);
+        return here();
     };
-    let y = profile::nested(|| slot_mix_here(x, slots, w_q, w_k, scale))?;
+    let y = profile::nested(here)?;
     if y.is_some() {
         let rerun = move |t: &[Tensor]| -> Result<Vec<Tensor>> {
             match slot_mix_here(&t[0], &t[1], &t[2], &t[3], scale)? {

@@ -5,12 +5,13 @@
 
 use super::{usable, usable_with_cuda};
 use crate::cpu::{self, MlpAct};
-use crate::profile;
+use crate::{ledger, profile};
 use candle_core::{D, Result, Tensor};
 
 /// erf-based GELU, elementwise.
 pub fn gelu(x: &Tensor) -> Result<Tensor> {
-    profile::op("gelu", &[x], |t| gelu_here(&t[0]))
+    let y = profile::op("gelu", &[x], |t| gelu_here(&t[0]))?;
+    pointwise("gelu", &[x], y)
 }
 
 fn gelu_here(x: &Tensor) -> Result<Tensor> {
@@ -22,7 +23,8 @@ fn gelu_here(x: &Tensor) -> Result<Tensor> {
 
 /// `max(x, 0)`, elementwise (gradient 1 at 0, as candle's `relu`).
 pub fn relu(x: &Tensor) -> Result<Tensor> {
-    profile::op("relu", &[x], |t| relu_here(&t[0]))
+    let y = profile::op("relu", &[x], |t| relu_here(&t[0]))?;
+    pointwise("relu", &[x], y)
 }
 
 fn relu_here(x: &Tensor) -> Result<Tensor> {
@@ -35,7 +37,8 @@ fn relu_here(x: &Tensor) -> Result<Tensor> {
 /// `x` where `x ≥ 0`, `slope · x` below (gradient 1 at 0); composed:
 /// `maximum(x, slope · x)` for slopes in (0, 1).
 pub fn leaky_relu(x: &Tensor, slope: f32) -> Result<Tensor> {
-    profile::op("leaky_relu", &[x], move |t| leaky_relu_here(&t[0], slope))
+    let y = profile::op("leaky_relu", &[x], move |t| leaky_relu_here(&t[0], slope))?;
+    pointwise("leaky_relu", &[x], y)
 }
 
 fn leaky_relu_here(x: &Tensor, slope: f32) -> Result<Tensor> {
@@ -59,7 +62,8 @@ impl MlpAct {
 /// Softmax over dimension `dim` (any; other than the last it goes through a transpose).
 pub fn softmax<Dim: candle_core::shape::Dim>(x: &Tensor, dim: Dim) -> Result<Tensor> {
     let dim = dim.to_index(x.shape(), "softmax")?;
-    profile::op("softmax", &[x], move |t| softmax_here(&t[0], dim))
+    let y = profile::op("softmax", &[x], move |t| softmax_here(&t[0], dim))?;
+    pointwise("softmax", &[x], y)
 }
 
 fn softmax_here(x: &Tensor, dim: usize) -> Result<Tensor> {
@@ -76,9 +80,10 @@ fn softmax_here(x: &Tensor, dim: usize) -> Result<Tensor> {
 
 /// LayerNorm over the last dimension: `x: [.., d]`, `weight`, `bias: [d]` → `[.., d]`.
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
-    profile::op("layer_norm", &[x, weight, bias], move |t| {
+    let y = profile::op("layer_norm", &[x, weight, bias], move |t| {
         layer_norm_here(&t[0], &t[1], &t[2], eps)
-    })
+    })?;
+    pointwise("layer_norm", &[x, weight, bias], y)
 }
 
 fn layer_norm_here(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
@@ -94,7 +99,8 @@ fn layer_norm_here(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Resu
 
 /// `x: [.., d] + bias: [d]`.
 pub fn bias_add(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
-    profile::op("bias_add", &[x, bias], |t| bias_add_here(&t[0], &t[1]))
+    let y = profile::op("bias_add", &[x, bias], |t| bias_add_here(&t[0], &t[1]))?;
+    pointwise("bias_add", &[x, bias], y)
 }
 
 fn bias_add_here(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
@@ -108,9 +114,10 @@ fn bias_add_here(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
 /// One node where the one-node ops apply (f32 on the CPU or a CUDA device); the composed
 /// ops otherwise.
 pub fn bias_act(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> {
-    profile::op("bias_act", &[x, b], move |t| {
+    let y = profile::op("bias_act", &[x, b], move |t| {
         bias_act_here(&t[0], &t[1], act)
-    })
+    })?;
+    pointwise("bias_act", &[x, b], y)
 }
 
 fn bias_act_here(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> {
@@ -125,6 +132,28 @@ fn bias_act_here(x: &Tensor, b: &Tensor, act: Option<MlpAct>) -> Result<Tensor> 
         None => Ok(z),
         Some(a) => a.apply(&z),
     }
+}
+
+/// Enters a row-wise op of `inputs` giving `y` in the ledger under its kind: its forward
+/// pass, and the backward pass of its one-node version where an input carries a gradient
+/// (the inputs and `y`'s gradient read, the tracked inputs' gradients written).
+fn pointwise(kind: &'static str, inputs: &[&Tensor], y: Tensor) -> Result<Tensor> {
+    if !ledger::on() {
+        return Ok(y);
+    }
+    ledger::within(kind, || {
+        ledger::op(kind, inputs, &[&y]);
+        let tracked: Vec<&Tensor> = inputs.iter().copied().filter(|t| t.track_op()).collect();
+        if !tracked.is_empty() {
+            let read: u64 = inputs.iter().map(|t| ledger::size(t)).sum::<u64>() + ledger::size(&y);
+            let written = tracked.iter().map(|t| ledger::size(t)).sum();
+            let what = format!("{kind} backward");
+            ledger::in_phase(ledger::Phase::Backward, || {
+                ledger::moved(ledger::Moved::Op, &what, read, written)
+            });
+        }
+    });
+    Ok(y)
 }
 
 #[cfg(test)]

@@ -28,6 +28,7 @@ use super::matmul::{matmul, matmul_low, stores_low};
 use super::node::{Node, TensorNode};
 use crate::cpu::softmax::{softmax_grad_scaled, softmax_no_grad};
 use crate::kept::Kept;
+use crate::ledger;
 use candle_core::{DType, Result, Tensor};
 
 /// The finished forward pass, handed over once to [`AttentionNode`]'s forward.
@@ -44,7 +45,7 @@ struct AttentionNode {
 /// `t` detached, a bf16 tensor widened to f32 (other types as they are).
 fn f32_of(t: &Tensor) -> Result<Tensor> {
     match t.dtype() {
-        DType::BF16 => t.detach().to_dtype(DType::F32),
+        DType::BF16 => ledger::cast(&t.detach(), DType::F32),
         _ => Ok(t.detach()),
     }
 }
@@ -61,17 +62,21 @@ impl Heads {
     /// `[b, len, h·dh]` → `[b·h, len, dh]` (a copy).
     pub(crate) fn split(&self, t: &Tensor) -> Result<Tensor> {
         let len = t.dim(1)?;
-        t.reshape((self.b, len, self.h, self.dh))?
-            .transpose(1, 2)?
-            .reshape((self.b * self.h, len, self.dh))
+        let s = t.reshape((self.b, len, self.h, self.dh))?.transpose(1, 2)?;
+        if self.h > 1 {
+            ledger::cast_of(s.elem_count(), s.dtype(), s.dtype());
+        }
+        s.reshape((self.b * self.h, len, self.dh))
     }
 
     /// `[b·h, len, dh]` → `[b, len, h·dh]` (a copy).
     pub(crate) fn merge(&self, t: &Tensor) -> Result<Tensor> {
         let len = t.dim(1)?;
-        t.reshape((self.b, self.h, len, self.dh))?
-            .transpose(1, 2)?
-            .reshape((self.b, len, self.h * self.dh))
+        let m = t.reshape((self.b, self.h, len, self.dh))?.transpose(1, 2)?;
+        if self.h > 1 {
+            ledger::cast_of(m.elem_count(), m.dtype(), m.dtype());
+        }
+        m.reshape((self.b, len, self.h * self.dh))
     }
 
     /// [`Heads::split`] of `t` detached, as a product's operand: a bf16 `t` stays bf16
@@ -99,7 +104,7 @@ impl Heads {
     /// [`Heads::merge`] of `t` in `dtype`: narrowed first (the values of narrowing after
     /// the merge), so that `t` goes before the copy is made.
     fn merge_to(&self, t: Tensor, dtype: DType) -> Result<Tensor> {
-        let low = t.to_dtype(dtype)?;
+        let low = ledger::cast(&t, dtype)?;
         drop(t);
         self.merge(&low)
     }
@@ -134,9 +139,10 @@ impl TensorNode for AttentionNode {
             };
             let g = hs.split_operand(grad)?;
             let dv = hs.merged_product(&a.t()?, &g, v.dtype())?;
-            let da = matmul(&g, &hs.split_operand(v)?.t()?)?.contiguous()?;
+            let da = ledger::contiguous(&matmul(&g, &hs.split_operand(v)?.t()?)?)?;
             drop(g);
             // The logits' gradient written over the weights' (the product's own tensor).
+            ledger::op("softmax backward", &[&a, &da], &[&da]);
             let dl = softmax_grad_scaled(&a, da, self.scale)?;
             drop(a);
             // k and q split one at a time, each where its product reads it: with many
@@ -154,11 +160,20 @@ fn scores(q: &Tensor, k: &Tensor, scale: f64) -> Result<Tensor> {
     let (dh, m) = (q.dim(2)?, k.dim(1)?);
     let logits = if dh <= m {
         // Scaled in f32, as an f32 `q` is, before the product rounds it.
-        matmul(&(f32_of(q)? * scale)?, &k.t()?)?
+        let q = f32_of(q)?;
+        let scaled = (&q * scale)?;
+        ledger::op("scale", &[&q], &[&scaled]);
+        matmul(&scaled, &k.t()?)?
     } else {
-        (matmul(q, &k.t()?)? * scale)?
+        let l = matmul(q, &k.t()?)?;
+        let scaled = (&l * scale)?;
+        ledger::op("scale", &[&l], &[&scaled]);
+        scaled
     };
-    softmax_no_grad(&logits.contiguous()?)
+    let logits = ledger::contiguous(&logits)?;
+    let a = softmax_no_grad(&logits)?;
+    ledger::op("softmax", &[&logits], &[&a]);
+    Ok(a)
 }
 
 /// [`crate::attention`]'s core as one node that keeps only the attention weights: `q: [b,
@@ -187,7 +202,7 @@ pub(crate) fn attention(
         scale,
         dtypes: [q.dtype(), k.dtype()],
     };
-    q.apply_op3(k, v, Node(node))
+    q.apply_op3(k, v, Node::new(node))
 }
 
 #[cfg(test)]

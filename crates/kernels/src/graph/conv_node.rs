@@ -32,6 +32,7 @@ use super::handover::Handover;
 use super::node::{Node, TensorNode};
 use crate::cpu::conv::{ConvGeom, col2im, im2col};
 use crate::kept::Kept;
+use crate::ledger;
 use candle_core::{DType, Result, Tensor};
 
 /// `x: [n, h, w, c_in]`, `kernel: [c_out, c_in, k, k]` → `[n, h_out, w_out, c_out]`, over
@@ -54,7 +55,11 @@ pub(crate) fn conv2d_node(
     let c = geom.forward(&x.detach(), &kernel.detach())?;
     let keep = x.track_op() || kernel.track_op();
     let (y, mask) = match relu {
-        true => (c.relu()?, keep.then(|| relu_mask(&c)).transpose()?),
+        true => {
+            let y = c.relu()?;
+            ledger::op("relu", &[&c], &[&y]);
+            (y, keep.then(|| relu_mask(&c)).transpose()?)
+        }
         false => (c, None),
     };
     let node = ConvNode {
@@ -63,13 +68,15 @@ pub(crate) fn conv2d_node(
         relu,
         mask: Kept::new(mask),
     };
-    x.apply_op2(kernel, Node(node))
+    x.apply_op2(kernel, Node::new(node))
 }
 
 /// Where ReLU passes the gradient: the convolution's output `c` ≥ 0 (candle's `relu`
 /// passes it at 0 too), as `u8`.
 fn relu_mask(c: &Tensor) -> Result<Tensor> {
-    c.ge(&c.zeros_like()?)
+    let m = c.ge(&c.zeros_like()?)?;
+    ledger::op("relu mask", &[c], &[&m]);
+    Ok(m)
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -85,7 +92,7 @@ impl Geom {
     /// An operand in the products' precision.
     fn low(&self, t: &Tensor) -> Result<Tensor> {
         match self.bf16 && t.dtype() == DType::F32 {
-            true => t.to_dtype(DType::BF16),
+            true => ledger::cast(t, DType::BF16),
             false => Ok(t.clone()),
         }
     }
@@ -93,7 +100,7 @@ impl Geom {
     /// A result back in f32 (where the products ran in bf16).
     fn high(&self, t: Tensor) -> Result<Tensor> {
         match self.bf16 && t.dtype() == DType::BF16 {
-            true => t.to_dtype(DType::F32),
+            true => ledger::cast(&t, DType::F32),
             false => Ok(t),
         }
     }
@@ -120,7 +127,7 @@ impl Geom {
         let kmat_t = k.reshape((co, ci * kh * kw))?.t()?;
         let one = |x: &Tensor| -> Result<Tensor> {
             let geom = self.fold(x.dim(0)?, x, kernel)?;
-            let y = im2col(&self.low(x)?, geom)?.matmul(&kmat_t)?;
+            let y = ledger::mm(&unfold(&self.low(x)?, geom)?, &kmat_t)?;
             let (n, ho, wo) = geom.output();
             self.high(y.reshape((n, ho, wo, co))?)
         };
@@ -133,14 +140,28 @@ impl Geom {
             .into_iter()
             .map(|(i, len)| one(&x.narrow(0, i, len)?))
             .collect::<Result<Vec<_>>>()?;
-        Tensor::cat(&parts, 0)
+        cat(&parts)
     }
+}
+
+/// [`im2col`], entered in the ledger.
+fn unfold(x: &Tensor, geom: ConvGeom) -> Result<Tensor> {
+    let cols = im2col(x, geom)?;
+    ledger::op("im2col", &[x], &[&cols]);
+    Ok(cols)
+}
+
+/// The groups' results side by side (a copy), entered in the ledger.
+fn cat(parts: &[Tensor]) -> Result<Tensor> {
+    let t = Tensor::cat(parts, 0)?;
+    ledger::cast_of(t.elem_count(), t.dtype(), t.dtype());
+    Ok(t)
 }
 
 /// `[n, h, w, c]` → `[n·h·w, c]`, contiguous (the rows a matrix product takes).
 fn dy_rows(dy: &Tensor) -> Result<Tensor> {
     let (n, h, w, c) = dy.dims4()?;
-    dy.contiguous()?.reshape((n * h * w, c))
+    ledger::contiguous(dy)?.reshape((n * h * w, c))
 }
 
 struct ConvNode {
@@ -188,7 +209,9 @@ impl TensorNode for ConvNode {
                 };
                 // candle's ReLU backward: the gradient times the mask, added to the zero
                 // its gradient starts from (`+ 0` turns a -0 into +0, as that add does).
-                masked = (grad.detach() * mask.to_dtype(grad.dtype())?)?.affine(1.0, 0.0)?;
+                let m = ledger::cast(&mask, grad.dtype())?;
+                masked = (grad.detach() * m)?.affine(1.0, 0.0)?;
+                ledger::op("relu backward", &[grad, &mask], &[&masked]);
                 &masked
             }
         };
@@ -203,16 +226,22 @@ impl TensorNode for ConvNode {
             if want_dx {
                 // The columns' gradient, one product with the kernel matrix (cuBLAS on a
                 // GPU), summed back onto the pixels they were read from (col2im, in f32).
-                dxs.push(col2im(&dy.matmul(&kmat)?, g.fold(len, x, kernel)?)?);
+                let dcols = ledger::mm(&dy, &kmat)?;
+                let dx = col2im(&dcols, g.fold(len, x, kernel)?)?;
+                ledger::op("col2im", &[&dcols], &[&dx]);
+                dxs.push(dx);
             }
             if want_dk {
                 // The output's gradient (transposed) times the input's unfolding again.
                 let xg = g.low(&x.narrow(0, i, len)?)?;
-                let cols = im2col(&xg, g.fold(len, x, kernel)?)?;
-                let d = dy.t()?.matmul(&cols)?;
+                let cols = unfold(&xg, g.fold(len, x, kernel)?)?;
+                let d = ledger::mm(&dy.t()?, &cols)?;
                 let d = g.high(d.reshape(kernel.shape())?)?;
                 dk = Some(match dk {
-                    Some(acc) => (acc + d)?,
+                    Some(acc) => {
+                        ledger::op("add", &[&acc, &d], &[&d]);
+                        (acc + d)?
+                    }
                     None => d,
                 });
             }
@@ -220,7 +249,7 @@ impl TensorNode for ConvNode {
         let dx = match dxs.len() {
             0 => None,
             1 => dxs.pop(),
-            _ => Some(Tensor::cat(&dxs, 0)?),
+            _ => Some(cat(&dxs)?),
         };
         Ok(vec![dx, dk])
     }

@@ -221,7 +221,10 @@ impl Cuts {
                     forward,
                     ops: (kernels, precision),
                 } => crate::with_kernels(kernels, || {
-                    crate::with_precision(precision, || without_cuts(|| forward(&inputs)))
+                    crate::with_precision(precision, || {
+                        let again = || without_cuts(|| forward(&inputs));
+                        crate::ledger::in_phase(crate::ledger::Phase::Recompute, again)
+                    })
                 })?,
             };
             // Detached: a variable's gradient is candle's sum of its parts, which may still

@@ -17,7 +17,10 @@ impl Handover {
         let l = t.layout();
         let t = match l.is_contiguous() && l.start_offset() == 0 {
             true => t,
-            false => t.force_contiguous()?,
+            false => {
+                crate::ledger::cast_of(t.elem_count(), t.dtype(), t.dtype());
+                t.force_contiguous()?
+            }
         };
         Ok(Self(Mutex::new(Some(t))))
     }
@@ -32,6 +35,7 @@ impl Handover {
     /// The result for a node's `cpu_fwd`.
     pub(crate) fn cpu(&self, what: &str) -> Result<(CpuStorage, Shape)> {
         let out = self.take(what)?;
+        crate::ledger::cast_of(out.elem_count(), out.dtype(), out.dtype());
         let (storage, layout) = out.storage_and_layout();
         match &*storage {
             candle_core::Storage::Cpu(s) => Ok((s.try_clone(layout)?, out.shape().clone())),
@@ -43,6 +47,7 @@ impl Handover {
     #[cfg(feature = "cuda")]
     pub(crate) fn cuda(&self, what: &str) -> Result<(candle_core::CudaStorage, Shape)> {
         let out = self.take(what)?;
+        crate::ledger::cast_of(out.elem_count(), out.dtype(), out.dtype());
         let (storage, layout) = out.storage_and_layout();
         match &*storage {
             candle_core::Storage::Cuda(s) => Ok((s.try_clone(layout)?, out.shape().clone())),

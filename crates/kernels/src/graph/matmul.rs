@@ -29,7 +29,7 @@
 //! result, which the f32 version would cast up exactly), so the values and gradients
 //! are the f32-stored version's, while the graph holds half the bytes.
 
-use crate::{Precision, device_graph, enabled, precision, profile};
+use crate::{Precision, device_graph, enabled, ledger, precision, profile};
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 
@@ -43,8 +43,34 @@ pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
             let bf16 = precision() == Precision::Bf16;
             return matmul_node(&t[0], &t[1], bf16);
         }
-        in_precision(&[&t[0], &t[1]], |t| t[0].matmul(&t[1]))
+        composed(&t[0], &t[1])
     })
+}
+
+/// candle's product in this thread's precision (`in_precision`), entered in the ledger
+/// with what candle's backward pass of it will compute: the two products, and in bf16
+/// the gradient's cast down and the operands' gradients' casts back up.
+fn composed(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let y = in_precision(&[a, b], |t| ledger::mm(&t[0], &t[1]))?;
+    if ledger::on() && (a.track_op() || b.track_op()) {
+        let low = precision() == Precision::Bf16 && [a, b].iter().all(|t| t.dtype() == DType::F32);
+        let (p, out) = match low {
+            true => (DType::BF16, DType::BF16),
+            false => (a.dtype(), y.dtype()),
+        };
+        ledger::in_phase(ledger::Phase::Backward, || {
+            if low {
+                ledger::cast_of(y.elem_count(), DType::F32, DType::BF16);
+                for t in [a, b].into_iter().filter(|t| t.track_op()) {
+                    ledger::cast_of(t.elem_count(), DType::BF16, DType::F32);
+                }
+            }
+            let (batch, m, n, k) = ledger::bmnk(a.dims(), b.dims());
+            ledger::product((batch, m, k, n), (p, p, out), [false, true], [false, false]);
+            ledger::product((batch, k, n, m), (p, p, out), [true, false], [false, false]);
+        });
+    }
+    Ok(y)
 }
 
 /// [`matmul`], the product stored as the bf16 product returns it where the products run
@@ -87,16 +113,23 @@ pub(crate) fn in_precision(
     }
     let low = ts
         .iter()
-        .map(|t| t.to_dtype(DType::BF16))
+        .map(|t| ledger::cast(t, DType::BF16))
         .collect::<Result<Vec<_>>>()?;
-    op(&low)?.to_dtype(DType::F32)
+    ledger::cast(&op(&low)?, DType::F32)
 }
 
 /// `a · b` in f32, or with both operands rounded to bf16 and the product returned in f32
 /// where `bf16` is set (see the module docs). `a: [.., m, k]`, `b: [.., k, n]` (the same
 /// leading dims) → `[.., m, n]`.
 pub(crate) fn matmul_node(a: &Tensor, b: &Tensor, bf16: bool) -> Result<Tensor> {
-    a.apply_op2(b, MatmulNode { bf16, low: false })
+    a.apply_op2(
+        b,
+        MatmulNode {
+            bf16,
+            low: false,
+            made: ledger::context().0,
+        },
+    )
 }
 
 /// [`matmul_node`] in bf16, the product stored in bf16 (as the bf16 product returns it).
@@ -106,6 +139,7 @@ pub(crate) fn matmul_node_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
         MatmulNode {
             bf16: true,
             low: true,
+            made: ledger::context().0,
         },
     )
 }
@@ -114,6 +148,8 @@ struct MatmulNode {
     bf16: bool,
     /// The product stays in bf16 (only with `bf16`).
     low: bool,
+    /// The ledger's op kind where the node was made (its backward pass's kind).
+    made: &'static str,
 }
 
 /// `(batch, m, n, k)` and the product's shape, as `Tensor::matmul` checks them.
@@ -142,11 +178,25 @@ fn forward<S: BackendStorage>(
         candle_core::bail!("matmul node: takes f32 operands (or bf16 ones in bf16)");
     }
     let (bmnk, shape) = dims(la, lb)?;
+    let read = |l: &Layout| ledger::reads_as(l).unwrap_or(false);
     if !node.bf16 {
-        return Ok((a.matmul(b, bmnk, la, lb)?, shape));
+        let y = a.matmul(b, bmnk, la, lb)?;
+        let types = (a.dtype(), b.dtype(), y.dtype());
+        ledger::product(bmnk, types, [read(la), read(lb)], [false, false]);
+        return Ok((y, shape));
     }
+    // Both casts write contiguous copies, the same type's too.
+    ledger::cast_of(la.shape().elem_count(), a.dtype(), DType::BF16);
+    ledger::cast_of(lb.shape().elem_count(), b.dtype(), DType::BF16);
     let a16 = a.to_dtype(la, DType::BF16)?;
     let b16 = b.to_dtype(lb, DType::BF16)?;
+    let out = if node.low { DType::BF16 } else { DType::F32 };
+    let types = (DType::BF16, DType::BF16, out);
+    let copied = [
+        a.dtype() != DType::BF16 || read(la),
+        b.dtype() != DType::BF16 || read(lb),
+    ];
+    ledger::product(bmnk, types, [false, false], copied);
     // The casts wrote contiguous copies.
     let (ca, cb) = (
         Layout::contiguous(la.shape()),
@@ -156,6 +206,7 @@ fn forward<S: BackendStorage>(
     if node.low {
         return Ok((y16, shape));
     }
+    ledger::cast_of(shape.elem_count(), DType::BF16, DType::F32);
     let y = y16.to_dtype(&Layout::contiguous(&shape), DType::F32)?;
     Ok((y, shape))
 }
@@ -197,26 +248,28 @@ impl CustomOp2 for MatmulNode {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (ad, bd) = (a.detach(), b.detach());
-        let low = |t: &Tensor| match self.bf16 && t.dtype() != DType::BF16 {
-            true => t.to_dtype(DType::BF16),
-            false => Ok(t.clone()),
-        };
-        // A gradient in its operand's type.
-        let high = |t: Tensor, like: &Tensor| match self.bf16 && like.dtype() == DType::F32 {
-            true => t.to_dtype(DType::F32),
-            false => Ok(t),
-        };
-        let g = low(&grad.detach())?;
-        let da = match a.track_op() {
-            true => Some(high(g.matmul(&low(&bd)?.t()?)?, a)?),
-            false => None,
-        };
-        let db = match b.track_op() {
-            true => Some(high(low(&ad)?.t()?.matmul(&g)?, b)?),
-            false => None,
-        };
-        Ok((da, db))
+        ledger::backward(self.made, "matmul", || {
+            let (ad, bd) = (a.detach(), b.detach());
+            let low = |t: &Tensor| match self.bf16 && t.dtype() != DType::BF16 {
+                true => ledger::cast(t, DType::BF16),
+                false => Ok(t.clone()),
+            };
+            // A gradient in its operand's type.
+            let high = |t: Tensor, like: &Tensor| match self.bf16 && like.dtype() == DType::F32 {
+                true => ledger::cast(&t, DType::F32),
+                false => Ok(t),
+            };
+            let g = low(&grad.detach())?;
+            let da = match a.track_op() {
+                true => Some(high(ledger::mm(&g, &low(&bd)?.t()?)?, a)?),
+                false => None,
+            };
+            let db = match b.track_op() {
+                true => Some(high(ledger::mm(&low(&ad)?.t()?, &g)?, b)?),
+                false => None,
+            };
+            Ok((da, db))
+        })
     }
 }
 

@@ -119,64 +119,66 @@ impl CustomOp3 for MixOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (d, ds) = (&self.dims, self.ds());
-        let grad = grad.contiguous()?;
-        let (xs, x_l) = x.storage_and_layout();
-        let (ss, s_l) = slots.storage_and_layout();
-        let (ps, p_l) = p.storage_and_layout();
-        let (gs, g_l) = grad.storage_and_layout();
-        let (xs, ss, ps, gs) = (cpu(&xs)?, cpu(&ss)?, cpu(&ps)?, cpu(&gs)?);
-        let (x_l, s_l) = (rows_layout(x_l)?, rows_layout(s_l)?);
-        // Taken, not cloned: a second backward through the same graph recomputes it.
-        let saved = match self.saved.take() {
-            Some(s) => s,
-            None => self.forward((xs, &x_l), (ss, &s_l), (ps, p_l))?.1,
-        };
-        let q_l = Layout::contiguous((d.b, d.n, ds));
-        let bwd = AttentionBwd {
-            dims: *d,
-            saved: Kept::new(Some(saved.weights)),
-        };
-        let g_l = Layout::contiguous_with_offset((d.b, d.n, ds), g_l.start_offset());
-        let flat = CpuStorage::F32(bwd.backward(
-            (&saved.q, &q_l),
-            (&saved.k, 0, ds),
-            (ss, s_l.start_offset(), ds),
-            (gs, &g_l),
-        )?);
-        let (rows, krows) = (d.b * d.n, d.b * d.m);
-        let dq_l = Layout::contiguous((rows, ds));
-        let dk_l = Layout::contiguous_with_offset((krows, ds), rows * ds);
-        let dv_l = Layout::contiguous_with_offset((krows, ds), (rows + krows) * ds);
-        let (wq, wk) = self.weights(p_l);
-        let mut dp = weight_grad(&flat, &dq_l, xs, &x_l)?;
-        dp.extend_from_slice(&weight_grad(&flat, &dk_l, ss, &s_l)?);
-        let dev = x.device();
-        let dx_ = match x.track_op() {
-            true => {
-                let v = gemm::matmul(
-                    MatRef::of(&flat, &dq_l)?,
-                    MatRef::of(ps, &wq)?,
-                    Threads::Pool,
-                )?;
-                Some(Tensor::from_vec(v, x.shape(), dev)?)
-            }
-            false => None,
-        };
-        let ds_ = match slots.track_op() {
-            true => {
-                let mut v = gemm::matmul(
-                    MatRef::of(&flat, &dk_l)?,
-                    MatRef::of(ps, &wk)?,
-                    Threads::Pool,
-                )?;
-                let dv = f32_slice(&flat, &dv_l, "slot mix")?;
-                v.iter_mut().zip(dv).for_each(|(a, b)| *a += b);
-                Some(Tensor::from_vec(v, slots.shape(), dev)?)
-            }
-            false => None,
-        };
-        Ok((dx_, ds_, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
+        crate::ledger::backward("", "slot_mix", || {
+            let (d, ds) = (&self.dims, self.ds());
+            let grad = grad.contiguous()?;
+            let (xs, x_l) = x.storage_and_layout();
+            let (ss, s_l) = slots.storage_and_layout();
+            let (ps, p_l) = p.storage_and_layout();
+            let (gs, g_l) = grad.storage_and_layout();
+            let (xs, ss, ps, gs) = (cpu(&xs)?, cpu(&ss)?, cpu(&ps)?, cpu(&gs)?);
+            let (x_l, s_l) = (rows_layout(x_l)?, rows_layout(s_l)?);
+            // Taken, not cloned: a second backward through the same graph recomputes it.
+            let saved = match self.saved.take() {
+                Some(s) => s,
+                None => self.forward((xs, &x_l), (ss, &s_l), (ps, p_l))?.1,
+            };
+            let q_l = Layout::contiguous((d.b, d.n, ds));
+            let bwd = AttentionBwd {
+                dims: *d,
+                saved: Kept::new(Some(saved.weights)),
+            };
+            let g_l = Layout::contiguous_with_offset((d.b, d.n, ds), g_l.start_offset());
+            let flat = CpuStorage::F32(bwd.backward(
+                (&saved.q, &q_l),
+                (&saved.k, 0, ds),
+                (ss, s_l.start_offset(), ds),
+                (gs, &g_l),
+            )?);
+            let (rows, krows) = (d.b * d.n, d.b * d.m);
+            let dq_l = Layout::contiguous((rows, ds));
+            let dk_l = Layout::contiguous_with_offset((krows, ds), rows * ds);
+            let dv_l = Layout::contiguous_with_offset((krows, ds), (rows + krows) * ds);
+            let (wq, wk) = self.weights(p_l);
+            let mut dp = weight_grad(&flat, &dq_l, xs, &x_l)?;
+            dp.extend_from_slice(&weight_grad(&flat, &dk_l, ss, &s_l)?);
+            let dev = x.device();
+            let dx_ = match x.track_op() {
+                true => {
+                    let v = gemm::matmul(
+                        MatRef::of(&flat, &dq_l)?,
+                        MatRef::of(ps, &wq)?,
+                        Threads::Pool,
+                    )?;
+                    Some(Tensor::from_vec(v, x.shape(), dev)?)
+                }
+                false => None,
+            };
+            let ds_ = match slots.track_op() {
+                true => {
+                    let mut v = gemm::matmul(
+                        MatRef::of(&flat, &dk_l)?,
+                        MatRef::of(ps, &wk)?,
+                        Threads::Pool,
+                    )?;
+                    let dv = f32_slice(&flat, &dv_l, "slot mix")?;
+                    v.iter_mut().zip(dv).for_each(|(a, b)| *a += b);
+                    Some(Tensor::from_vec(v, slots.shape(), dev)?)
+                }
+                false => None,
+            };
+            Ok((dx_, ds_, Some(Tensor::from_vec(dp, p.shape(), dev)?)))
+        })
     }
 }
 

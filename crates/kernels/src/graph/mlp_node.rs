@@ -25,6 +25,7 @@ use crate::cpu::bias_act::{
 use crate::cpu::linear::ColumnSum;
 use crate::cpu::mlp::MlpLayer;
 use crate::kept::Kept;
+use crate::ledger;
 use candle_core::{DType, Result, Tensor};
 
 /// `x: [.., in]` through biased `layers` with `act` between them → `[.., out]` (f32), the
@@ -110,8 +111,8 @@ fn mlp_node_of(
     let mut out = lead;
     out.push(layers.last().expect("not empty").0.dim(0)?);
     let y = match &rows[..] {
-        [x] => x.apply_op2(&chain, Node(node))?,
-        [a, b] => a.apply_op3(b, &chain, Node(node))?,
+        [x] => x.apply_op2(&chain, Node::new(node))?,
+        [a, b] => a.apply_op3(b, &chain, Node::new(node))?,
         _ => candle_core::bail!("mlp node: one or two inputs"),
     };
     Ok(Some(y.reshape(out)?))
@@ -139,13 +140,15 @@ impl Plan {
             false => DType::F32,
         };
         match rows {
-            [x] => x.detach().to_dtype(dtype),
+            [x] => ledger::cast(&x.detach(), dtype),
             _ => {
                 let parts = rows
                     .iter()
-                    .map(|t| t.detach().to_dtype(dtype))
+                    .map(|t| ledger::cast(&t.detach(), dtype))
                     .collect::<Result<Vec<_>>>()?;
-                Tensor::cat(&parts, 1)
+                let joined = Tensor::cat(&parts, 1)?;
+                ledger::cast_of(joined.elem_count(), dtype, dtype);
+                Ok(joined)
             }
         }
     }
@@ -153,7 +156,7 @@ impl Plan {
     /// An operand in the products' precision.
     fn low(&self, t: &Tensor) -> Result<Tensor> {
         match self.bf16 {
-            true => t.to_dtype(DType::BF16),
+            true => ledger::cast(t, DType::BF16),
             false => Ok(t.clone()),
         }
     }
@@ -161,7 +164,7 @@ impl Plan {
     /// A product's result back in f32.
     fn high(&self, t: Tensor) -> Result<Tensor> {
         match self.bf16 {
-            true => t.to_dtype(DType::F32),
+            true => ledger::cast(&t, DType::F32),
             false => Ok(t),
         }
     }
@@ -175,11 +178,16 @@ impl Plan {
         let b = &self.params[i].1;
         match self.bf16 {
             true => {
-                let h = z.to_dtype(DType::F32)?.contiguous()?;
+                let h = ledger::contiguous(&ledger::cast(z, DType::F32)?)?;
                 bias_act_in_place(&h, b, act)?;
+                ledger::op("bias_act", &[&h, b], &[&h]);
                 Ok(h)
             }
-            false => z.contiguous()?.apply_op2_no_bwd(b, &BiasActOp { act }),
+            false => {
+                let h = ledger::contiguous(z)?.apply_op2_no_bwd(b, &BiasActOp { act })?;
+                ledger::op("bias_act", &[z, b], &[&h]);
+                Ok(h)
+            }
         }
     }
 
@@ -188,7 +196,11 @@ impl Plan {
     /// bits of widening, finishing and rounding, with no f32 tensor of the layer's size).
     fn finish_low(&self, i: usize, z: &Tensor) -> Result<Tensor> {
         match self.bf16 {
-            true => bias_act_low(z, &self.params[i].1, Some(self.act)),
+            true => {
+                let h = bias_act_low(z, &self.params[i].1, Some(self.act))?;
+                ledger::op("bias_act", &[z, &self.params[i].1], &[&h]);
+                Ok(h)
+            }
             false => self.finish(i, z),
         }
     }
@@ -202,7 +214,7 @@ impl Plan {
         let mut saved = Vec::with_capacity(self.params.len());
         let mut h = x;
         for (i, (w, _)) in self.params.iter().enumerate() {
-            let z = self.low(&h)?.matmul(&self.low(&w.t()?)?)?;
+            let z = ledger::mm(&self.low(&h)?, &self.low(&w.t()?)?)?;
             drop(h);
             h = match i + 1 < self.params.len() {
                 true => self.finish_low(i, &z)?,
@@ -261,18 +273,22 @@ impl Plan {
                 // widened by one op: no f32 copy of either.
                 (true, true) => {
                     let z = saved.pop().expect("checked");
-                    bias_act_bwd_low(&z, b, &g_out, self.act)?
+                    let dz = bias_act_bwd_low(&z, b, &g_out, self.act)?;
+                    ledger::op("bias_act backward", &[&z, b, &g_out], &[&dz]);
+                    dz
                 }
                 // In f32 the kept product is this node's own: its gradient is written over it.
                 (true, false) => {
-                    let z = saved.pop().expect("checked").contiguous()?;
+                    let z = ledger::contiguous(&saved.pop().expect("checked"))?;
                     bias_act_bwd_in_place(&z, b, &g_out, self.act)?;
+                    ledger::op("bias_act backward", &[&z, b, &g_out], &[&z]);
                     z
                 }
-                (false, _) => g_out.contiguous()?,
+                (false, _) => ledger::contiguous(&g_out)?,
             };
             drop(g_out);
             let db = dz.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
+            ledger::op("column sum", &[&dz], &[&db]);
             // In bf16 the f32 gradient goes here: the products read the rounded one.
             let dz_low = self.low(&dz)?;
             drop(dz);
@@ -280,14 +296,14 @@ impl Plan {
             let wt = self.low(&w.t()?)?;
             // The product was `input · wt`: wt's gradient is inputᵀ · dz, the input's dz · wtᵀ.
             let input = self.input(i, x, &saved)?;
-            let dwt = self.high(input.t()?.matmul(&dz)?)?;
+            let dwt = self.high(ledger::mm(&input.t()?, &dz)?)?;
             drop(input);
             parts.push(db.reshape(b.shape())?);
             parts.push(dwt.t()?);
             if i == 0 && !want_dx {
                 break;
             }
-            let dinput = dz.matmul(&wt.t()?)?;
+            let dinput = ledger::mm(&dz, &wt.t()?)?;
             if i == 0 {
                 // In the products' precision: each part takes it in its own (see
                 // `MlpNode::backward`), with no f32 copy of the whole input's gradient.
@@ -295,7 +311,7 @@ impl Plan {
                 break;
             }
             // In the products' precision (bf16: what `bias_act_bwd_low` reads).
-            g = dinput.contiguous()?;
+            g = ledger::contiguous(&dinput)?;
         }
         parts.reverse();
         Ok((dx, parts))
@@ -337,8 +353,8 @@ impl MlpNode {
         let mut out = Vec::with_capacity(rows.len());
         for (t, &w) in rows.iter().zip(&self.widths) {
             out.push(match (&dx, t.track_op()) {
-                (Some(dx), true) if rows.len() == 1 => Some(dx.to_dtype(t.dtype())?),
-                (Some(dx), true) => Some(dx.narrow(1, start, w)?.to_dtype(t.dtype())?),
+                (Some(dx), true) if rows.len() == 1 => Some(ledger::cast(dx, t.dtype())?),
+                (Some(dx), true) => Some(ledger::cast(&dx.narrow(1, start, w)?, t.dtype())?),
                 _ => None,
             });
             start += w;

@@ -23,16 +23,23 @@ pub(crate) trait TensorNode: Send + Sync {
     fn backward(&self, operands: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>>;
 }
 
-/// A [`TensorNode`] as candle's custom op (`apply_op2`, `apply_op3`).
-pub(crate) struct Node<T>(pub(crate) T);
+/// A [`TensorNode`] as candle's custom op (`apply_op2`, `apply_op3`), with the ledger's
+/// op kind where it was made (its backward pass's).
+pub(crate) struct Node<T>(T, &'static str);
 
 impl<T: TensorNode> Node<T> {
+    pub(crate) fn new(node: T) -> Self {
+        Self(node, crate::ledger::context().0)
+    }
+
     fn gradients<const N: usize>(
         &self,
         operands: [&Tensor; N],
         grad: &Tensor,
     ) -> Result<[Option<Tensor>; N]> {
-        let mut d = self.0.backward(&operands, grad)?.into_iter();
+        let d =
+            crate::ledger::backward(self.1, self.0.what(), || self.0.backward(&operands, grad))?;
+        let mut d = d.into_iter();
         Ok(std::array::from_fn(|_| d.next().flatten()))
     }
 }

@@ -147,8 +147,10 @@ impl CustomOp2 for BlockOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (dx, _, dp) = self.grads(x, None, p, grad)?;
-        Ok((dx, Some(dp)))
+        crate::ledger::backward("", "block", || {
+            let (dx, _, dp) = self.grads(x, None, p, grad)?;
+            Ok((dx, Some(dp)))
+        })
     }
 }
 
@@ -177,8 +179,10 @@ impl CustomOp3 for BlockOp {
         _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (dx, dctx, dp) = self.grads(x, Some(ctx), p, grad)?;
-        Ok((dx, dctx, Some(dp)))
+        crate::ledger::backward("", "block", || {
+            let (dx, dctx, dp) = self.grads(x, Some(ctx), p, grad)?;
+            Ok((dx, dctx, Some(dp)))
+        })
     }
 }
 
