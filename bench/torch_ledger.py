@@ -194,15 +194,17 @@ def totals(e, rates):
     return t
 
 
-def load(path, key):
+def load(path, key, views=None):
     """An osrt ledger (`osrt bench model --ledger` JSON) or a PyTorch one
-    (`bench/torch_step.py --ledger` JSON): (batch size, entries)."""
+    (`bench/torch_step.py --ledger` JSON), the case of `views` input views where the file
+    holds several: (batch size, entries)."""
     with open(path) as f:
         j = json.load(f)
+    fits = lambda r: views is None or r["input_views"] == views
     if key == "osrt":
-        led = next(r for v in j.values() for r in v.get("ledgers", []))
+        led = next(r for v in j.values() for r in v.get("ledgers", []) if fits(r))
         return led["batch_size"], led["entries"]
-    r = next(r for r in j.values() if isinstance(r, dict) and "ledger" in r)
+    r = next(r for r in j.values() if isinstance(r, dict) and "ledger" in r and fits(r))
     return r["batch_size"], r["ledger"]["entries"]
 
 
@@ -236,7 +238,8 @@ def extrapolate(small, big, bs, bb, to):
 def compare(a):
     rows = []
     for side, paths in (("osrt", a.osrt), ("PyTorch", a.torch)):
-        loaded = sorted(load(p, "osrt" if side == "osrt" else "torch") for p in paths)
+        loaded = sorted((load(p, "osrt" if side == "osrt" else "torch", a.views)
+                         for p in paths), key=lambda x: x[0])
         t = [totals(e, H200) for _, e in loaded]
         if len(loaded) == 2 and a.batch:
             (bs, _), (bb, _) = loaded
@@ -261,8 +264,8 @@ def compare(a):
         print(f"  osrt / PyTorch: product FLOPs (less those made again) {fo / fp:.3f}×, "
               f"bytes cast and copied {co / cp:.2f}×")
     # Products osrt runs in f32 where PyTorch's shapes of the same size run in bf16.
-    _, eo = sorted(load(x, "osrt") for x in a.osrt)[-1]
-    _, ep = sorted(load(x, "torch") for x in a.torch)[-1]
+    _, eo = max((load(x, "osrt", a.views) for x in a.osrt), key=lambda x: x[0])
+    _, ep = max((load(x, "torch", a.views) for x in a.torch), key=lambda x: x[0])
     sizes = lambda p: (p["batch"], tuple(sorted((p["m"], p["n"], p["k"]))))
     bf16_shapes = {sizes(p) for p, _ in ep["products"] if precision(p) == "bf16"}
     odd = [(p, n) for p, n in eo["products"]
@@ -282,6 +285,8 @@ def main():
     c.add_argument("--torch", nargs="+", required=True,
                    help="`bench/torch_step.py --ledger` JSON (one, or two batch sizes)")
     c.add_argument("--batch", type=int, help="extrapolate two batch sizes to this one")
+    c.add_argument("--views", type=int, help="the case of this many input views (files "
+                   "with several)")
     a = ap.parse_args()
     if a.cmd == "compare":
         compare(a)

@@ -137,13 +137,19 @@ impl TensorNode for AttentionNode {
                 Some(a) => a,
                 None => scores(&hs.split_operand(q)?, &hs.split_operand(k)?, self.scale)?,
             };
+            // Where the products take bf16 operands, the weights and the logits' gradient
+            // are each rounded once and read transposed in place (no copy per product).
+            let low = |t: &Tensor| match stores_low(&[t]) {
+                true => ledger::cast(t, DType::BF16),
+                false => Ok(t.clone()),
+            };
             let g = hs.split_operand(grad)?;
-            let dv = hs.merged_product(&a.t()?, &g, v.dtype())?;
+            let dv = hs.merged_product(&low(&a)?.t()?, &g, v.dtype())?;
             let da = ledger::contiguous(&matmul(&g, &hs.split_operand(v)?.t()?)?)?;
             drop(g);
             // The logits' gradient written over the weights' (the product's own tensor).
             ledger::op("softmax backward", &[&a, &da], &[&da]);
-            let dl = softmax_grad_scaled(&a, da, self.scale)?;
+            let dl = low(&softmax_grad_scaled(&a, da, self.scale)?)?;
             drop(a);
             // k and q split one at a time, each where its product reads it: with many
             // queries (the decoder's rays) q and its gradient are the largest tensors here.

@@ -24,8 +24,9 @@
 //! bit.
 //!
 //! In bf16 the product can also be stored as it comes out of the bf16 product (see
-//! [`crate::matmul_low`]), and either operand may be such a stored bf16 tensor: the casts
-//! of a bf16 operand are no-ops and its gradient is returned in bf16 (the bf16 product's
+//! [`crate::matmul_low`]), and either operand may be such a stored bf16 tensor: a bf16
+//! operand is read where it lies (row-major or transposed; other layouts are copied
+//! first) and its gradient is returned in bf16 (the bf16 product's
 //! result, which the f32 version would cast up exactly), so the values and gradients
 //! are the f32-stored version's, while the graph holds half the bytes.
 
@@ -152,6 +153,26 @@ struct MatmulNode {
     made: &'static str,
 }
 
+/// Whether a product reads an operand of layout `l` as it lies: its last two dims
+/// row-major or transposed by strides, its leading dims one after the other (what
+/// candle's products take without a copy).
+fn readable(l: &Layout) -> bool {
+    let (d, s) = (l.dims(), l.stride());
+    let r = d.len();
+    let Some(_) = ledger::reads_as(l) else {
+        return false;
+    };
+    // Each leading dim's stride is the size of everything after it.
+    let mut size = d[r.saturating_sub(2)..].iter().product::<usize>();
+    for i in (0..r.saturating_sub(2)).rev() {
+        if d[i] > 1 && s[i] != size {
+            return false;
+        }
+        size *= d[i];
+    }
+    true
+}
+
 /// `(batch, m, n, k)` and the product's shape, as `Tensor::matmul` checks them.
 fn dims(la: &Layout, lb: &Layout) -> Result<((usize, usize, usize, usize), Shape)> {
     let (a, b) = (la.dims(), lb.dims());
@@ -185,24 +206,29 @@ fn forward<S: BackendStorage>(
         ledger::product(bmnk, types, [read(la), read(lb)], [false, false]);
         return Ok((y, shape));
     }
-    // Both casts write contiguous copies, the same type's too.
-    ledger::cast_of(la.shape().elem_count(), a.dtype(), DType::BF16);
-    ledger::cast_of(lb.shape().elem_count(), b.dtype(), DType::BF16);
-    let a16 = a.to_dtype(la, DType::BF16)?;
-    let b16 = b.to_dtype(lb, DType::BF16)?;
+    // An operand already in bf16 that the product reads as it lies (row-major, or
+    // transposed by strides) is read in place; any other is cast, which writes a
+    // contiguous copy (the values are the same either way).
+    let cast = |s: &S, l: &Layout| -> Result<Option<S>> {
+        if s.dtype() == DType::BF16 && readable(l) {
+            return Ok(None);
+        }
+        ledger::cast_of(l.shape().elem_count(), s.dtype(), DType::BF16);
+        s.to_dtype(l, DType::BF16).map(Some)
+    };
+    let (a16, b16) = (cast(a, la)?, cast(b, lb)?);
+    // A cast's copy is contiguous; an operand read in place keeps its layout.
+    let layout = |cast: &Option<S>, l: &Layout| match cast {
+        Some(_) => Layout::contiguous(l.shape()),
+        None => l.clone(),
+    };
+    let (ca, cb) = (layout(&a16, la), layout(&b16, lb));
+    let (sa, sb) = (a16.as_ref().unwrap_or(a), b16.as_ref().unwrap_or(b));
     let out = if node.low { DType::BF16 } else { DType::F32 };
     let types = (DType::BF16, DType::BF16, out);
-    let copied = [
-        a.dtype() != DType::BF16 || read(la),
-        b.dtype() != DType::BF16 || read(lb),
-    ];
-    ledger::product(bmnk, types, [false, false], copied);
-    // The casts wrote contiguous copies.
-    let (ca, cb) = (
-        Layout::contiguous(la.shape()),
-        Layout::contiguous(lb.shape()),
-    );
-    let y16 = a16.matmul(&b16, bmnk, &ca, &cb)?;
+    let copied = [a16.is_some(), b16.is_some()];
+    ledger::product(bmnk, types, [read(&ca), read(&cb)], copied);
+    let y16 = sa.matmul(sb, bmnk, &ca, &cb)?;
     if node.low {
         return Ok((y16, shape));
     }
