@@ -6,6 +6,7 @@ use super::pointwise::softmax;
 use super::{usable, usable_with_cuda};
 use crate::cpu::attention::{self, Dims};
 use crate::graph::attention_node::{self, Heads};
+use crate::graph::few_keys;
 use crate::graph::matmul::{matmul, stores_low};
 use crate::{device_graph, profile};
 use candle_core::{D, Result, Tensor};
@@ -75,7 +76,11 @@ fn attention_composed_here(
     let m = k.dim(1)?;
     let takes = usable_with_cuda(&[q, k, v]) || stores_low(&[q, k, v]);
     if takes && device_graph(q) && n > 0 && m > 0 {
-        // A GPU: one node that keeps only the weights (`graph::attention_node`).
+        // A GPU: one node that keeps only the weights (`graph::attention_node`), over
+        // few keys with the query side where it lies (`graph::few_keys`).
+        if heads > 1 && heads * m <= few_keys::FEW_KEYS {
+            return few_keys::attention(q, k, v, heads, scale);
+        }
         return attention_node::attention(q, k, v, heads, scale);
     }
     let hs = Heads {

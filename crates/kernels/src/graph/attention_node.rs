@@ -43,7 +43,7 @@ struct AttentionNode {
 }
 
 /// `t` detached, a bf16 tensor widened to f32 (other types as they are).
-fn f32_of(t: &Tensor) -> Result<Tensor> {
+pub(crate) fn f32_of(t: &Tensor) -> Result<Tensor> {
     match t.dtype() {
         DType::BF16 => ledger::cast(&t.detach(), DType::F32),
         _ => Ok(t.detach()),
