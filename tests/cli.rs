@@ -648,6 +648,60 @@ fn bench_model_profile_times_each_op_kind() {
     }
 }
 
+/// `--ledger` enters one step's products, casts and copies per op kind: the tiny preset's
+/// step on the fused CPU kernels has f32 products and no casts; on the device graph in
+/// bf16 every product is on bf16 operands (the report says so) and casts appear; the
+/// step's totals are the kinds' sums.
+#[test]
+fn bench_model_ledger_enters_each_products_types() {
+    let dir = tempfile::tempdir().unwrap();
+    for (kernels, precision) in [("fused", "f32"), ("device", "bf16")] {
+        let out_json = dir.path().join(format!("{kernels}.json"));
+        let out = osrt(&[
+            "bench",
+            "model",
+            "--ledger",
+            "--presets",
+            "tiny",
+            "--kernels",
+            kernels,
+            "--precision",
+            precision,
+            "--threads",
+            "1",
+            "--batch-size",
+            "2",
+            "--out",
+            out_json.to_str().unwrap(),
+        ]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains("costliest products"), "{text}");
+        assert_eq!(
+            text.contains("every product on bf16 operands"),
+            precision == "bf16",
+            "{text}"
+        );
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+        let l = &v["1"]["ledgers"][0];
+        let totals = l["totals"].as_array().unwrap();
+        let (step, kinds) = totals.split_last().unwrap();
+        assert_eq!(step["kind"], "step");
+        let flops = |t: &serde_json::Value, ty: &str| t["flops"][ty].as_f64().unwrap_or(0.0);
+        let other = if precision == "bf16" { "f32" } else { "bf16" };
+        assert!(
+            flops(step, precision) > 0.0 && flops(step, other) == 0.0,
+            "{step}"
+        );
+        let sum: f64 = kinds.iter().map(|k| flops(k, precision)).sum();
+        assert!((sum - flops(step, precision)).abs() <= 1e-9 * sum, "{l}");
+        let products = |t: &serde_json::Value| t["products"].as_u64().unwrap();
+        assert_eq!(kinds.iter().map(products).sum::<u64>(), products(step));
+        let casts = step["bytes"]["cast"].as_u64().unwrap_or(0);
+        assert_eq!(casts > 0, precision == "bf16", "{step}");
+    }
+}
+
 /// Writes to a local folder are synced before they count: `strace` sees an fsync of
 /// every file `osrt data generate` writes (the three splits' parts and the manifest) and
 /// of every file a training job's run folder depends on (each checkpoint object with its
