@@ -65,11 +65,12 @@ thread_local! {
     static PRECISION: Cell<Precision> = const { Cell::new(Precision::F32) };
 }
 
-/// The number format of the matrix products (linear layers, convolutions, attention) on
-/// the composed path: `bf16` rounds both operands to bfloat16 and the product comes back
-/// as f32 (cuBLAS accumulates in f32), as PyTorch's autocast does; LayerNorm, softmax,
-/// the loss, gradients' sums over the batch and the optimiser stay in f32. The fused CPU
-/// kernels are f32 only.
+/// The number format of the matrix products (linear layers, convolutions, attention):
+/// `bf16` rounds both operands to bfloat16 and sums the products in f32 (cuBLAS on a GPU,
+/// AMX tiles or AVX512-BF16 in the fused CPU kernels: [`cpu_bf16_products`]), as
+/// PyTorch's autocast does; LayerNorm, softmax, the loss, gradients' sums over the batch
+/// and the optimiser stay in f32. On a CPU without bf16 products the fused kernels' products
+/// stay f32.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
@@ -96,6 +97,20 @@ impl std::str::FromStr for Precision {
             other => Err(format!("unknown precision `{other}`: expected f32 or bf16")),
         }
     }
+}
+
+/// The unit that runs the fused CPU kernels' bf16 products in this process ("AMX tiles",
+/// "AVX512-BF16 dot products"), chosen once at run time from what the CPU has and the OS
+/// allows (narrowed by the `OSRT_CPU_BF16` environment variable: `amx`, `avx512-bf16`,
+/// `off`); `None` where there is none, and the products in bf16 graphs stay f32 there.
+pub fn cpu_bf16_products() -> Option<&'static str> {
+    #[cfg(target_arch = "x86_64")]
+    return cpu::bf16::unit().map(|u| match u {
+        cpu::bf16::Unit::Amx => "AMX tiles",
+        cpu::bf16::Unit::Avx512Bf16 => "AVX512-BF16 dot products",
+    });
+    #[cfg(not(target_arch = "x86_64"))]
+    None
 }
 
 /// The matrix products' precision of graphs built on this thread.

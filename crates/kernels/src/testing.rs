@@ -162,3 +162,115 @@ pub(crate) fn assert_second_backward_agrees(
         assert_eq!(flat(&g1), flat(&g2), "argument {i}");
     }
 }
+
+/// `‖a − b‖ / ‖b‖` over flattened values (`‖a − b‖` where `b` is all zeros).
+pub(crate) fn rel_l2(a: &Tensor, b: &Tensor) -> f64 {
+    let (d, n) = (l2(&(a - b).unwrap()), l2(b));
+    if n == 0.0 { d } else { d / n }
+}
+
+fn l2(t: &Tensor) -> f64 {
+    let v: Vec<f64> = t
+        .to_dtype(candle_core::DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+/// The fused ops in bf16 against their f32 twins, for `Σ f(args) · w`: the value within
+/// `tol` relative L2 of the f32 one, all gradients finite. At unit scale (`unit`) each
+/// gradient within `4·tol` relative L2 of its f32 twin, the values' bits differ where the
+/// CPU has bf16 products (the bf16 products ran), and each gradient within `4·tol` of f64
+/// central finite differences of the same function (the composed path in f64, sampled
+/// elements). At extreme scales a gradient may be small by cancellation (a tiny input's
+/// LayerNorm rows are nearly its bias, so attention over them is nearly uniform): each is
+/// within `4·tol` of the largest f32 gradient's norm, and no finite difference is taken
+/// (a step that moves the tiny input moves the output below f64's resolution).
+pub(crate) fn bf16_twin_check(
+    what: &str,
+    args: &[Tensor],
+    f: impl Fn(&[Tensor]) -> Result<Tensor>,
+    tol: f64,
+    unit: bool,
+) {
+    use crate::{Precision, with_precision};
+    let fused = |p: Precision| {
+        with_precision(p, || {
+            with_fused(true, || {
+                let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
+                let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+                let y = f(&ts).unwrap();
+                let w = randn(y.dims(), 1.0, 99);
+                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
+                let grads: Vec<Tensor> = vars
+                    .iter()
+                    .map(|v| g.get(v.as_tensor()).unwrap().clone())
+                    .collect();
+                (y, grads)
+            })
+        })
+    };
+    let ((y32, g32), (y16, g16)) = (fused(Precision::F32), fused(Precision::Bf16));
+    let finite = |t: &Tensor| f32_bits(t).iter().all(|&b| f32::from_bits(b).is_finite());
+    assert!(finite(&y16), "{what}: bf16 values not finite");
+    let e = rel_l2(&y16, &y32);
+    assert!(
+        e <= tol,
+        "{what}: bf16 values {e} from f32's (tolerance {tol})"
+    );
+    if unit && crate::cpu_bf16_products().is_some() {
+        assert_ne!(
+            f32_bits(&y16),
+            f32_bits(&y32),
+            "{what}: the bf16 products did not run"
+        );
+    }
+    let largest = g32.iter().map(l2).fold(0f64, f64::max);
+    for (i, (a, b)) in g16.iter().zip(&g32).enumerate() {
+        assert!(finite(a), "{what}: bf16 gradient {i} not finite");
+        let e = match unit {
+            true => rel_l2(a, b),
+            false => l2(&(a - b).unwrap()) / largest.max(f64::MIN_POSITIVE),
+        };
+        assert!(e <= 4.0 * tol, "{what}: bf16 gradient {i}: {e} from f32's");
+    }
+    if !unit {
+        return;
+    }
+    // Finite differences of the f64 function, sampled as in `finite_difference_check`.
+    let f64_ = candle_core::DType::F64;
+    let w64 = randn(y32.dims(), 1.0, 99).to_dtype(f64_).unwrap();
+    let args64: Vec<Tensor> = args.iter().map(|a| a.to_dtype(f64_).unwrap()).collect();
+    let h = 1e-5;
+    for (a, grad) in g16.iter().enumerate() {
+        let base: Vec<f64> = args64[a].flatten_all().unwrap().to_vec1().unwrap();
+        let g: Vec<f32> = grad.flatten_all().unwrap().to_vec1().unwrap();
+        let (mut num, mut got) = (Vec::new(), Vec::new());
+        for i in (0..base.len()).step_by((base.len() / 12).max(1)) {
+            let eval = |delta: f64| -> f64 {
+                let mut v = base.clone();
+                v[i] += delta;
+                let mut xs = args64.clone();
+                xs[a] = Tensor::from_vec(v, args64[a].shape(), &Device::Cpu).unwrap();
+                let y = with_fused(false, || f(&xs)).unwrap();
+                (y * &w64)
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f64>()
+                    .unwrap()
+            };
+            num.push((eval(h) - eval(-h)) / (2.0 * h));
+            got.push(g[i] as f64);
+        }
+        let t = |v: Vec<f64>| Tensor::new(v, &Device::Cpu).unwrap();
+        let e = rel_l2(&t(got), &t(num));
+        assert!(
+            e <= 4.0 * tol,
+            "{what}: bf16 gradient {a}: {e} from finite differences"
+        );
+    }
+}

@@ -437,12 +437,13 @@ impl JobConfig {
                 "train.clip_norm must be positive and finite, got {c}"
             ));
         }
-        // The GPU's graph runs on the CPU too (kernels = "device"), to measure it there.
-        if t.precision == Precision::Bf16 && !t.device.is_cuda() && t.kernels != Kernels::Device {
+        // On the CPU bf16 products are the fused kernels' (AMX or AVX512-BF16), or the
+        // GPU's graph run there to measure it (kernels = "device").
+        if t.precision == Precision::Bf16 && !t.device.is_cuda() && t.kernels == Kernels::Composed {
             return Err(
-                "train.precision bf16 runs on a GPU only (train.device = \"cuda\"), or on the \
-                 CPU with train.kernels = \"device\" (the GPU's graph, for measuring it): the \
-                 CPU's fused kernels are f32"
+                "train.precision bf16 on the CPU runs with train.kernels = \"fused\" (bf16 \
+                 products where the CPU has them) or \"device\" (the GPU's graph); candle's \
+                 composed ops are the f32 reference there"
                     .into(),
             );
         }

@@ -164,6 +164,9 @@ impl Learner {
             "ChaCha8 per scene and step from (seed {}, step, scene id)",
             t.seed
         );
+        if rank == 0 {
+            say_products(t);
+        }
         trainer.horizon = starting_horizon(t, state.horizon, &s);
         state.horizon = trainer.horizon;
         let data = s.data;
@@ -470,6 +473,24 @@ impl Learner {
 
     fn evaluate(&self) -> Result<EvalResult> {
         tokio::task::block_in_place(|| evaluate(&self.trainer.model, &self.val, &self.eval_opts))
+    }
+}
+
+/// Says which unit runs a bf16 job's products on the CPU's fused kernels (or that the
+/// CPU has none and they run in f32).
+fn say_products(t: &TrainConfig) {
+    if t.precision != osrt_kernels::Precision::Bf16
+        || t.device.is_cuda()
+        || t.kernels != osrt_kernels::Kernels::Fused
+    {
+        return;
+    }
+    match osrt_kernels::cpu_bf16_products() {
+        Some(unit) => tracing::info!(unit, "bf16 products on the CPU's {unit}"),
+        None => tracing::warn!(
+            "train.precision = \"bf16\", but this CPU has no bf16 products (AMX or \
+             AVX512-BF16): the products run in f32"
+        ),
     }
 }
 

@@ -14,8 +14,10 @@
 //! scale applied to the logits, then the same row softmax. Tests check values and
 //! gradients against it, against finite differences, and on extreme inputs.
 
+use super::gemm::{self, BatchView, Threads};
 use super::softmax::{softmax_row, softmax_row_grad};
 use super::{buffer, f32_slice};
+use crate::Precision;
 use crate::kept::Kept;
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp3, D, Layout, Result, Shape, Tensor};
@@ -31,6 +33,8 @@ pub(crate) struct Dims {
     pub(crate) h: usize,
     pub(crate) dh: usize,
     pub(crate) scale: f32,
+    /// The products' precision, forward and backward (the node's when it was made).
+    pub(crate) precision: Precision,
 }
 
 impl Dims {
@@ -41,9 +45,13 @@ impl Dims {
     /// Enters the products of a pass in the ledger, each `(m, n, k, transposed)` per head
     /// of every batch element.
     fn enter(&self, products: &[(usize, usize, usize, [bool; 2])]) {
-        let f = candle_core::DType::F32;
+        let (f, o) = (candle_core::DType::F32, gemm::operand_type(self.precision));
         for &(m, n, k, t) in products {
-            crate::ledger::product((self.b * self.h, m, n, k), (f, f, f), t, [false; 2]);
+            let batch = self.b * self.h;
+            crate::ledger::product((batch, m, n, k), (o, o, f), t, [false; 2]);
+            if o != f {
+                crate::ledger::cast_of(batch * k * (m + n), f, o);
+            }
         }
     }
 
@@ -71,14 +79,26 @@ impl Dims {
     }
 }
 
-/// A `[h, rows, k] · [h, k, cols]` product through candle's CPU matmul.
+/// A `[h, rows, k] · [h, k, cols]` product: in f32 through candle's CPU matmul; on bf16
+/// operands head by head through `gemm` (on this task's thread: the callers' tasks are
+/// the parallel ones).
 fn bmm(
     a: &CpuStorage,
     a_l: &Layout,
     b: &CpuStorage,
     b_l: &Layout,
     (h, rows, cols, k): (usize, usize, usize, usize),
+    p: Precision,
 ) -> Result<Vec<f32>> {
+    if gemm::operand_type(p) != candle_core::DType::F32 {
+        let (va, vb) = (BatchView::of(a, a_l)?, BatchView::of(b, b_l)?);
+        let mut out = Vec::with_capacity(h * rows * cols);
+        for j in 0..h {
+            let (x, y) = (va.at(j, (rows, k))?, vb.at(j, (k, cols))?);
+            out.extend(gemm::matmul(x, y, Threads::One, p)?);
+        }
+        return Ok(out);
+    }
     match a.matmul(b, (h, rows, cols, k), a_l, b_l)? {
         CpuStorage::F32(v) => Ok(v),
         _ => candle_core::bail!("attention: fused ops take f32"),
@@ -120,7 +140,7 @@ fn weights_of_rows(
         q_l.start_offset() + (bi * d.n + r0) * d.inner(),
     );
     let k_t = d.heads(k_off, bi, d.m, k_row).transpose(1, 2)?;
-    let mut s = bmm(q, &q_h, k, &k_t, (d.h, len, d.m, d.dh))?;
+    let mut s = bmm(q, &q_h, k, &k_t, (d.h, len, d.m, d.dh), d.precision)?;
     let mut row = vec![0f32; d.m];
     for r in s.chunks_mut(d.m.max(1)) {
         r.iter_mut().for_each(|v| *v *= d.scale);
@@ -165,7 +185,7 @@ pub(crate) fn forward(
             let p = CpuStorage::F32(weights_of_rows(d, bi, (r0, len), q, k)?);
             let v_h = d.heads(v.1, bi, d.m, v.2);
             let p_l = Layout::contiguous((d.h, len, d.m));
-            let o = bmm(&p, &p_l, v.0, &v_h, (d.h, len, d.dh, d.m))?;
+            let o = bmm(&p, &p_l, v.0, &v_h, (d.h, len, d.dh, d.m), d.precision)?;
             let CpuStorage::F32(p) = p else {
                 candle_core::bail!("attention: fused ops take f32")
             };
@@ -346,9 +366,11 @@ impl AttentionBwd {
                 let g_h = d.heads(g_l.start_offset(), bi, d.n, inner);
                 let q_h = d.heads(q_l.start_offset(), bi, d.n, inner);
                 // dV = Pᵀ · dO: `[h, m, n] · [h, n, dh]`.
-                let dv = bmm(p, &d.square(d.n, d.m, true), g, &g_h, (d.h, d.m, d.dh, d.n))?;
+                let p_t = d.square(d.n, d.m, true);
+                let dv = bmm(p, &p_t, g, &g_h, (d.h, d.m, d.dh, d.n), d.precision)?;
                 // dP = dO · Vᵀ: `[h, n, dh] · [h, dh, m]`.
-                let dp = bmm(g, &g_h, v.0, &v_h.transpose(1, 2)?, (d.h, d.n, d.m, d.dh))?;
+                let v_t = v_h.transpose(1, 2)?;
+                let dp = bmm(g, &g_h, v.0, &v_t, (d.h, d.n, d.m, d.dh), d.precision)?;
                 let p = f32_slice(p, &d.square(d.n, d.m, false), "attention weights")?;
                 // dS = scale · P ⊙ (dP − Σ P ⊙ dP), row by row.
                 let mut ds = vec![0f32; p.len()];
@@ -368,6 +390,7 @@ impl AttentionBwd {
                     k.0,
                     &k_h,
                     (d.h, d.n, d.dh, d.m),
+                    d.precision,
                 )?;
                 let dk = bmm(
                     &ds,
@@ -375,6 +398,7 @@ impl AttentionBwd {
                     q,
                     &q_h,
                     (d.h, d.m, d.dh, d.n),
+                    d.precision,
                 )?;
                 Ok([dq, dk, dv])
             })

@@ -5,6 +5,7 @@
 use super::gemm::{self, MatRef, Threads};
 use super::linear::{matmul_xwt, weight_grad};
 use super::{buffer, f32_slice};
+use crate::Precision;
 use crate::kept::Kept;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -257,6 +258,8 @@ struct ConvOp {
     /// Whether a backward pass can follow: only then are the columns kept.
     keep: bool,
     saved: Kept<CpuStorage>,
+    /// The products' precision, forward and backward (the node's when it was made).
+    precision: Precision,
 }
 
 impl ConvOp {
@@ -287,6 +290,7 @@ impl CustomOp2 for ConvOp {
             &Layout::contiguous((rows, g.patch())),
             s2,
             &self.kernel_matrix(l2),
+            self.precision,
         )?;
         if self.keep {
             self.saved.put(cols);
@@ -308,6 +312,7 @@ impl CustomOp2 for ConvOp {
                 co: self.co,
                 saved: Kept::new(self.saved.take()),
                 input_grad: x.track_op(),
+                precision: self.precision,
             };
             let flat = x.apply_op3_no_bwd(kernel, &grad.contiguous()?, &bwd)?;
             let nk = kernel.elem_count();
@@ -330,6 +335,7 @@ struct ConvBwd {
     co: usize,
     saved: Kept<CpuStorage>,
     input_grad: bool,
+    precision: Precision,
 }
 
 impl CustomOp3 for ConvBwd {
@@ -355,7 +361,7 @@ impl CustomOp3 for ConvBwd {
         let cols_l = Layout::contiguous((rows, p));
         let grad_l = Layout::contiguous_with_offset((rows, self.co), l3.start_offset());
         // d kernel = gradᵀ · columns: `[c_out, rows] · [rows, c·k·k]`.
-        let dk = weight_grad(s3, &grad_l, &cols, &cols_l)?;
+        let dk = weight_grad(s3, &grad_l, &cols, &cols_l, self.precision)?;
         let mut out = match self.input_grad {
             true => {
                 // d columns = grad · kernel, then scattered back to the image.
@@ -364,6 +370,7 @@ impl CustomOp3 for ConvBwd {
                     MatRef::of(s3, &grad_l)?,
                     MatRef::of(s2, &kmat)?,
                     Threads::Pool,
+                    self.precision,
                 )?;
                 match Col2Im(g).cpu_fwd(&CpuStorage::F32(dcols), &cols_l)?.0 {
                     CpuStorage::F32(v) => v,
@@ -386,6 +393,7 @@ pub(crate) fn conv2d(x: &Tensor, kernel: &Tensor, geom: ConvGeom, co: usize) -> 
         co,
         keep: x.track_op() || kernel.track_op(),
         saved: Kept::new(None),
+        precision: crate::precision(),
     };
     x.contiguous()?.apply_op2(&kernel.contiguous()?, op)
 }

@@ -17,6 +17,7 @@
 
 #![allow(unsafe_code)]
 
+use crate::Precision;
 use candle_core::{CpuStorage, DType, Layout, Result};
 use gemm::Parallelism;
 
@@ -104,6 +105,17 @@ impl<'a> MatRef<'a> {
     pub(crate) fn dims(&self) -> (usize, usize) {
         (self.rows, self.cols)
     }
+
+    /// The slice, the offset of element `(0, 0)` and the strides `(rs, cs)`: every
+    /// element `(i, j)` inside [`Self::dims`] is at `off + i·rs + j·cs < data.len()`.
+    pub(crate) fn raw(&self) -> (&'a [f32], usize, (usize, usize)) {
+        (self.data, self.off, (self.rs, self.cs))
+    }
+
+    /// Element `(i, j)` (inside [`Self::dims`]).
+    pub(crate) fn get(&self, i: usize, j: usize) -> f32 {
+        self.data[self.off + i * self.rs + j * self.cs]
+    }
 }
 
 /// How many threads one product may use.
@@ -115,16 +127,50 @@ pub(crate) enum Threads {
     One,
 }
 
-/// `a · b` → `[a.rows, b.cols]`, row-major.
-pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads) -> Result<Vec<f32>> {
+/// The operands' type of a product in `p` on this CPU: bf16 where it has bf16 products.
+pub(crate) fn operand_type(p: Precision) -> DType {
+    #[cfg(target_arch = "x86_64")]
+    if p == Precision::Bf16 && super::bf16::unit().is_some() {
+        return DType::BF16;
+    }
+    let _ = p;
+    DType::F32
+}
+
+/// `a · b` → `[a.rows, b.cols]`, row-major, in `p`: f32, or on bf16 operands with f32
+/// sums where the CPU has bf16 products (`super::bf16`; f32 where it has none).
+pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads, p: Precision) -> Result<Vec<f32>> {
     let ((m, k), (k2, n)) = (a.dims(), b.dims());
     if k != k2 {
         candle_core::bail!("matmul: [{m}, {k}] · [{k2}, {n}]");
     }
+    #[cfg(target_arch = "x86_64")]
+    let unit = match p {
+        Precision::Bf16 => super::bf16::unit(),
+        Precision::F32 => None,
+    };
+    // bf16 products are x86-64's only: elsewhere they stay f32.
+    #[cfg(not(target_arch = "x86_64"))]
+    let unit: Option<()> = (p == Precision::Bf16).then_some(()).filter(|_| false);
     if threads == Threads::Pool {
         // A product that is one of the step's (not a block of one, run as a task).
-        let f = DType::F32;
-        crate::ledger::product((1, m, n, k), (f, f, f), [a.rs == 1, b.rs == 1], [false; 2]);
+        let (f, t) = (
+            DType::F32,
+            if unit.is_some() {
+                DType::BF16
+            } else {
+                DType::F32
+            },
+        );
+        crate::ledger::product((1, m, n, k), (t, t, f), [a.rs == 1, b.rs == 1], [false; 2]);
+        if unit.is_some() {
+            // The packing rounds both operands to bf16 once per product.
+            crate::ledger::cast_of(m * k + k * n, f, t);
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    if let Some(u) = unit {
+        return Ok(super::bf16::matmul(a, b, threads, u));
     }
     let len = m * n;
     let mut dst: Vec<f32> = Vec::with_capacity(len);
@@ -138,6 +184,63 @@ pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads) -> Result<Vec<f32>>
         dst.set_len(len);
     }
     Ok(dst)
+}
+
+/// `a · b` for `a: [.., m, k]`, `b: [.., k, n]` (the same leading dims, `bmnk` =
+/// `(batch, m, n, k)`) as they lie in their storage (each operand's last two dims with
+/// any strides, its leading dims one after the other) → `[.., m, n]` row-major, each
+/// batch element's product in `p` on the pool.
+pub(crate) fn batched(
+    (a, la): (&CpuStorage, &Layout),
+    (b, lb): (&CpuStorage, &Layout),
+    (batch, m, n, k): (usize, usize, usize, usize),
+    p: Precision,
+) -> Result<Vec<f32>> {
+    let (va, vb) = (BatchView::of(a, la)?, BatchView::of(b, lb)?);
+    let mut out = Vec::with_capacity(batch * m * n);
+    for bi in 0..batch {
+        let (x, y) = (va.at(bi, (m, k))?, vb.at(bi, (k, n))?);
+        out.extend(matmul(x, y, Threads::Pool, p)?);
+    }
+    Ok(out)
+}
+
+/// Batch elements of a `[.., rows, cols]` f32 storage: their leading dims one after the
+/// other, walked by one stride.
+pub(crate) struct BatchView<'a> {
+    data: &'a [f32],
+    off: usize,
+    lead: usize,
+    strides: (usize, usize),
+}
+
+impl<'a> BatchView<'a> {
+    pub(crate) fn of(s: &'a CpuStorage, l: &Layout) -> Result<Self> {
+        let CpuStorage::F32(v) = s else {
+            candle_core::bail!("matmul: fused ops take f32");
+        };
+        let (d, st) = (l.dims(), l.stride());
+        let r = d.len();
+        if r < 2 {
+            candle_core::bail!("matmul: an operand of shape {d:?}");
+        }
+        for i in 0..r.saturating_sub(3) {
+            if d[i] > 1 && st[i] != st[i + 1] * d[i + 1] {
+                candle_core::bail!("matmul: leading dims {d:?} with strides {st:?}");
+            }
+        }
+        Ok(Self {
+            data: v,
+            off: l.start_offset(),
+            lead: if r > 2 { st[r - 3] } else { 0 },
+            strides: (st[r - 2], st[r - 1]),
+        })
+    }
+
+    /// Element `bi` as a `[rows, cols]` view.
+    pub(crate) fn at(&self, bi: usize, dims: (usize, usize)) -> Result<MatRef<'a>> {
+        MatRef::new(self.data, self.off + bi * self.lead, dims, self.strides)
+    }
 }
 
 /// `dst[..m·n] = a · b` (row-major `[m, n]`) over an existing buffer (tests: that every
@@ -231,11 +334,16 @@ mod tests {
             let va = MatRef::new(&a, 3, (m, k), (k, 1)).unwrap();
             let vb = MatRef::new(&b, 0, (n, k), (k, 1)).unwrap().t();
             for threads in [Threads::Pool, Threads::One] {
-                assert_eq!(matmul(va, vb, threads).unwrap(), want, "{m}×{k}×{n}");
+                assert_eq!(
+                    matmul(va, vb, threads, Precision::F32).unwrap(),
+                    want,
+                    "{m}×{k}×{n}"
+                );
             }
             // Rows 1.. of the same product through a row slice.
             if m > 1 {
-                let got = matmul(va.rows(1, m - 1).unwrap(), vb, Threads::One).unwrap();
+                let got =
+                    matmul(va.rows(1, m - 1).unwrap(), vb, Threads::One, Precision::F32).unwrap();
                 assert_eq!(got, want[n..], "rows 1.. of {m}×{k}×{n}");
             }
         }
@@ -255,7 +363,7 @@ mod tests {
             if k == 0 {
                 assert!(dst.iter().all(|&v| v == 0.0));
             }
-            assert_eq!(matmul(va, vb, Threads::Pool).unwrap(), dst);
+            assert_eq!(matmul(va, vb, Threads::Pool, Precision::F32).unwrap(), dst);
         }
     }
 
@@ -276,6 +384,9 @@ mod tests {
         // Empty views are fine anywhere.
         assert!(MatRef::new(&v, 12, (0, 4), (4, 1)).is_ok());
         let a = MatRef::new(&v, 0, (3, 4), (4, 1)).unwrap();
-        assert!(matmul(a, a, Threads::One).is_err(), "inner dims differ");
+        assert!(
+            matmul(a, a, Threads::One, Precision::F32).is_err(),
+            "inner dims differ"
+        );
     }
 }

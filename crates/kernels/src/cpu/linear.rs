@@ -5,6 +5,7 @@
 
 use super::gemm::{self, MatRef, Threads};
 use super::{ROWS_PER_TASK, f32_slice, rows_layout, with_last_dim};
+use crate::Precision;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
@@ -103,25 +104,26 @@ pub(crate) fn bias_add(x: &Tensor, bias: &Tensor) -> Result<Tensor> {
 
 // ---------------------------------------------------------------- linear
 
-/// `x: [n, in] · W: [out, in]ᵀ` as an f32 buffer `[n, out]`.
+/// `x: [n, in] · W: [out, in]ᵀ` as an f32 buffer `[n, out]`, the product in `p`.
 pub(crate) fn matmul_xwt(
     s1: &CpuStorage,
     l1: &Layout,
     s2: &CpuStorage,
     l2: &Layout,
+    p: Precision,
 ) -> Result<Vec<f32>> {
     let (x, w) = (MatRef::of(s1, l1)?, MatRef::of(s2, l2)?);
     if x.dims().1 != w.dims().1 {
         candle_core::bail!("linear: input {:?}, weight {:?}", x.dims(), w.dims());
     }
-    gemm::matmul(x, w.t(), Threads::Pool)
+    gemm::matmul(x, w.t(), Threads::Pool, p)
 }
 
 /// Rows per block of a weight gradient's split reduction ([`weight_grad`]).
 pub(crate) const WGRAD_BLOCK_ROWS: usize = 2048;
 
 /// The weight gradient `aᵀ·b` of a linear layer, `a: [rows, o]` (the output gradient),
-/// `b: [rows, k]` (the layer input), both contiguous → `[o, k]`.
+/// `b: [rows, k]` (the layer input), both contiguous → `[o, k]`; the products in `p`.
 ///
 /// Why not one gemm: gemm parallelises over blocks of the output and walks the reduction
 /// (here the rows, 8,192 target rays in the decoder) in one sequence, so for a 128 × 128
@@ -135,6 +137,7 @@ pub(crate) fn weight_grad(
     a_l: &Layout,
     b: &CpuStorage,
     b_l: &Layout,
+    p: Precision,
 ) -> Result<Vec<f32>> {
     let (a, b) = (MatRef::of(a, a_l)?, MatRef::of(b, b_l)?);
     let (rows, rows_b) = (a.dims().0, b.dims().0);
@@ -142,14 +145,18 @@ pub(crate) fn weight_grad(
         candle_core::bail!("weight gradient: {:?}ᵀ · {:?}", a.dims(), b.dims());
     }
     let block = |r0: usize, len: usize, threads: Threads| -> Result<Vec<f32>> {
-        gemm::matmul(a.rows(r0, len)?.t(), b.rows(r0, len)?, threads)
+        gemm::matmul(a.rows(r0, len)?.t(), b.rows(r0, len)?, threads, p)
     };
     let blocks = rows.div_ceil(WGRAD_BLOCK_ROWS);
     if blocks <= 1 {
         return block(0, rows, Threads::Pool);
     }
     let (f, dims) = (candle_core::DType::F32, (1, a.dims().1, b.dims().1, rows));
-    crate::ledger::product(dims, (f, f, f), [true, false], [false; 2]);
+    let t = gemm::operand_type(p);
+    crate::ledger::product(dims, (t, t, f), [true, false], [false; 2]);
+    if t != f {
+        crate::ledger::cast_of(rows * (a.dims().1 + b.dims().1), f, t);
+    }
     let parts: Vec<Vec<f32>> = (0..blocks)
         .into_par_iter()
         .map(|i| {
@@ -166,7 +173,7 @@ pub(crate) fn weight_grad(
 }
 
 /// [`weight_grad`] as a no-grad op over `(grad: [rows, o], x: [rows, k])` → `[o, k]`.
-pub(crate) struct WeightGrad;
+pub(crate) struct WeightGrad(pub(crate) Precision);
 
 impl CustomOp2 for WeightGrad {
     fn name(&self) -> &'static str {
@@ -182,7 +189,7 @@ impl CustomOp2 for WeightGrad {
     ) -> Result<(CpuStorage, Shape)> {
         let (o, k) = (l1.dims()[1], l2.dims()[1]);
         Ok((
-            CpuStorage::F32(weight_grad(s1, l1, s2, l2)?),
+            CpuStorage::F32(weight_grad(s1, l1, s2, l2, self.0)?),
             Shape::from((o, k)),
         ))
     }
@@ -190,7 +197,7 @@ impl CustomOp2 for WeightGrad {
 
 /// `grad: [rows, o] · W: [o, k]` → `[rows, k]` as a no-grad op: a linear layer's input
 /// gradient.
-struct InputGrad;
+struct InputGrad(Precision);
 
 impl CustomOp2 for InputGrad {
     fn name(&self) -> &'static str {
@@ -205,32 +212,38 @@ impl CustomOp2 for InputGrad {
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let (g, w) = (MatRef::of(s1, l1)?, MatRef::of(s2, l2)?);
-        let dx = gemm::matmul(g, w, Threads::Pool)?;
+        let dx = gemm::matmul(g, w, Threads::Pool, self.0)?;
         Ok((CpuStorage::F32(dx), Shape::from((g.dims().0, w.dims().1))))
     }
 }
 
 /// Gradients of `x·Wᵀ` for upstream `grad: [.., out]`: `dx = grad·W` only when `x` carries
 /// a gradient (candle's matmul backward computes it for data inputs too), `dW = gradᵀ·x`.
-fn linear_grads(x: &Tensor, w: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Tensor)> {
+fn linear_grads(
+    x: &Tensor,
+    w: &Tensor,
+    grad: &Tensor,
+    p: Precision,
+) -> Result<(Option<Tensor>, Tensor)> {
     // `x: [.., in]` and `grad: [.., out]` as the 2-D `[rows, ·]` views the op computed on.
     let (x2, grad) = (
         x.reshape(((), x.dim(D::Minus1)?))?.contiguous()?,
         grad.reshape(((), w.dim(0)?))?.contiguous()?,
     );
     let dx = if x.track_op() {
-        let dx = grad.apply_op2_no_bwd(&w.contiguous()?, &InputGrad)?;
+        let dx = grad.apply_op2_no_bwd(&w.contiguous()?, &InputGrad(p))?;
         Some(dx.reshape(x.shape())?)
     } else {
         None
     };
-    Ok((dx, grad.apply_op2_no_bwd(&x2, &WeightGrad)?))
+    Ok((dx, grad.apply_op2_no_bwd(&x2, &WeightGrad(p))?))
 }
 
 /// `y = x·Wᵀ + b` as one graph node (`x: [.., in]`, `W: [out, in]`, `b: [out]`): the bias
 /// is added into the matmul's output in place, and backward skips `dx` for data inputs
 /// and one `[n, out]` gradient accumulation (zeros + add) that matmul + bias add cost.
-struct LinearOp;
+/// The products, forward and backward, in the precision the node was made in.
+struct LinearOp(Precision);
 
 impl CustomOp3 for LinearOp {
     fn name(&self) -> &'static str {
@@ -248,7 +261,7 @@ impl CustomOp3 for LinearOp {
     ) -> Result<(CpuStorage, Shape)> {
         let b = f32_slice(s3, l3, "linear bias")?;
         let rows = rows_layout(l1)?;
-        let mut y = matmul_xwt(s1, &rows, s2, l2)?;
+        let mut y = matmul_xwt(s1, &rows, s2, l2, self.0)?;
         let (n, d) = (rows.dims()[0], b.len());
         if y.len() != n * d {
             candle_core::bail!("linear: bias of {d} for an output of {} values", y.len());
@@ -267,7 +280,7 @@ impl CustomOp3 for LinearOp {
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         crate::ledger::backward("", "linear", || {
             let grad = grad.contiguous()?;
-            let (dx, dw) = linear_grads(x, w, &grad)?;
+            let (dx, dw) = linear_grads(x, w, &grad, self.0)?;
             let db = grad.apply_op1_no_bwd(&ColumnSum { d: b.elem_count() })?;
             Ok((dx, Some(dw), Some(db)))
         })
@@ -275,7 +288,7 @@ impl CustomOp3 for LinearOp {
 }
 
 /// `y = x·Wᵀ` as one graph node (see [`LinearOp`]).
-struct LinearNoBiasOp;
+struct LinearNoBiasOp(Precision);
 
 impl CustomOp2 for LinearNoBiasOp {
     fn name(&self) -> &'static str {
@@ -289,7 +302,7 @@ impl CustomOp2 for LinearNoBiasOp {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let y = matmul_xwt(s1, &rows_layout(l1)?, s2, l2)?;
+        let y = matmul_xwt(s1, &rows_layout(l1)?, s2, l2, self.0)?;
         Ok((CpuStorage::F32(y), with_last_dim(l1, l2.dims()[0])))
     }
 
@@ -301,18 +314,19 @@ impl CustomOp2 for LinearNoBiasOp {
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         crate::ledger::backward("", "linear", || {
-            let (dx, dw) = linear_grads(x, w, &grad.contiguous()?)?;
+            let (dx, dw) = linear_grads(x, w, &grad.contiguous()?, self.0)?;
             Ok((dx, Some(dw)))
         })
     }
 }
 
 /// `x·weightᵀ (+ bias)` over all leading dims of `x: [.., in]` as one node (f32 on the
-/// CPU; `weight: [out, in]`, `bias: [out]`).
+/// CPU; `weight: [out, in]`, `bias: [out]`), the products in this thread's precision.
 pub(crate) fn linear(x: &Tensor, weight: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
     let (x, w) = (x.contiguous()?, weight.contiguous()?);
+    let p = crate::precision();
     match bias {
-        Some(b) => x.apply_op3(&w, &b.contiguous()?, LinearOp),
-        None => x.apply_op2(&w, LinearNoBiasOp),
+        Some(b) => x.apply_op3(&w, &b.contiguous()?, LinearOp(p)),
+        None => x.apply_op2(&w, LinearNoBiasOp(p)),
     }
 }

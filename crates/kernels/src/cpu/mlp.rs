@@ -18,6 +18,7 @@ use super::activation::MlpAct;
 use super::gemm::{self, MatRef, Threads};
 use super::linear::{ColumnSum, add_bias_rows, matmul_xwt, weight_grad};
 use super::{cpu_storage as cpu, f32_slice, rows_layout, with_last_dim};
+use crate::Precision;
 use crate::kept::Kept;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -31,6 +32,8 @@ pub type MlpLayer<'a> = (&'a Tensor, Option<&'a Tensor>);
 pub(crate) struct Plan {
     pub(crate) dims: Vec<usize>,
     pub(crate) bias: bool,
+    /// The products' precision, forward and backward (the node's when it was made).
+    pub(crate) precision: Precision,
 }
 
 impl Plan {
@@ -98,12 +101,13 @@ fn first_product(
     p: &CpuStorage,
     p_l: &Layout,
     (k, o, w_off): (usize, usize, usize),
+    precision: Precision,
 ) -> Result<Vec<f32>> {
     let mut z: Option<Vec<f32>> = None;
     for ((x, x_l), c0) in input.parts() {
         let xm = MatRef::of(x, x_l)?;
         let w = weight_cols(p, p_l, (k, o, w_off), (c0, xm.dims().1))?;
-        let part = gemm::matmul(xm, w.t(), Threads::Pool)?;
+        let part = gemm::matmul(xm, w.t(), Threads::Pool, precision)?;
         match &mut z {
             None => z = Some(part),
             Some(z) => add_assign(z, &part),
@@ -133,12 +137,13 @@ pub(crate) fn forward(
     for l in 0..plan.layers() {
         let (k, o, w_off, b_off) = plan.layer(l);
         let mut z = match saved.last() {
-            None => first_product(input, p, p_l, (k, o, w_off))?,
+            None => first_product(input, p, p_l, (k, o, w_off), plan.precision)?,
             Some((_, a)) => matmul_xwt(
                 a,
                 &Layout::contiguous((n, k)),
                 p,
                 &weight_layout(p_l, (k, o, w_off)),
+                plan.precision,
             )?,
         };
         if let Some(b) = b_off {
@@ -309,24 +314,25 @@ impl MlpBwd {
             if l > 0 {
                 // dW = dzᵀ · a_{l−1}: `[o, n] · [n, k]`; da = dz · W: `[n, o] · [o, k]`.
                 let a_l = Layout::contiguous((n, k));
-                let dw = weight_grad(&dz, &dz_l, &saved[l - 1].1, &a_l)?;
+                let dw = weight_grad(&dz, &dz_l, &saved[l - 1].1, &a_l, plan.precision)?;
                 dp[w_off..w_off + o * k].copy_from_slice(&dw);
                 let w = MatRef::of(p, &weight_layout(p_l, (k, o, w_off)))?;
-                let da = gemm::matmul(MatRef::of(&dz, &dz_l)?, w, Threads::Pool)?;
+                let da = gemm::matmul(MatRef::of(&dz, &dz_l)?, w, Threads::Pool, plan.precision)?;
                 dz = CpuStorage::F32(self.act.backward(&saved[l - 1].0, &da));
                 continue;
             }
             // The first layer, part by part: its columns of dW and its input gradient.
             for (i, ((x, x_l), c0)) in parts.iter().enumerate() {
                 let kx = x_l.dims()[1];
-                let dw = weight_grad(&dz, &dz_l, x, x_l)?; // [o, kx]
+                let dw = weight_grad(&dz, &dz_l, x, x_l, plan.precision)?; // [o, kx]
                 for (r, row) in dw.chunks(kx.max(1)).enumerate() {
                     let at = w_off + r * k + c0;
                     dp[at..at + kx].copy_from_slice(row);
                 }
                 if self.input_grad {
                     let w = weight_cols(p, p_l, (k, o, w_off), (*c0, kx))?;
-                    dx[i] = Some(gemm::matmul(MatRef::of(&dz, &dz_l)?, w, Threads::Pool)?);
+                    let dz = MatRef::of(&dz, &dz_l)?;
+                    dx[i] = Some(gemm::matmul(dz, w, Threads::Pool, plan.precision)?);
                 }
             }
         }
@@ -359,7 +365,11 @@ fn pack(input: usize, layers: &[MlpLayer]) -> Result<(Vec<usize>, Tensor)> {
 pub(crate) fn mlp(x: &Tensor, layers: &[MlpLayer], act: MlpAct, bias: bool) -> Result<Tensor> {
     let (dims, packed) = pack(x.dim(D::Minus1)?, layers)?;
     let op = MlpOp {
-        plan: Plan { dims, bias },
+        plan: Plan {
+            dims,
+            bias,
+            precision: crate::precision(),
+        },
         act,
         keep: x.track_op() || packed.track_op(),
         saved: Kept::new(None),
@@ -378,7 +388,11 @@ pub(crate) fn mlp_cat(
 ) -> Result<Tensor> {
     let (dims, packed) = pack(a.dim(D::Minus1)? + b.dim(D::Minus1)?, layers)?;
     let op = MlpCatOp(MlpOp {
-        plan: Plan { dims, bias },
+        plan: Plan {
+            dims,
+            bias,
+            precision: crate::precision(),
+        },
         act,
         keep: a.track_op() || b.track_op() || packed.track_op(),
         saved: Kept::new(None),

@@ -10,6 +10,8 @@
 
 pub(crate) mod activation;
 pub(crate) mod attention;
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod bf16;
 pub(crate) mod bias_act;
 pub(crate) mod buffer;
 pub(crate) mod conv;

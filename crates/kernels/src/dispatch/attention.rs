@@ -47,6 +47,7 @@ fn attention_here(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize, scale: f64) 
             h: heads,
             dh: inner / heads,
             scale: scale as f32,
+            precision: crate::precision(),
         },
     )
 }

@@ -194,11 +194,14 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .unwrap();
-            pool.install(|| g.apply_op2_no_bwd(&x, &WeightGrad).unwrap())
-                .flatten_all()
-                .unwrap()
-                .to_vec1()
-                .unwrap()
+            pool.install(|| {
+                g.apply_op2_no_bwd(&x, &WeightGrad(crate::Precision::F32))
+                    .unwrap()
+            })
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
         };
         let one = blocked(1);
         assert_eq!(one, blocked(2), "bits depend on the thread count");

@@ -80,6 +80,124 @@ mod tests {
         assert_eq!(precision(), Precision::F32, "restored after the closure");
     }
 
+    /// Every fused CPU op in bf16 against its f32 twin and f64 finite differences
+    /// (`bf16_twin_check`: 1e-2 relative L2 for values, 4e-2 for gradients), at unit and
+    /// extreme input scales: the linear layer with and without a bias, the MLP and the
+    /// MLP of a concatenation, attention, the convolution, the batched product and the
+    /// Slot Mixer's mixing block. (The transformer block's check is in its own tests.)
+    #[test]
+    fn fused_bf16_ops_track_their_f32_twins() {
+        use crate::testing::bf16_twin_check;
+        let tol = 1e-2;
+        for scale in [1.0f32, 1e-18, 1e17] {
+            let differs = scale == 1.0;
+            let x = randn(&[2, 9, 24], scale, 1);
+            let (w, b) = (randn(&[16, 24], 0.2, 2), randn(&[16], 0.2, 3));
+            let args = [x.clone(), w.clone(), b.clone()];
+            bf16_twin_check(
+                &format!("linear at {scale:e}"),
+                &args,
+                |t| linear(&t[0], &t[1], Some(&t[2])),
+                tol,
+                differs,
+            );
+            bf16_twin_check(
+                &format!("linear without bias at {scale:e}"),
+                &args[..2],
+                |t| linear(&t[0], &t[1], None),
+                tol,
+                differs,
+            );
+            let mlp_args = [
+                randn(&[2, 7, 12], scale, 4),
+                randn(&[20, 12], 0.3, 5),
+                randn(&[20], 0.3, 6),
+                randn(&[5, 20], 0.3, 7),
+                randn(&[5], 0.3, 8),
+            ];
+            let layers = |t: &[Tensor]| -> Vec<(Tensor, Tensor)> {
+                vec![(t[0].clone(), t[1].clone()), (t[2].clone(), t[3].clone())]
+            };
+            bf16_twin_check(
+                &format!("mlp at {scale:e}"),
+                &mlp_args,
+                |t| {
+                    let l = layers(&t[1..]);
+                    let l: Vec<MlpLayer> = l.iter().map(|(w, b)| (w, Some(b))).collect();
+                    crate::mlp(&t[0], &l, MlpAct::Gelu)
+                },
+                tol,
+                differs,
+            );
+            let mut cat_args = vec![randn(&[2, 7, 8], scale, 9), randn(&[2, 7, 4], 1.0, 10)];
+            cat_args.extend(mlp_args[1..].iter().cloned());
+            bf16_twin_check(
+                &format!("mlp_cat at {scale:e}"),
+                &cat_args,
+                |t| {
+                    let l = layers(&t[2..]);
+                    let l: Vec<MlpLayer> = l.iter().map(|(w, b)| (w, Some(b))).collect();
+                    mlp_cat(&t[0], &t[1], &l, MlpAct::Relu)
+                },
+                tol,
+                differs,
+            );
+            let qkv = [
+                randn(&[2, 9, 16], scale, 11),
+                randn(&[2, 5, 16], 1.0, 12),
+                randn(&[2, 5, 16], 1.0, 13),
+            ];
+            bf16_twin_check(
+                &format!("attention at {scale:e}"),
+                &qkv,
+                |t| attention(&t[0], &t[1], &t[2], 2, 0.25),
+                tol,
+                differs,
+            );
+            let conv = [
+                randn(&[2, 6, 7, 3], scale, 14),
+                randn(&[5, 3, 3, 3], 0.3, 15),
+            ];
+            bf16_twin_check(
+                &format!("conv2d at {scale:e}"),
+                &conv,
+                |t| crate::conv2d_nhwc(&t[0], &t[1], 2, 1),
+                tol,
+                differs,
+            );
+            let mm = [randn(&[2, 7, 5], scale, 16), randn(&[2, 5, 6], 1.0, 17)];
+            bf16_twin_check(
+                &format!("matmul at {scale:e}"),
+                &mm,
+                |t| matmul(&t[0], &t[1]),
+                tol,
+                differs,
+            );
+            let mix = [
+                randn(&[2, 9, 6], scale, 18),
+                randn(&[2, 4, 5], 1.0, 19),
+                randn(&[5, 6], 0.4, 20),
+                randn(&[5, 5], 0.4, 21),
+            ];
+            bf16_twin_check(
+                &format!("slot_mix at {scale:e}"),
+                &mix,
+                |t| match crate::slot_mix(&t[0], &t[1], &t[2], &t[3], 0.5)? {
+                    Some((mixed, _)) => Ok(mixed),
+                    // The composed block (the finite differences' f64 function).
+                    None => {
+                        let q = t[0].broadcast_matmul(&t[2].t()?)?;
+                        let k = t[1].broadcast_matmul(&t[3].t()?)?;
+                        let logits = (q.matmul(&k.t()?)? * 0.5)?;
+                        candle_nn::ops::softmax(&logits, candle_core::D::Minus1)?.matmul(&t[1])
+                    }
+                },
+                tol,
+                differs,
+            );
+        }
+    }
+
     /// On the device graph in bf16, attention with its projections stored in bf16
     /// (`linear_low`), and a mixed slot stored in bf16 (`matmul_low`) read by an MLP of a
     /// concatenation, give the bits (values and every gradient) of the same graph stored in

@@ -42,6 +42,9 @@ pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
         let f32s = t.iter().all(|t| t.dtype() == candle_core::DType::F32);
         if enabled() && (f32s || stores_low(&[&t[0], &t[1]])) {
             let bf16 = precision() == Precision::Bf16;
+            if bf16 && f32s && fused_cpu(&t[0], &t[1]) {
+                return t[0].apply_op2(&t[1], MatmulNode::fused_cpu());
+            }
             return matmul_node(&t[0], &t[1], bf16);
         }
         composed(&t[0], &t[1])
@@ -129,6 +132,7 @@ pub(crate) fn matmul_node(a: &Tensor, b: &Tensor, bf16: bool) -> Result<Tensor> 
             bf16,
             low: false,
             made: ledger::context().0,
+            fused_cpu: false,
         },
     )
 }
@@ -141,6 +145,7 @@ pub(crate) fn matmul_node_low(a: &Tensor, b: &Tensor) -> Result<Tensor> {
             bf16: true,
             low: true,
             made: ledger::context().0,
+            fused_cpu: false,
         },
     )
 }
@@ -151,6 +156,30 @@ struct MatmulNode {
     low: bool,
     /// The ledger's op kind where the node was made (its backward pass's kind).
     made: &'static str,
+    /// The fused CPU kernels' bf16 products (`crate::cpu::gemm`) on f32 operands as they
+    /// lie, forward and backward, where the CPU has bf16 products (only with `bf16`).
+    fused_cpu: bool,
+}
+
+/// Whether a bf16 product of `a` and `b` runs on the fused CPU kernels' bf16 products:
+/// the `fused` kernels, f32 operands on a CPU that has bf16 products.
+fn fused_cpu(a: &Tensor, b: &Tensor) -> bool {
+    crate::kernels() == crate::Kernels::Fused
+        && [a, b]
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+        && crate::cpu::gemm::operand_type(Precision::Bf16) == DType::BF16
+}
+
+impl MatmulNode {
+    fn fused_cpu() -> Self {
+        Self {
+            bf16: true,
+            low: false,
+            made: ledger::context().0,
+            fused_cpu: true,
+        }
+    }
 }
 
 /// Whether a product reads an operand of layout `l` as it lies: its last two dims
@@ -249,6 +278,11 @@ impl CustomOp2 for MatmulNode {
         b: &CpuStorage,
         lb: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
+        if self.fused_cpu {
+            let (bmnk, shape) = dims(la, lb)?;
+            let y = crate::cpu::gemm::batched((a, la), (b, lb), bmnk, Precision::Bf16)?;
+            return Ok((CpuStorage::F32(y), shape));
+        }
         forward(a, la, b, lb, self)
     }
 
@@ -276,6 +310,22 @@ impl CustomOp2 for MatmulNode {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         ledger::backward(self.made, "matmul", || {
             let (ad, bd) = (a.detach(), b.detach());
+            if self.fused_cpu {
+                let g = grad.detach();
+                let node = || MatmulNode {
+                    made: self.made,
+                    ..MatmulNode::fused_cpu()
+                };
+                let da = match a.track_op() {
+                    true => Some(g.apply_op2_no_bwd(&bd.t()?, &node())?),
+                    false => None,
+                };
+                let db = match b.track_op() {
+                    true => Some(ad.t()?.apply_op2_no_bwd(&g, &node())?),
+                    false => None,
+                };
+                return Ok((da, db));
+            }
             let low = |t: &Tensor| match self.bf16 && t.dtype() != DType::BF16 {
                 true => ledger::cast(t, DType::BF16),
                 false => Ok(t.clone()),

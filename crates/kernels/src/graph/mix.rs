@@ -58,8 +58,8 @@ impl MixOp {
     ) -> Result<(Vec<f32>, Saved)> {
         let d = &self.dims;
         let (wq, wk) = self.weights(p_l);
-        let q = CpuStorage::F32(matmul_xwt(x, x_l, p, &wq)?);
-        let k = CpuStorage::F32(matmul_xwt(s, s_l, p, &wk)?);
+        let q = CpuStorage::F32(matmul_xwt(x, x_l, p, &wq, d.precision)?);
+        let k = CpuStorage::F32(matmul_xwt(s, s_l, p, &wk, d.precision)?);
         let q_l = Layout::contiguous((d.b, d.n, self.ds()));
         let (mixed, weights) = attention::forward(
             d,
@@ -150,8 +150,8 @@ impl CustomOp3 for MixOp {
             let dk_l = Layout::contiguous_with_offset((krows, ds), rows * ds);
             let dv_l = Layout::contiguous_with_offset((krows, ds), (rows + krows) * ds);
             let (wq, wk) = self.weights(p_l);
-            let mut dp = weight_grad(&flat, &dq_l, xs, &x_l)?;
-            dp.extend_from_slice(&weight_grad(&flat, &dk_l, ss, &s_l)?);
+            let mut dp = weight_grad(&flat, &dq_l, xs, &x_l, d.precision)?;
+            dp.extend_from_slice(&weight_grad(&flat, &dk_l, ss, &s_l, d.precision)?);
             let dev = x.device();
             let dx_ = match x.track_op() {
                 true => {
@@ -159,6 +159,7 @@ impl CustomOp3 for MixOp {
                         MatRef::of(&flat, &dq_l)?,
                         MatRef::of(ps, &wq)?,
                         Threads::Pool,
+                        d.precision,
                     )?;
                     Some(Tensor::from_vec(v, x.shape(), dev)?)
                 }
@@ -170,6 +171,7 @@ impl CustomOp3 for MixOp {
                         MatRef::of(&flat, &dk_l)?,
                         MatRef::of(ps, &wk)?,
                         Threads::Pool,
+                        d.precision,
                     )?;
                     let dv = f32_slice(&flat, &dv_l, "slot mix")?;
                     v.iter_mut().zip(dv).for_each(|(a, b)| *a += b);
@@ -208,6 +210,7 @@ pub(crate) fn slot_mix_node(
             h: 1,
             dh: ds,
             scale: scale as f32,
+            precision: crate::precision(),
         },
         dx,
         keep: x.track_op() || slots.track_op() || packed.track_op(),

@@ -199,6 +199,18 @@ fn block_matches_the_composed_version_and_finite_differences() {
     }
 }
 
+/// In bf16 against the f32 block and f64 finite differences (`bf16_twin_check`).
+#[test]
+fn block_in_bf16_tracks_the_f32_block() {
+    for cross in [false, true] {
+        for scale in [1.0, 1e-18, 1e17] {
+            let args = args(cross, (2, 5, 3), scale, 4);
+            let what = format!("block (cross {cross}) at {scale:e}");
+            crate::testing::bf16_twin_check(&what, &args, run(cross), 1e-2, scale == 1.0);
+        }
+    }
+}
+
 /// Huge inputs and constant rows (LayerNorm's zero variance) stay finite and agree with
 /// the composed version.
 #[test]

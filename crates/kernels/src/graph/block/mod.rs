@@ -242,6 +242,7 @@ pub(crate) fn block_node(
         mlp: Plan {
             dims: mlp_dims,
             bias: true,
+            precision: crate::precision(),
         },
         act: p.act,
         self_attn: ctx.is_none(),

@@ -91,6 +91,7 @@ impl Geometry {
             h: self.heads,
             dh: self.inner / self.heads,
             scale: self.scale,
+            precision: self.mlp.precision,
         }
     }
 }
@@ -208,17 +209,18 @@ impl<'a> Block<'a> {
         ctx: Option<(&CpuStorage, &Layout)>,
     ) -> Result<(Vec<f32>, Saved)> {
         let (g, o) = (self.g, &self.o);
+        let pr = g.mlp.precision;
         let (rows, d, inner) = (g.rows(), g.d, g.inner);
         let rl = Layout::contiguous((rows, d));
         let h1 = self.layer_norm(x, x_l, o.g1, o.b1)?;
-        let q = CpuStorage::F32(matmul_xwt(&h1, &rl, self.p, &self.mat(o.wq, inner, d))?);
+        let q = CpuStorage::F32(matmul_xwt(&h1, &rl, self.p, &self.mat(o.wq, inner, d), pr)?);
         let (c, c_l) = match ctx {
             Some(c) => c,
             None => (&h1, &rl),
         };
         let proj = |off: usize| -> Result<CpuStorage> {
             let w = self.mat(off, inner, g.dc);
-            Ok(CpuStorage::F32(matmul_xwt(c, c_l, self.p, &w)?))
+            Ok(CpuStorage::F32(matmul_xwt(c, c_l, self.p, &w, pr)?))
         };
         let (k, v) = (proj(o.wk)?, proj(o.wv)?);
         let dims = g.attention();
@@ -227,7 +229,7 @@ impl<'a> Block<'a> {
         let att = CpuStorage::F32(att);
         // x₂ = x + (att·W_oᵀ + b_o)
         let al = Layout::contiguous((rows, inner));
-        let mut x2 = matmul_xwt(&att, &al, self.p, &self.mat(o.wo, d, inner))?;
+        let mut x2 = matmul_xwt(&att, &al, self.p, &self.mat(o.wo, d, inner), pr)?;
         add_bias_rows(&mut x2, self.params(o.bo, d)?);
         add_into(&mut x2, f32_slice(x, x_l, "block input")?);
         let x2 = CpuStorage::F32(x2);
@@ -259,6 +261,7 @@ impl<'a> Block<'a> {
         saved: Saved,
     ) -> Result<Grads> {
         let (g, o) = (self.g, &self.o);
+        let pr = g.mlp.precision;
         let (rows, crows, d, dc, inner) = (g.rows(), g.ctx_rows(), g.d, g.dc, g.inner);
         let rl = Layout::contiguous((rows, d));
         let al = Layout::contiguous((rows, inner));
@@ -289,9 +292,9 @@ impl<'a> Block<'a> {
         // Output projection.
         let dbo = ColumnSum { d }.cpu_fwd(&dx2, &rl)?.0;
         put(o.bo, f32s(&dbo, "block")?);
-        put(o.wo, &weight_grad(&dx2, &rl, &saved.att, &al)?);
+        put(o.wo, &weight_grad(&dx2, &rl, &saved.att, &al, pr)?);
         let wo = MatRef::of(self.p, &self.mat(o.wo, d, inner))?;
-        let datt = gemm::matmul(MatRef::of(&dx2, &rl)?, wo, Threads::Pool)?;
+        let datt = gemm::matmul(MatRef::of(&dx2, &rl)?, wo, Threads::Pool, pr)?;
         // Attention: [dq | dk | dv].
         let att_bwd = AttentionBwd {
             dims: g.attention(),
@@ -308,19 +311,19 @@ impl<'a> Block<'a> {
         let dk_l = Layout::contiguous_with_offset((crows, inner), rows * inner);
         let dv_l = Layout::contiguous_with_offset((crows, inner), (rows + crows) * inner);
         // Projections: W_q from LN₁(x), W_k and W_v from the context.
-        put(o.wq, &weight_grad(&grads, &dq_l, &saved.h1, &rl)?);
+        put(o.wq, &weight_grad(&grads, &dq_l, &saved.h1, &rl, pr)?);
         let (c, c_l) = match ctx {
             Some(c) => c,
             None => (&saved.h1, &rl),
         };
-        put(o.wk, &weight_grad(&grads, &dk_l, c, c_l)?);
-        put(o.wv, &weight_grad(&grads, &dv_l, c, c_l)?);
+        put(o.wk, &weight_grad(&grads, &dk_l, c, c_l, pr)?);
+        put(o.wv, &weight_grad(&grads, &dv_l, c, c_l, pr)?);
         let w = |off: usize| MatRef::of(self.p, &self.mat(off, inner, dc));
-        let mut dc_ = gemm::matmul(MatRef::of(&grads, &dk_l)?, w(o.wk)?, Threads::Pool)?;
-        let dcv = gemm::matmul(MatRef::of(&grads, &dv_l)?, w(o.wv)?, Threads::Pool)?;
+        let mut dc_ = gemm::matmul(MatRef::of(&grads, &dk_l)?, w(o.wk)?, Threads::Pool, pr)?;
+        let dcv = gemm::matmul(MatRef::of(&grads, &dv_l)?, w(o.wv)?, Threads::Pool, pr)?;
         add_into(&mut dc_, &dcv);
         let wq = MatRef::of(self.p, &self.mat(o.wq, inner, d))?;
-        let mut dh1 = gemm::matmul(MatRef::of(&grads, &dq_l)?, wq, Threads::Pool)?;
+        let mut dh1 = gemm::matmul(MatRef::of(&grads, &dq_l)?, wq, Threads::Pool, pr)?;
         let dctx = match g.self_attn {
             true => {
                 add_into(&mut dh1, &dc_);

@@ -4,7 +4,7 @@
 use super::*;
 use crate::dispatch::linear::linear_act;
 use crate::testing::{assert_second_backward_agrees, finite_difference_check, randn};
-use crate::{Precision, with_fused, with_precision};
+use crate::{Kernels, Precision, with_kernels, with_precision};
 use candle_core::Var;
 
 /// The layers one by one as a GPU ran them before this node: `linear_act` each.
@@ -41,7 +41,8 @@ fn values(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
 }
 
-/// Value and gradients (input, then each weight and bias) of `Σ mlp(x) ⊙ w`.
+/// Value and gradients (input, then each weight and bias) of `Σ mlp(x) ⊙ w`, on the
+/// device graph (the layer-by-layer products are then candle's, as the node's).
 fn run(
     node: bool,
     p: Precision,
@@ -49,7 +50,7 @@ fn run(
     x: &Var,
     params: &[(Var, Var)],
 ) -> (Vec<f32>, Vec<Vec<f32>>) {
-    with_fused(true, || {
+    with_kernels(Kernels::Device, || {
         with_precision(p, || {
             let layers: Vec<MlpLayer> = params
                 .iter()
