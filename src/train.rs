@@ -109,7 +109,7 @@ pub struct TrainArgs {
     /// build with the `cuda` feature).
     #[arg(long)]
     pub device: Option<DeviceSpec>,
-    /// Matrix products in f32 or bf16 (GPU only; weights and optimiser stay f32).
+    /// Matrix products in f32 or bf16 (on a GPU, or the CPU's AMX / AVX512-BF16 units; weights and optimiser stay f32).
     #[arg(long)]
     pub precision: Option<Precision>,
     /// `fused` (the one-node CPU kernels; the default), `composed` (candle's ops only) or

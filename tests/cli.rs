@@ -93,7 +93,10 @@ fn bad_arguments_are_clear_errors() {
     for (args, want) in [
         (vec!["--device", "tpu"], "expected cpu, cuda or cuda:N"),
         (vec!["--precision", "fp8"], "expected f32 or bf16"),
-        (vec!["--precision", "bf16"], "bf16 runs on a GPU only"),
+        (
+            vec!["--precision", "bf16", "--kernels", "composed"],
+            "composed ops are the f32 reference",
+        ),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
             .arg("train")
@@ -474,7 +477,7 @@ fn train_then_eval_a_tiny_run() {
 
 /// The GPU's bf16 graph runs on the CPU for measuring it (`--kernels device --precision
 /// bf16`: bf16 products, the convolution node's bf16 unfolding); bf16 with the CPU's fused
-/// kernels is refused.
+/// kernels runs too (their own bf16 products); with candle's composed ops it is refused.
 #[test]
 fn bench_model_runs_the_gpus_bf16_graph_on_the_cpu() {
     let dir = tempfile::tempdir().unwrap();
@@ -512,13 +515,77 @@ fn bench_model_runs_the_gpus_bf16_graph_on_the_cpu() {
     assert!(s["peak_heap_gib"].as_f64().unwrap() > 0.0, "{s}");
     let mut a = args("fused").to_vec();
     a.push(out_json.to_str().unwrap());
+    osrt(&a);
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+    let s = &v["1"]["steps"][0];
+    assert_eq!(
+        (s["precision"].as_str(), s["kernels"].as_str()),
+        (Some("bf16"), Some("fused")),
+        "{s}"
+    );
+    let mut a = args("composed").to_vec();
+    a.push(out_json.to_str().unwrap());
     let out = Command::new(env!("CARGO_BIN_EXE_osrt"))
         .args(&a)
         .output()
         .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("bf16 runs on a GPU only"), "{err}");
+    assert!(err.contains("composed ops are the f32 reference"), "{err}");
+}
+
+/// The fused CPU kernels' bf16 step takes the unit this CPU has: its ledger holds bf16
+/// products and the packing's casts where `osrt_kernels::cpu_bf16_products` names a unit,
+/// f32 products and no casts where it names none; with `OSRT_CPU_BF16=off` (the dispatch
+/// told there is no unit) f32 on any CPU.
+#[test]
+fn fused_bf16_products_follow_the_cpus_units() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_json = dir.path().join("ledger.json");
+    let args = [
+        "bench",
+        "model",
+        "--ledger",
+        "--presets",
+        "tiny",
+        "--kernels",
+        "fused",
+        "--precision",
+        "bf16",
+        "--threads",
+        "1",
+        "--batch-size",
+        "2",
+        "--out",
+        out_json.to_str().unwrap(),
+    ];
+    let here = osrt_kernels::cpu_bf16_products().is_some();
+    for (env, bf16) in [
+        (vec![], here),
+        (vec![("OSRT_CPU_BF16".into(), "off".into())], false),
+    ] {
+        common::osrt_env(&args, &env);
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+        let step = v["1"]["ledgers"][0]["totals"]
+            .as_array()
+            .unwrap()
+            .last()
+            .unwrap()
+            .clone();
+        assert_eq!(step["kind"], "step");
+        let flops = |ty: &str| step["flops"][ty].as_f64().unwrap_or(0.0);
+        assert!(flops("f32") > 0.0 || flops("bf16") > 0.0, "{step}");
+        // The few products outside the fused nodes (none in `tiny`) would stay f32.
+        assert_eq!(
+            (flops("bf16") > 0.0, flops("f32") == 0.0),
+            (bf16, bf16),
+            "{env:?}: {step}"
+        );
+        let casts = step["bytes"]["cast"].as_u64().unwrap_or(0);
+        assert_eq!(casts > 0, bf16, "{env:?}: {step}");
+    }
 }
 
 /// `osrt bench model --render-only` times the decoders' renders (the volumetric one with

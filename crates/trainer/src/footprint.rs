@@ -115,8 +115,9 @@ pub fn estimate(
             && !(world > 1 && t.kernels == Kernels::Device),
     };
     let gpu = t.device.is_cuda();
-    // `device` kernels build the GPU's graph on any device.
-    let path = if !gpu && t.kernels == Kernels::Fused && t.precision == Precision::F32 {
+    // `device` kernels build the GPU's graph on any device; the fused CPU kernels keep
+    // f32 activations in bf16 too (their bf16 operands are packed per product).
+    let path = if !gpu && t.kernels == Kernels::Fused {
         OpPath::Fused
     } else if gpu || t.kernels == Kernels::Device {
         OpPath::Gpu {

@@ -392,9 +392,11 @@ mod device_tests {
     /// leaves); a job that cannot run anywhere is the job's (fatal).
     #[test]
     fn a_device_only_this_worker_lacks_is_its_own_problem_not_the_jobs() {
+        // bf16 with candle's composed ops runs on a GPU only.
         let bf16_gpu = toml_of(|j| {
             j.train.device = DeviceSpec::Cuda(0);
             j.train.precision = Precision::Bf16;
+            j.train.kernels = osrt_kernels::Kernels::Composed;
         });
         let e = job_on_device(&bf16_gpu, Some(DeviceSpec::Cpu)).unwrap_err();
         assert!(
@@ -404,7 +406,10 @@ mod device_tests {
         assert!(e.to_string().contains("--device cpu"), "{e}");
         assert!(job_on_device(&bf16_gpu, Some(DeviceSpec::Cuda(1))).is_ok());
         // The same job written for a CPU is wrong in itself.
-        let bf16_cpu = toml_of(|j| j.train.precision = Precision::Bf16);
+        let bf16_cpu = toml_of(|j| {
+            j.train.precision = Precision::Bf16;
+            j.train.kernels = osrt_kernels::Kernels::Composed;
+        });
         let e = job_on_device(&bf16_cpu, None).unwrap_err();
         assert!(
             matches!(e, WorkerError::Train(TrainError::Config { .. })),

@@ -54,7 +54,7 @@ pub struct BenchModelArgs {
     /// composed-vs-fused comparison, the fused ops are CPU-only).
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
-    /// Matrix products in f32 or bf16 (GPU only).
+    /// Matrix products in f32 or bf16 (on a GPU, or the CPU's AMX / AVX512-BF16 units).
     #[arg(long, default_value = "f32")]
     pub precision: Precision,
     /// Time the step with these kernels only (default: fused, and composed beside it for

@@ -43,7 +43,12 @@ pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
         if enabled() && (f32s || stores_low(&[&t[0], &t[1]])) {
             let bf16 = precision() == Precision::Bf16;
             if bf16 && f32s && fused_cpu(&t[0], &t[1]) {
-                return t[0].apply_op2(&t[1], MatmulNode::fused_cpu());
+                // The fused CPU kernels' products: bf16 where the CPU has a unit for them,
+                // else f32, as theirs.
+                return match crate::cpu::gemm::operand_type(Precision::Bf16) == DType::BF16 {
+                    true => t[0].apply_op2(&t[1], MatmulNode::fused_cpu()),
+                    false => matmul_node(&t[0], &t[1], false),
+                };
             }
             return matmul_node(&t[0], &t[1], bf16);
         }
@@ -161,14 +166,13 @@ struct MatmulNode {
     fused_cpu: bool,
 }
 
-/// Whether a bf16 product of `a` and `b` runs on the fused CPU kernels' bf16 products:
-/// the `fused` kernels, f32 operands on a CPU that has bf16 products.
+/// Whether a bf16 product of `a` and `b` is the fused CPU kernels': the `fused` kernels,
+/// f32 operands on the CPU.
 fn fused_cpu(a: &Tensor, b: &Tensor) -> bool {
     crate::kernels() == crate::Kernels::Fused
         && [a, b]
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
-        && crate::cpu::gemm::operand_type(Precision::Bf16) == DType::BF16
 }
 
 impl MatmulNode {

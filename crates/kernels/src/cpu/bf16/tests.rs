@@ -136,7 +136,7 @@ fn the_block_transpose_transposes() {
     if !runs(Unit::Avx512Bf16) {
         return;
     }
-    let t: [u32; 256] = std::array::from_fn(|i| i as u32 * 2654435761);
+    let t: [u32; 256] = std::array::from_fn(|i| (i as u32).wrapping_mul(2654435761));
     let mut out = [0u32; 256];
     // SAFETY: AVX-512 runs here (checked above).
     unsafe { pack::transpose(&t, &mut out) };
