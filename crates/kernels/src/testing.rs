@@ -103,31 +103,48 @@ pub(crate) fn assert_matches_composed(
     }
 }
 
-/// Central finite differences of `Σ f(args) · w`, computed in f64 (where `f` takes the
-/// composed path: the same function), against the fused backward in f32.
-pub(crate) fn finite_difference_check(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>) {
-    let [(y, grads), _] = both(args, &f);
+/// Central finite differences of `Σ f(args) · w` in f64 (`w` the checks' fixed weights,
+/// of the output's `dims`; `f` takes the composed path there: the same function) with
+/// respect to argument `a`, at about 12 of its elements: `(element, difference)`.
+fn sampled_differences(
+    args: &[Tensor],
+    f: &impl Fn(&[Tensor]) -> Result<Tensor>,
+    dims: &[usize],
+    a: usize,
+) -> Vec<(usize, f64)> {
     let f64_ = candle_core::DType::F64;
-    let w64 = randn(y.dims(), 1.0, 99).to_dtype(f64_).unwrap();
+    let w64 = randn(dims, 1.0, 99).to_dtype(f64_).unwrap();
     let args64: Vec<Tensor> = args.iter().map(|a| a.to_dtype(f64_).unwrap()).collect();
+    let base: Vec<f64> = args64[a].flatten_all().unwrap().to_vec1().unwrap();
     let h = 1e-5;
-    for (a, grad) in grads.iter().enumerate() {
-        let base: Vec<f64> = args64[a].flatten_all().unwrap().to_vec1().unwrap();
-        let g: Vec<f32> = grad.flatten_all().unwrap().to_vec1().unwrap();
-        for i in (0..base.len()).step_by((base.len() / 12).max(1)) {
+    (0..base.len())
+        .step_by((base.len() / 12).max(1))
+        .map(|i| {
             let eval = |delta: f64| -> f64 {
                 let mut v = base.clone();
                 v[i] += delta;
                 let mut xs = args64.clone();
                 xs[a] = Tensor::from_vec(v, args64[a].shape(), &Device::Cpu).unwrap();
-                (f(&xs).unwrap() * &w64)
+                let y = with_fused(false, || f(&xs)).unwrap();
+                (y * &w64)
                     .unwrap()
                     .sum_all()
                     .unwrap()
                     .to_scalar::<f64>()
                     .unwrap()
             };
-            let num = (eval(h) - eval(-h)) / (2.0 * h);
+            (i, (eval(h) - eval(-h)) / (2.0 * h))
+        })
+        .collect()
+}
+
+/// Central finite differences of `Σ f(args) · w`, computed in f64 (where `f` takes the
+/// composed path: the same function), against the fused backward in f32.
+pub(crate) fn finite_difference_check(args: &[Tensor], f: impl Fn(&[Tensor]) -> Result<Tensor>) {
+    let [(y, grads), _] = both(args, &f);
+    for (a, grad) in grads.iter().enumerate() {
+        let g: Vec<f32> = grad.flatten_all().unwrap().to_vec1().unwrap();
+        for (i, num) in sampled_differences(args, &f, y.dims(), a) {
             let err = (num - g[i] as f64).abs();
             assert!(
                 err <= 1e-3 * (1.0 + num.abs()),
@@ -241,31 +258,12 @@ pub(crate) fn bf16_twin_check(
         return;
     }
     // Finite differences of the f64 function, sampled as in `finite_difference_check`.
-    let f64_ = candle_core::DType::F64;
-    let w64 = randn(y32.dims(), 1.0, 99).to_dtype(f64_).unwrap();
-    let args64: Vec<Tensor> = args.iter().map(|a| a.to_dtype(f64_).unwrap()).collect();
-    let h = 1e-5;
     for (a, grad) in g16.iter().enumerate() {
-        let base: Vec<f64> = args64[a].flatten_all().unwrap().to_vec1().unwrap();
         let g: Vec<f32> = grad.flatten_all().unwrap().to_vec1().unwrap();
-        let (mut num, mut got) = (Vec::new(), Vec::new());
-        for i in (0..base.len()).step_by((base.len() / 12).max(1)) {
-            let eval = |delta: f64| -> f64 {
-                let mut v = base.clone();
-                v[i] += delta;
-                let mut xs = args64.clone();
-                xs[a] = Tensor::from_vec(v, args64[a].shape(), &Device::Cpu).unwrap();
-                let y = with_fused(false, || f(&xs)).unwrap();
-                (y * &w64)
-                    .unwrap()
-                    .sum_all()
-                    .unwrap()
-                    .to_scalar::<f64>()
-                    .unwrap()
-            };
-            num.push((eval(h) - eval(-h)) / (2.0 * h));
-            got.push(g[i] as f64);
-        }
+        let (got, num): (Vec<f64>, Vec<f64>) = sampled_differences(args, &f, y32.dims(), a)
+            .into_iter()
+            .map(|(i, num)| (g[i] as f64, num))
+            .unzip();
         let t = |v: Vec<f64>| Tensor::new(v, &Device::Cpu).unwrap();
         let e = rel_l2(&t(got), &t(num));
         assert!(

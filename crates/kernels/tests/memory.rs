@@ -31,6 +31,9 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static ALLOC: Counting = Counting;
 
+/// The counter sees every thread: the tests of this file take turns.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn var(dims: &[usize], seed: u64) -> Var {
     let n: usize = dims.iter().product();
     let v: Vec<f32> = (0..n)
@@ -59,6 +62,7 @@ fn kept(kernels: Kernels, x: &Var, w: &Var) -> (usize, Tensor) {
 /// product, which keeps nothing either, rounds differently; `a_fused_bf16_product_keeps_its_output_only`.)
 #[test]
 fn a_bf16_product_keeps_no_bf16_copies() {
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (m, k, n) = (512, 256, 128);
     let (x, w) = (var(&[m, k], 1), var(&[k, n], 2));
     let out = m * n * 4;
@@ -99,6 +103,7 @@ fn a_bf16_product_keeps_no_bf16_copies() {
 /// nothing else either: its operands' bf16 packing is per call.
 #[test]
 fn a_fused_bf16_product_keeps_its_output_only() {
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let (m, k, n) = (512, 256, 128);
     let (x, w) = (var(&[m, k], 1), var(&[k, n], 2));
     let out = m * n * 4;
