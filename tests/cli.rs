@@ -500,30 +500,21 @@ fn bench_model_runs_the_gpus_bf16_graph_on_the_cpu() {
             "--out",
         ]
     };
-    let mut a = args("device").to_vec();
-    a.push(out_json.to_str().unwrap());
-    osrt(&a);
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
-    let s = &v["1"]["steps"][0];
-    assert_eq!(
-        (s["precision"].as_str(), s["kernels"].as_str()),
-        (Some("bf16"), Some("device")),
-        "{s}"
-    );
-    assert!(s["median_step_s"].as_f64().unwrap() > 0.0, "{s}");
-    assert!(s["peak_heap_gib"].as_f64().unwrap() > 0.0, "{s}");
-    let mut a = args("fused").to_vec();
-    a.push(out_json.to_str().unwrap());
-    osrt(&a);
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
-    let s = &v["1"]["steps"][0];
-    assert_eq!(
-        (s["precision"].as_str(), s["kernels"].as_str()),
-        (Some("bf16"), Some("fused")),
-        "{s}"
-    );
+    for kernels in ["device", "fused"] {
+        let mut a = args(kernels).to_vec();
+        a.push(out_json.to_str().unwrap());
+        osrt(&a);
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+        let s = &v["1"]["steps"][0];
+        assert_eq!(
+            (s["precision"].as_str(), s["kernels"].as_str()),
+            (Some("bf16"), Some(kernels)),
+            "{s}"
+        );
+        assert!(s["median_step_s"].as_f64().unwrap() > 0.0, "{s}");
+        assert!(s["peak_heap_gib"].as_f64().unwrap() > 0.0, "{s}");
+    }
     let mut a = args("composed").to_vec();
     a.push(out_json.to_str().unwrap());
     let out = Command::new(env!("CARGO_BIN_EXE_osrt"))

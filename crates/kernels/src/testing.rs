@@ -56,26 +56,30 @@ pub(crate) fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
         .unwrap()
 }
 
+/// Value and gradients of `Σ f(args) · w` (w fixed random) with the thread's switches.
+fn value_and_grads(
+    args: &[Tensor],
+    f: &impl Fn(&[Tensor]) -> Result<Tensor>,
+) -> (Tensor, Vec<Tensor>) {
+    let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
+    let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
+    let y = f(&ts).unwrap();
+    let w = randn(y.dims(), 1.0, 99);
+    let loss = (&y * &w).unwrap().sum_all().unwrap();
+    let g = loss.backward().unwrap();
+    let grads = vars
+        .iter()
+        .map(|v| g.get(v.as_tensor()).unwrap().clone())
+        .collect();
+    (y, grads)
+}
+
 /// Value and gradients of `Σ f(args) · w` (w fixed random), fused and composed.
 pub(crate) fn both(
     args: &[Tensor],
     f: impl Fn(&[Tensor]) -> Result<Tensor>,
 ) -> [(Tensor, Vec<Tensor>); 2] {
-    [true, false].map(|on| {
-        with_fused(on, || {
-            let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
-            let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
-            let y = f(&ts).unwrap();
-            let w = randn(y.dims(), 1.0, 99);
-            let loss = (&y * &w).unwrap().sum_all().unwrap();
-            let g = loss.backward().unwrap();
-            let grads = vars
-                .iter()
-                .map(|v| g.get(v.as_tensor()).unwrap().clone())
-                .collect();
-            (y, grads)
-        })
-    })
+    [true, false].map(|on| with_fused(on, || value_and_grads(args, &f)))
 }
 
 pub(crate) fn assert_matches_composed(
@@ -214,22 +218,7 @@ pub(crate) fn bf16_twin_check(
     unit: bool,
 ) {
     use crate::{Precision, with_precision};
-    let fused = |p: Precision| {
-        with_precision(p, || {
-            with_fused(true, || {
-                let vars: Vec<Var> = args.iter().map(|a| Var::from_tensor(a).unwrap()).collect();
-                let ts: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
-                let y = f(&ts).unwrap();
-                let w = randn(y.dims(), 1.0, 99);
-                let g = (&y * &w).unwrap().sum_all().unwrap().backward().unwrap();
-                let grads: Vec<Tensor> = vars
-                    .iter()
-                    .map(|v| g.get(v.as_tensor()).unwrap().clone())
-                    .collect();
-                (y, grads)
-            })
-        })
-    };
+    let fused = |p: Precision| with_precision(p, || with_fused(true, || value_and_grads(args, &f)));
     let ((y32, g32), (y16, g16)) = (fused(Precision::F32), fused(Precision::Bf16));
     let finite = |t: &Tensor| f32_bits(t).iter().all(|&b| f32::from_bits(b).is_finite());
     assert!(finite(&y16), "{what}: bf16 values not finite");
