@@ -230,12 +230,16 @@ fn presets_round_trip_through_toml() {
     assert!(JobConfig::preset("huge").is_err());
 }
 
+/// In f32 and in bf16 (the fused kernels' bf16 products where the CPU has a unit for
+/// them): the same seed gives the same weights, bit for bit; another seed others.
 #[test]
 fn same_seed_same_weights_after_several_steps() {
+    use osrt_kernels::Precision;
     let data = scenes(3);
-    let run = |seed: u64| {
+    let run = |seed: u64, precision: Precision| {
         let mut job = tiny();
         job.train.seed = seed;
+        job.train.precision = precision;
         job.model.slot_attention.init = osrt_model::SlotInit::Random;
         let mut t = Trainer::new(job, Device::Cpu).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -245,9 +249,22 @@ fn same_seed_same_weights_after_several_steps() {
         }
         t.params.flatten().unwrap()
     };
-    let a = run(5);
-    assert_eq!(a, run(5), "same seed must give bit-identical weights");
-    assert_ne!(a, run(6));
+    for p in [Precision::F32, Precision::Bf16] {
+        let a = run(5, p);
+        assert_eq!(
+            a,
+            run(5, p),
+            "{p}: same seed must give bit-identical weights"
+        );
+        assert_ne!(a, run(6, p), "{p}");
+    }
+    if osrt_kernels::cpu_bf16_products().is_some() {
+        assert_ne!(
+            run(5, Precision::F32),
+            run(5, Precision::Bf16),
+            "the bf16 products ran"
+        );
+    }
 }
 
 /// The fused ops (LayerNorm, GELU, bias add with hand-written backward passes) change
