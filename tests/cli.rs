@@ -533,32 +533,12 @@ fn bench_model_runs_the_gpus_bf16_graph_on_the_cpu() {
 #[test]
 fn fused_bf16_products_follow_the_cpus_units() {
     let dir = tempfile::tempdir().unwrap();
-    let out_json = dir.path().join("ledger.json");
-    let args = [
-        "bench",
-        "model",
-        "--ledger",
-        "--presets",
-        "tiny",
-        "--kernels",
-        "fused",
-        "--precision",
-        "bf16",
-        "--threads",
-        "1",
-        "--batch-size",
-        "2",
-        "--out",
-        out_json.to_str().unwrap(),
-    ];
     let here = osrt_kernels::cpu_bf16_products().is_some();
     for (env, bf16) in [
         (vec![], here),
         (vec![("OSRT_CPU_BF16".into(), "off".into())], false),
     ] {
-        common::osrt_env(&args, &env);
-        let v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+        let (_, v) = ledger_of_tiny(dir.path(), "fused", "bf16", &env);
         let step = v["1"]["ledgers"][0]["totals"]
             .as_array()
             .unwrap()
@@ -568,7 +548,7 @@ fn fused_bf16_products_follow_the_cpus_units() {
         assert_eq!(step["kind"], "step");
         let flops = |ty: &str| step["flops"][ty].as_f64().unwrap_or(0.0);
         assert!(flops("f32") > 0.0 || flops("bf16") > 0.0, "{step}");
-        // The few products outside the fused nodes (none in `tiny`) would stay f32.
+        // Every product of the step, the slot attention's one-node products included.
         assert_eq!(
             (flops("bf16") > 0.0, flops("f32") == 0.0),
             (bf16, bf16),
@@ -706,16 +686,17 @@ fn bench_model_profile_times_each_op_kind() {
     }
 }
 
-/// `--ledger` enters one step's products, casts and copies per op kind: the tiny preset's
-/// step on the fused CPU kernels has f32 products and no casts; on the device graph in
-/// bf16 every product is on bf16 operands (the report says so) and casts appear; the
-/// step's totals are the kinds' sums.
-#[test]
-fn bench_model_ledger_enters_each_products_types() {
-    let dir = tempfile::tempdir().unwrap();
-    for (kernels, precision) in [("fused", "f32"), ("device", "bf16")] {
-        let out_json = dir.path().join(format!("{kernels}.json"));
-        let out = osrt(&[
+/// `osrt bench model --ledger` of the `tiny` preset at batch 2 on one thread with
+/// `kernels` and `precision` (and `env`): its printed report and its JSON.
+fn ledger_of_tiny(
+    dir: &Path,
+    kernels: &str,
+    precision: &str,
+    env: &[(String, String)],
+) -> (String, serde_json::Value) {
+    let out_json = dir.join(format!("{kernels}-{precision}.json"));
+    let out = common::osrt_env(
+        &[
             "bench",
             "model",
             "--ledger",
@@ -731,16 +712,28 @@ fn bench_model_ledger_enters_each_products_types() {
             "2",
             "--out",
             out_json.to_str().unwrap(),
-        ]);
-        let text = String::from_utf8_lossy(&out.stdout);
+        ],
+        env,
+    );
+    let v = serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
+    (String::from_utf8_lossy(&out.stdout).into_owned(), v)
+}
+
+/// `--ledger` enters one step's products, casts and copies per op kind: the tiny preset's
+/// step on the fused CPU kernels has f32 products and no casts; on the device graph in
+/// bf16 every product is on bf16 operands (the report says so) and casts appear; the
+/// step's totals are the kinds' sums.
+#[test]
+fn bench_model_ledger_enters_each_products_types() {
+    let dir = tempfile::tempdir().unwrap();
+    for (kernels, precision) in [("fused", "f32"), ("device", "bf16")] {
+        let (text, v) = ledger_of_tiny(dir.path(), kernels, precision, &[]);
         assert!(text.contains("costliest products"), "{text}");
         assert_eq!(
             text.contains("every product on bf16 operands"),
             precision == "bf16",
             "{text}"
         );
-        let v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&out_json).unwrap()).unwrap();
         let l = &v["1"]["ledgers"][0];
         let totals = l["totals"].as_array().unwrap();
         let (step, kinds) = totals.split_last().unwrap();
