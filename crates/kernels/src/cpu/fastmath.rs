@@ -280,7 +280,10 @@ mod tests {
         exp_shifted_slice(&mut out, &xs, 1.5);
         for (&x, o) in xs.iter().zip(out) {
             let want = exp(x - 1.5);
-            assert!(o.to_bits() == want.to_bits() || (o.is_nan() && want.is_nan()), "x = {x}");
+            assert!(
+                o.to_bits() == want.to_bits() || (o.is_nan() && want.is_nan()),
+                "x = {x}"
+            );
         }
         assert!(exp(88.72).is_finite() && exp(88.72) > 3.3e38);
     }
