@@ -17,7 +17,10 @@ OSRT=${OSRT:-target/release/osrt}
 PYTHON=${PYTHON:-python3}
 OUT=${OUT:-target/bench/rounds}
 mkdir -p "$OUT"
-lscpu | grep -E "Model name|^Flags" | sed 's/^Flags:.*\(amx_bf16\).*/AMX-BF16: yes/' | head -2
+lscpu | grep "Model name"
+for f in amx_bf16 avx512_bf16; do
+    if grep -qw "$f" /proc/cpuinfo; then echo "$f: yes"; else echo "$f: no"; fi
+done
 for r in $(seq 1 "$ROUNDS"); do
     for p in f32 bf16; do
         "$OSRT" bench model --step-only --threads 1,2 --precision "$p" --out "$OUT/osrt-$p-$r.json" "$@" >/dev/null
