@@ -30,7 +30,7 @@ pub fn exp(x: f32) -> f32 {
     let n = shifted - ROUND_MAGIC; // integer in [−126, 128]
     // The same integer from the bits: `shifted` lies in [2^23, 2^24), where one unit of
     // the mantissa is 1. (`n as i32` is a saturating conversion that LLVM does not
-    // vectorise: one scalar conversion per lane made the loops 4–6× slower.)
+    // vectorise: one scalar conversion per lane made the loops about 6× slower.)
     let ni = (shifted.to_bits() as i32).wrapping_sub(ROUND_MAGIC.to_bits() as i32);
     let r = (xc - n * LN2_HI) - n * LN2_LO; // |r| ≤ ln2/2
     // Taylor series of e^r to r^7: remainder < 0.347^8/8! ≈ 6e-9.
