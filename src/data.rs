@@ -7,7 +7,8 @@ use osrt_dataset::import::kubric::KubricSource;
 use osrt_dataset::import::obsurf::ObsurfSource;
 use osrt_dataset::import::{Format, ImportOptions, Source, Splits, import};
 use osrt_dataset::{
-    Columns, ImageCodec, SplitSizes, WriterOptions, generate_dataset, inspect, load_split,
+    Columns, ImageCodec, WriterOptions, generator::SplitSizes, generator::generate_dataset,
+    inspect, load_split,
 };
 use osrt_store::Location;
 use std::io::IsTerminal;

@@ -2,9 +2,9 @@
 //! before the reason (`invalid value '-1' for '--linger-s <LINGER_S>': …`) and refuses
 //! the value before anything runs: no lease taken, no file written, no panic in
 //! `Duration::from_secs_f64` later. The bounds are the job config's
-//! (`osrt_run::cluster`): durations at most a year, workers at most `MAX_WORKERS`.
+//! (`osrt_run::cluster_config`): durations at most a year, workers at most `MAX_WORKERS`.
 
-use osrt_run::cluster::{MAX_CHUNK_FLOATS, MAX_DURATION_S, MAX_WORKERS, MIN_CHUNK_FLOATS};
+use osrt_run::cluster_config::{MAX_CHUNK_FLOATS, MAX_DURATION_S, MAX_WORKERS, MIN_CHUNK_FLOATS};
 use std::ops::RangeInclusive;
 
 /// More compute threads than any machine has cores.
@@ -34,21 +34,21 @@ fn count(s: &str, range: RangeInclusive<usize>) -> Result<usize, String> {
 /// Seconds, zero or more, finite, at most a year.
 pub fn seconds(s: &str) -> Result<f64, String> {
     let v = number(s)?;
-    osrt_run::cluster::duration_s(v, false)?;
+    osrt_run::cluster_config::duration_s(v, false)?;
     Ok(v)
 }
 
 /// Seconds, more than zero, finite, at most a year.
 pub fn positive_seconds(s: &str) -> Result<f64, String> {
     let v = number(s)?;
-    osrt_run::cluster::duration_s(v, true)?;
+    osrt_run::cluster_config::duration_s(v, true)?;
     Ok(v)
 }
 
 /// Milliseconds, more than zero, finite, at most a year.
 pub fn positive_millis(s: &str) -> Result<f64, String> {
     let v = number(s)?;
-    osrt_run::cluster::duration_s(v / 1e3, true).map_err(|_| {
+    osrt_run::cluster_config::duration_s(v / 1e3, true).map_err(|_| {
         format!(
             "must be a positive, finite number of milliseconds, at most {} (a year); got {v:?}",
             MAX_DURATION_S * 1e3

@@ -6,7 +6,7 @@ use clap::{Args, ValueEnum};
 use osrt_dataset::Columns;
 use osrt_store::Location;
 use osrt_trainer::predict::{PredictInputs, inputs_from_npz, inputs_from_scenes, predict};
-use osrt_trainer::{DeviceSpec, load_run_on};
+use osrt_trainer::{device::DeviceSpec, load_run_on};
 use std::path::PathBuf;
 
 /// Implementations whose checkpoints osrt reads and writes.

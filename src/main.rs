@@ -2,9 +2,9 @@
 //! distributed batch job. This binary only parses arguments and calls the libraries.
 
 mod bench;
+mod check_device;
 mod cluster;
 mod data;
-mod device;
 mod flags;
 mod interop;
 mod render;
@@ -62,7 +62,7 @@ enum Command {
     /// A run's inputs and predictions (colours, slot weights, slots) as NumPy arrays.
     Predict(Box<interop::PredictArgs>),
     /// Compare a GPU's train step with the CPU's (gradients, one optimiser step).
-    CheckDevice(device::CheckDeviceArgs),
+    CheckDevice(check_device::CheckDeviceArgs),
     /// Benchmarks that print (and save) throughput figures.
     Bench {
         #[command(subcommand)]
@@ -100,7 +100,7 @@ async fn main() -> anyhow::Result<()> {
         Command::Eval(args) => train::eval(args).await,
         Command::Render(args) => render::render(*args).await,
         Command::Sweep(args) => sweep::sweep(args).await,
-        Command::CheckDevice(args) => device::run(args),
+        Command::CheckDevice(args) => check_device::run(args),
         Command::ImportCheckpoint(args) => interop::import(args).await,
         Command::ExportCheckpoint(args) => interop::export(args).await,
         Command::Predict(args) => interop::run_predict(*args).await,

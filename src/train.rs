@@ -3,13 +3,15 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{Columns, Manifest, SplitSizes, WriterOptions, generate_dataset};
+use osrt_dataset::{
+    Columns, Manifest, WriterOptions, generator::SplitSizes, generator::generate_dataset,
+};
 use osrt_kernels::{Kernels, Precision};
-use osrt_model::SlotInit;
+use osrt_model::slot_attention::SlotInit;
 use osrt_run::MetricsRecord;
 use osrt_store::Location;
-use osrt_trainer::loaded::eval_options;
-use osrt_trainer::{DeviceSpec, JobConfig, evaluate, load_run_on};
+use osrt_trainer::eval_options;
+use osrt_trainer::{JobConfig, device::DeviceSpec, evaluate, load_run_on};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -63,7 +65,7 @@ pub struct TrainArgs {
     /// --max-minutes over the warm-up and recorded in run.json) or a step count (a
     /// budget run's recorded horizon reruns it to the bit on any host).
     #[arg(long)]
-    pub horizon: Option<osrt_trainer::schedule::Horizon>,
+    pub horizon: Option<osrt_trainer::lr_schedule::Horizon>,
     /// Override scenes per step.
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -304,7 +306,7 @@ pub async fn train(a: TrainArgs) -> Result<()> {
         workers = batch.max(1);
     }
     // The launcher starts exactly `workers`: the job (a resumed one too) waits for them.
-    let overrides = osrt_run::ClusterOverrides {
+    let overrides = osrt_run::cluster_config::ClusterOverrides {
         min_workers: Some(workers),
         ..Default::default()
     };

@@ -19,7 +19,7 @@ fn caption(name: &str) -> &'static str {
 }
 
 /// Keeps the page of the run at `run` current in `out` every `every` seconds; returns
-/// once the job is over (after a last page) or on Ctrl-C.
+/// once the job is over (after a last page) or on Ctrl-C or SIGTERM.
 pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
     if every == 0 {
         bail!("--every must be at least 1 second");
@@ -37,6 +37,8 @@ pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
         .next()
         .unwrap_or(run)
         .to_string();
+    let stop = crate::cluster::shutdown_signal();
+    tokio::pin!(stop);
     loop {
         let page = write_page(&loc, &out, &label, every).await?;
         if page.job.is_over() {
@@ -49,7 +51,7 @@ pub async fn watch(run: &str, out: Option<&Path>, every: u64) -> Result<()> {
         }
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(every)) => {}
-            _ = tokio::signal::ctrl_c() => {
+            _ = &mut stop => {
                 println!("report: {}", out.join(html::PAGE).display());
                 return Ok(());
             }

@@ -88,7 +88,7 @@ fn two_workers_train_agree_and_commit_a_checkpoint() {
     let info = read_json(&run.join("run.json")).unwrap();
     let tiny = osrt_trainer::Trainer::new(
         osrt_trainer::JobConfig::preset("tiny").unwrap(),
-        osrt_trainer::DeviceSpec::Cpu.open().unwrap(),
+        osrt_trainer::device::DeviceSpec::Cpu.open().unwrap(),
     )
     .unwrap();
     assert_eq!(

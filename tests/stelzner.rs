@@ -246,9 +246,11 @@ async fn continues_adam(fixtures: &Path) {
     let lr = given["lr"].1[0] as f64;
     let mut job = loaded.job.clone();
     (job.train.lr, job.train.warmup_steps, job.train.decay_rate) = (lr, 0, 1.0);
-    let mut trainer =
-        osrt_trainer::Trainer::new(job.clone(), osrt_trainer::DeviceSpec::Cpu.open().unwrap())
-            .unwrap();
+    let mut trainer = osrt_trainer::Trainer::new(
+        job.clone(),
+        osrt_trainer::device::DeviceSpec::Cpu.open().unwrap(),
+    )
+    .unwrap();
     let loc = osrt_store::Location::parse(run.to_str().unwrap()).unwrap();
     let state = osrt_trainer::checkpoint::load(&loc, 3, &mut trainer)
         .await

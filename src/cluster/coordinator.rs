@@ -6,7 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_coordinator::{Coordinator, OpenOptions};
 use osrt_proto::credentials::Credentials;
-use osrt_run::ClusterOverrides;
+use osrt_run::cluster_config::ClusterOverrides;
 use osrt_trainer::JobConfig;
 use std::net::SocketAddr;
 use std::path::PathBuf;

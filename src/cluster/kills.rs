@@ -1,7 +1,7 @@
 //! The local launcher's watch on its workers' SIGKILLs: a worker killed twice at the same
 //! point of the job would be killed again however often it is replaced.
 
-use osrt_trainer::DeviceSpec;
+use osrt_trainer::device::DeviceSpec;
 
 /// Where the job was when a worker was killed: at a step, or setting a generation up
 /// from a checkpoint (the heartbeats' step is 0 then, whatever the job's step).

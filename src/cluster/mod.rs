@@ -4,12 +4,12 @@
 
 mod coordinator;
 mod kills;
-mod local;
+mod launcher;
 mod spec;
 mod worker;
 
 pub use coordinator::{CoordinatorArgs, coordinator};
-pub use local::{LocalJob, run_local};
+pub use launcher::{LocalJob, run_local};
 pub use spec::{MemoryCheck, memory_check, spec};
 pub use worker::{WorkerArgs, compute_thread_env, reexec_with_worker_allocator, worker};
 
@@ -29,7 +29,7 @@ async fn health_listener(addr: Option<SocketAddr>) -> Result<()> {
 }
 
 /// SIGINT (Ctrl-C) or SIGTERM (what Kubernetes sends a pod it stops).
-async fn shutdown_signal() {
+pub(crate) async fn shutdown_signal() {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{SignalKind, signal};

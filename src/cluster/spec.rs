@@ -4,7 +4,7 @@
 use anyhow::{Context, Result, bail};
 use osrt_coordinator::JobSpec;
 use osrt_proto::auth::Token;
-use osrt_run::ClusterOverrides;
+use osrt_run::cluster_config::ClusterOverrides;
 use osrt_run::unix_now;
 use osrt_trainer::JobConfig;
 

@@ -5,7 +5,7 @@ use super::{health_listener, shutdown_signal};
 use anyhow::{Context, Result};
 use clap::Args;
 use osrt_proto::credentials::Credentials;
-use osrt_trainer::DeviceSpec;
+use osrt_trainer::device::DeviceSpec;
 use osrt_worker::{WorkerOptions, run_worker_until};
 use std::net::SocketAddr;
 use std::time::Duration;

@@ -13,9 +13,11 @@
 use candle_core::{Device, Var};
 use osrt_bench::median;
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{BatchConfig, InputSelection, TargetViews, build_batch, generate_scene};
+use osrt_dataset::{
+    BatchConfig, InputSelection, TargetViews, build_batch, generator::generate_scene,
+};
 use osrt_trainer::JobConfig;
-use osrt_trainer::step::{BatchTensors, Trainer};
+use osrt_trainer::{BatchTensors, Trainer};
 use rand::SeedableRng;
 use std::time::Instant;
 

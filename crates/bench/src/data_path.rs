@@ -3,11 +3,11 @@
 //! which shows what projection saves).
 
 use osrt_dataset::Result;
+use osrt_dataset::Scene;
 use osrt_dataset::generator::{GeneratorConfig, generate_scene};
-use osrt_dataset::reader::{ReadStats, SplitReader};
-use osrt_dataset::scene::Scene;
-use osrt_dataset::schema::{Columns, ImageCodec};
-use osrt_dataset::writer::{SplitWriter, WriterOptions};
+use osrt_dataset::{Columns, ImageCodec};
+use osrt_dataset::{ReadStats, SplitReader};
+use osrt_dataset::{SplitWriter, WriterOptions};
 use osrt_store::Location;
 use rayon::prelude::*;
 use serde::Serialize;

@@ -10,10 +10,10 @@
 use crate::model::bench_batch;
 use candle_core::Device;
 use osrt_kernels::Precision;
-use osrt_trainer::config::JobConfig;
+use osrt_trainer::JobConfig;
+use osrt_trainer::Result;
 use osrt_trainer::device::DeviceSpec;
-use osrt_trainer::error::Result;
-use osrt_trainer::step::{Gradient, Trainer};
+use osrt_trainer::{Gradient, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -159,7 +159,7 @@ const PLUMBING_FLOATS: usize = 3 * (1 << 22) + 12_345;
 /// The plumbing checks for `device`; on the CPU only the staging and the recomputed step
 /// (the others concern a GPU's memory pool and context).
 pub fn plumbing(device: &Device) -> Result<Vec<PlumbingCheck>> {
-    let bucket = osrt_run::cluster::ClusterConfig::default().bucket_floats;
+    let bucket = osrt_run::cluster_config::ClusterConfig::default().bucket_floats;
     let mut out = vec![
         staged_round_trip(device, PLUMBING_FLOATS, bucket)?,
         recomputed_step(device)?,
@@ -231,7 +231,7 @@ fn staged_round_trip(device: &Device, n: usize, bucket: usize) -> Result<Plumbin
     let mut staging = Staging::new(
         device,
         n,
-        ring_buckets(n + osrt_trainer::step::CONTROL_FLOATS, bucket),
+        ring_buckets(n + osrt_trainer::CONTROL_FLOATS, bucket),
     )?;
     let mut detail = format!("{n} floats in buckets of {bucket}: ");
     let mut pass = true;

@@ -6,13 +6,13 @@ use crate::median;
 use candle_core::{DType, Device, Tensor};
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
-    Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene,
+    Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generator::generate_scene,
 };
 use osrt_model::{Config, Osrt, Params};
-use osrt_trainer::config::JobConfig;
-use osrt_trainer::error::Result;
+use osrt_trainer::JobConfig;
+use osrt_trainer::Result;
 use osrt_trainer::staging::{Staging, ring_buckets};
-use osrt_trainer::step::{BatchTensors, CONTROL_FLOATS, Trainer};
+use osrt_trainer::{BatchTensors, CONTROL_FLOATS, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -129,7 +129,7 @@ fn bench_data(job: &JobConfig, image_size: u32) -> Result<(Vec<Scene>, BatchConf
         rays_per_scene: Some(job.train.rays_per_scene),
         with_masks: false,
         salient_fraction: 0.0,
-        ray_frame: osrt_trainer::config::ray_frame(&job.model),
+        ray_frame: osrt_trainer::ray_frame(&job.model),
         input_stride: 1,
     };
     Ok((scenes, cfg))
@@ -187,7 +187,7 @@ pub fn bench_step(
         let outcome = trainer.apply(g.loss, g.grads)?;
         device.synchronize()?;
         log_apply(t1, gradients_peak, device);
-        if let osrt_trainer::step::ApplyOutcome::Skipped { reason } = outcome
+        if let osrt_trainer::ApplyOutcome::Skipped { reason } = outcome
             && i >= warmup
         {
             skipped_steps += 1;
@@ -214,7 +214,7 @@ pub fn bench_step(
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
+        device: osrt_trainer::device::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
         fused: job.train.kernels == osrt_kernels::Kernels::Fused && device.is_cpu(),
         kernels: job.train.kernels.to_string(),
@@ -322,7 +322,7 @@ pub fn profile_step(
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
+        device: osrt_trainer::device::DeviceSpec::from_device(device).to_string(),
         precision: precision.to_string(),
         kernels: kernels.to_string(),
         forward_s: median(fwd),
@@ -400,7 +400,7 @@ pub fn ledger_step(
         input_views: job.train.input_views,
         rays_per_scene: job.train.rays_per_scene,
         image_size,
-        device: osrt_trainer::DeviceSpec::from_device(device).to_string(),
+        device: osrt_trainer::device::DeviceSpec::from_device(device).to_string(),
         precision: job.train.precision.to_string(),
         kernels: job.train.kernels.to_string(),
         recompute: job.train.recompute,
@@ -465,7 +465,7 @@ fn gradient_round_trip(staging: &mut Option<Staging>, n: usize, device: &Device)
         Some(s) => s,
         None => {
             // The job's bucket size; the page-locked memory is made once, as a worker does.
-            let bucket = osrt_run::cluster::ClusterConfig::default().bucket_floats;
+            let bucket = osrt_run::cluster_config::ClusterConfig::default().bucket_floats;
             let buckets = ring_buckets(n + CONTROL_FLOATS, bucket);
             staging.insert(Staging::new(device, n, buckets)?)
         }
@@ -535,7 +535,7 @@ pub fn bench_render(
         rays_per_scene: None,
         with_masks: false,
         salient_fraction: 0.0,
-        ray_frame: osrt_trainer::config::ray_frame(&cfg),
+        ray_frame: osrt_trainer::ray_frame(&cfg),
         input_stride: 1,
     };
     let batch = build_batch(&[&scenes[0]], &bcfg, &mut ChaCha8Rng::seed_from_u64(0))?;

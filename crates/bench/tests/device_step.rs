@@ -7,7 +7,7 @@ use candle_core::Device;
 use osrt_bench::device_step::compare_with_cpu;
 use osrt_kernels::Precision;
 use osrt_trainer::device::cuda_device_count;
-use osrt_trainer::{DeviceSpec, JobConfig};
+use osrt_trainer::{JobConfig, device::DeviceSpec};
 
 fn gpu() -> Option<Device> {
     if cuda_device_count() == 0 {

@@ -30,8 +30,9 @@ pub async fn serve(
     credentials: Credentials,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    let health_service =
-        osrt_proto::server::CheckOnly::server(&[osrt_proto::v1::collective_server::SERVICE_NAME]);
+    let health_service = osrt_proto::server_setup::CheckOnly::server(&[
+        osrt_proto::v1::collective_server::SERVICE_NAME,
+    ]);
     let accept = move |chunk| mailbox.accept(chunk);
     let service = PushChunkServer::new(accept, MAX_CHUNK_FLOATS * 4 + 4096);
     credentials

@@ -3,16 +3,16 @@
 //! `metrics.jsonl` and `job.json` in the object store so a restarted coordinator resumes,
 //! with the records as TensorBoard events ([`events`]).
 //!
-//! [`core`] is the state machine (no I/O, unit-tested); [`service`] is its gRPC face and
+//! [`core`] is the state machine (no I/O, unit-tested); `service` is its gRPC face and
 //! the loop that times out silent members; beside it, `persist` writes the run folder;
 //! [`retention`] deletes old checkpoints and [`timeline`] those of an abandoned timeline.
 
 pub mod core;
-pub mod error;
+mod error;
 pub mod events;
 mod persist;
 pub mod retention;
-pub mod service;
+mod service;
 pub mod timeline;
 
 pub use crate::core::{Core, JobSpec, MetricsWrite, Persisted};

@@ -9,31 +9,33 @@
 //! ```
 //! One Parquet row is one scene; row groups are the unit the workers shard (each rank reads its own).
 
-pub mod batch;
-pub mod camera;
+mod batch;
+mod camera;
 pub mod codec;
-pub mod error;
+mod error;
 pub mod generator;
 pub mod import;
 pub mod inspect;
-pub mod manifest;
+mod manifest;
 pub mod math;
 pub mod palette;
 pub mod rays;
-pub mod reader;
+mod reader;
 pub mod resize;
-pub mod scene;
-pub mod schema;
-pub mod writer;
+mod scene;
+mod schema;
+mod writer;
 
 pub use batch::{
     Batch, BatchConfig, InputSelection, RayFrame, TargetViews, build_batch, build_batch_each,
 };
 pub use camera::{Camera, Intrinsics};
 pub use error::{DatasetError, Result};
-pub use generator::{GeneratorConfig, SplitSizes, generate_dataset, generate_scene};
-pub use manifest::{MANIFEST_FILE, Manifest, SplitInfo};
+pub use manifest::{GeneratorInfo, MANIFEST_FILE, Manifest, SplitInfo};
 pub use reader::{ReadStats, RowGroupRef, SplitReader, load_split};
 pub use scene::{ObjectMeta, Scene, View};
-pub use schema::{Columns, ImageCodec, SCHEMA_VERSION};
+pub use schema::{
+    CODEC_KEY, Columns, ImageCodec, SCHEMA_VERSION, VERSION_KEY, scenes_to_batch,
+    scenes_to_batch_with,
+};
 pub use writer::{SplitWriter, WriterOptions};

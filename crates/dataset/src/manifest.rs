@@ -77,7 +77,8 @@ impl Manifest {
     pub fn scene_bounds(&self) -> Option<[[f32; 3]; 2]> {
         self.scene_bounds.or_else(|| {
             let g = self.generator.as_ref()?;
-            let cfg: crate::GeneratorConfig = serde_json::from_value(g.settings.clone()).ok()?;
+            let cfg: crate::generator::GeneratorConfig =
+                serde_json::from_value(g.settings.clone()).ok()?;
             Some(cfg.scene_bounds())
         })
     }

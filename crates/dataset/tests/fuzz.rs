@@ -377,7 +377,7 @@ fn valid_part() -> &'static [u8] {
             val: 1,
             test: 1,
         };
-        let opts = osrt_dataset::writer::WriterOptions {
+        let opts = osrt_dataset::WriterOptions {
             scenes_per_row_group: 2,
             ..Default::default()
         };
@@ -422,8 +422,8 @@ proptest! {
         let split = osrt_store::Location::parse(dir.path().join("train").to_str().unwrap())
             .unwrap();
         let read = rt.block_on(async {
-            let reader = osrt_dataset::reader::SplitReader::open(split).await?;
-            reader.read_all(osrt_dataset::schema::Columns::TRAIN).await
+            let reader = osrt_dataset::SplitReader::open(split).await?;
+            reader.read_all(osrt_dataset::Columns::TRAIN).await
         });
         if let Err(e) = read {
             prop_assert!(e.to_string().contains("part-00000.parquet"), "{}", e);

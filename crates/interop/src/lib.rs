@@ -9,7 +9,7 @@
 //! Nothing here writes a run folder: the trainer turns an [`stelzner::Imported`] model into
 //! one (`osrt_trainer::interop`).
 
-pub mod error;
+mod error;
 pub mod npz;
 pub mod stelzner;
 pub mod torch_file;

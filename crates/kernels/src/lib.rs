@@ -44,7 +44,6 @@ mod testing;
 
 pub use cpu::mlp::MlpLayer;
 pub use cpu::{MlpAct, f32_slice, fastmath};
-pub use cuda::device_kernels;
 pub use dispatch::attention::{attention, attention_composed};
 pub use dispatch::block::block;
 pub use dispatch::conv::{conv2d_nhwc, conv2d_relu_nhwc};

@@ -14,14 +14,12 @@ pub mod encoder;
 pub mod footprint;
 pub mod metrics;
 pub mod nn;
-pub mod osrt;
-pub mod params;
+mod osrt;
+mod params;
 pub mod ray_encoding;
 pub mod slot_attention;
 #[cfg(test)]
 mod tests;
 
-pub use decoder::{Decoder, DecoderOutput};
 pub use osrt::{Config, Osrt, add_slot, drop_slot};
 pub use params::Params;
-pub use slot_attention::{SlotInit, SlotOutput};

@@ -85,9 +85,9 @@ impl Credentials {
     }
 
     /// A server builder with the settings every osrt server shares
-    /// ([`crate::server::builder`]), requiring client certificates where TLS is set.
+    /// ([`crate::server_setup::builder`]), requiring client certificates where TLS is set.
     pub fn server(&self, call_limit: Duration) -> Result<Server, tonic::transport::Error> {
-        crate::server::builder(self.tls.as_ref(), call_limit)
+        crate::server_setup::builder(self.tls.as_ref(), call_limit)
     }
 }
 

@@ -11,13 +11,13 @@ pub const PLAINTEXT_CALL_LIMIT: std::time::Duration = std::time::Duration::from_
 /// Answers `grpc.health.v1.Health/Check` for the whole server ("") with SERVING on
 /// `listener` until `shutdown` resolves or the process ends: it proves the process's
 /// runtime answers, as the health service on the main port does. Nothing else is served
-/// (`Watch` is refused: [`crate::server::CheckOnly`]).
+/// (`Watch` is refused: [`crate::server_setup::CheckOnly`]).
 pub async fn serve_plaintext(
     listener: TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    crate::server::builder(None, PLAINTEXT_CALL_LIMIT)?
-        .add_service(crate::server::CheckOnly::server(&[]))
+    crate::server_setup::builder(None, PLAINTEXT_CALL_LIMIT)?
+        .add_service(crate::server_setup::CheckOnly::server(&[]))
         .serve_with_incoming_shutdown(
             tonic::transport::server::TcpIncoming::from(listener),
             shutdown,

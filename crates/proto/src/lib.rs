@@ -7,7 +7,7 @@ pub mod auth;
 pub mod convert;
 pub mod credentials;
 pub mod health;
-pub mod server;
+pub mod server_setup;
 pub mod tls;
 
 /// The stop of a server that the coordinator, a worker or the local launcher runs:

@@ -3,7 +3,7 @@
 //! and a health service that answers `Check` and refuses `Watch` (on the main ports and
 //! the plaintext one).
 
-use osrt_proto::server::{CheckOnly, MAX_STREAMS_PER_CONNECTION, builder};
+use osrt_proto::server_setup::{CheckOnly, MAX_STREAMS_PER_CONNECTION, builder};
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tonic_health::pb::health_check_response::ServingStatus;

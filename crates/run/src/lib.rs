@@ -14,17 +14,16 @@
 //! ```
 
 pub mod checkpoint;
-pub mod cluster;
-pub mod error;
+pub mod cluster_config;
+mod error;
 pub mod lease;
 pub mod metrics_log;
-pub mod records;
+mod records;
 pub mod tensorboard;
 
-pub use cluster::{ClusterConfig, ClusterOverrides};
 pub use error::{Result, RunError};
 use osrt_store::Location;
-pub use records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord};
+pub use records::{EvalRecord, MetricsRecord, ObjectCountRecord, TrainRecord, validate_line};
 
 use object_store::ObjectStoreExt;
 /// Run folders are object-store locations, like datasets.

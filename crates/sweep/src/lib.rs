@@ -1,7 +1,7 @@
 //! Sweeps over the paper's ablations and the reports people look at afterwards.
 //!
-//! - [`grid`]: a sweep file (a base job plus axes) and its points in a fixed order.
-//! - [`results`]: one row per finished point, the `results.csv` / `results.md` tables,
+//! - `grid`: a sweep file (a base job plus axes) and its points in a fixed order.
+//! - `results`: one row per finished point, the `results.csv` / `results.md` tables,
 //!   and the error-against-run-time curves read from each run's `metrics.jsonl`.
 //! - [`plot`]: those curves as SVG and PNG charts (no system fonts needed).
 //! - [`seeds`]: points that differ only in their seed as one group: mean and spread of
@@ -12,16 +12,16 @@
 //!
 //! Training and evaluating a point needs the local cluster and lives in the binary.
 
-pub mod grid;
+mod grid;
 pub mod html;
 pub mod live;
-pub mod pictures;
+pub mod picture_files;
 pub mod plot;
-pub mod results;
+mod results;
 pub mod seeds;
 
 pub use grid::{Point, SweepFile, Targets};
-pub use results::{Curve, PointResult, RunSummary};
+pub use results::{Curve, PointResult, RESULT_FILE, RunSummary};
 
 use thiserror::Error;
 

@@ -11,8 +11,8 @@
 //! rank makes the sum non-finite on every rank, so all replicas skip the step together.
 
 use crate::error::Result;
+use crate::lr_schedule::MAX_HORIZON;
 use crate::optim::GradSummary;
-use crate::schedule::MAX_HORIZON;
 use crate::step::{Gradient, StepGradients};
 
 /// Floats appended after the gradient.
@@ -24,7 +24,7 @@ pub struct Signals {
     pub evaluate: bool,
     pub stop: bool,
     /// The learning rate's decay horizon rank 0 measured (`crate::schedule`): at most
-    /// `schedule::MAX_HORIZON`, exact in f32.
+    /// `lr_schedule::MAX_HORIZON`, exact in f32.
     pub horizon: Option<u64>,
 }
 

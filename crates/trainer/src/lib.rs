@@ -6,30 +6,31 @@
 //! `check-device` build without gRPC.
 
 pub mod checkpoint;
-pub mod config;
+mod config;
 pub mod device;
 pub mod distributed;
-pub mod error;
-pub mod eval;
+mod error;
+mod eval;
 pub mod feed;
 pub mod footprint;
 pub mod interop;
 pub mod learner;
-pub mod loaded;
+mod loaded;
+pub mod lr_schedule;
 pub mod memory;
 pub mod optim;
 pub mod pictures;
 pub mod predict;
 pub mod render;
 pub mod retry;
-pub mod schedule;
 pub mod shard;
 pub mod staging;
-pub mod step;
+mod step;
 
-pub use config::{JobConfig, TrainConfig};
-pub use device::DeviceSpec;
+pub use config::{JobConfig, TrainConfig, ray_frame};
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
-pub use loaded::{LoadedRun, load_run, load_run_on, load_run_with_slots};
-pub use step::{ApplyOutcome, StepGradients, Trainer};
+pub use loaded::{LoadedRun, eval_options, load_run, load_run_on, load_run_with_slots};
+pub use step::{
+    ApplyOutcome, BatchTensors, CONTROL_FLOATS, Gradient, Phases, StepGradients, Trainer,
+};

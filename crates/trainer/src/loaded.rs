@@ -70,7 +70,7 @@ pub async fn load_run_on(
     let mut job = job;
     if let Some(k) = num_slots {
         let sa = &mut job.model.slot_attention;
-        if k != sa.num_slots && sa.init != osrt_model::SlotInit::Random {
+        if k != sa.num_slots && sa.init != osrt_model::slot_attention::SlotInit::Random {
             return Err(TrainError::Config {
                 path: loc.describe(&loc.path(CONFIG_FILE)),
                 reason: format!(

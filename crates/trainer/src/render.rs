@@ -4,7 +4,7 @@
 
 use crate::error::{Result, TrainError};
 use candle_core::{D, Tensor};
-use osrt_dataset::camera::Camera;
+use osrt_dataset::Camera;
 use osrt_dataset::math::Vec3;
 use osrt_dataset::rays::view_rays;
 use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch};

@@ -7,7 +7,7 @@
 //! itself. `cargo test` runs `PROPTEST_CASES` cases (256 by default); a longer run by
 //! hand is `PROPTEST_CASES=100000 cargo test -p osrt-trainer --test config_fuzz`.
 
-use osrt_run::ClusterConfig;
+use osrt_run::cluster_config::ClusterConfig;
 use osrt_trainer::JobConfig;
 use proptest::prelude::*;
 use std::time::{Duration, Instant};

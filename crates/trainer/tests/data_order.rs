@@ -5,8 +5,8 @@
 
 use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
-    Batch, BatchConfig, InputSelection, SplitReader, SplitSizes, TargetViews, WriterOptions,
-    build_batch_each, generate_dataset,
+    Batch, BatchConfig, InputSelection, SplitReader, TargetViews, WriterOptions, build_batch_each,
+    generator::SplitSizes, generator::generate_dataset,
 };
 use osrt_store::Location;
 use osrt_trainer::feed::Feed;

@@ -3,7 +3,9 @@
 
 use candle_core::Device;
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
+use osrt_dataset::{
+    BatchConfig, InputSelection, Scene, TargetViews, build_batch, generator::generate_scene,
+};
 use osrt_trainer::{ApplyOutcome, JobConfig, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -240,7 +242,7 @@ fn same_seed_same_weights_after_several_steps() {
         let mut job = tiny();
         job.train.seed = seed;
         job.train.precision = precision;
-        job.model.slot_attention.init = osrt_model::SlotInit::Random;
+        job.model.slot_attention.init = osrt_model::slot_attention::SlotInit::Random;
         let mut t = Trainer::new(job, Device::Cpu).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         for i in 0..4 {
@@ -329,7 +331,7 @@ fn fused_ops_leave_the_loss_curve_unchanged() {
 #[test]
 fn the_segmented_backward_gives_the_whole_graphs_gradients() {
     use osrt_kernels::Kernels;
-    use osrt_trainer::step::BatchTensors;
+    use osrt_trainer::BatchTensors;
     let data = scenes(2);
     let b = batch(&data, 3);
     for kernels in [Kernels::Fused, Kernels::Composed, Kernels::Device] {

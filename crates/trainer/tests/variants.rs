@@ -8,11 +8,11 @@ use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::math::Vec3;
 use osrt_dataset::{
     Batch, BatchConfig, InputSelection, Manifest, RayFrame, Scene, TargetViews, build_batch,
-    generate_scene,
+    generator::generate_scene,
 };
 use osrt_model::encoder::Poses;
 use osrt_model::{Osrt, Params};
-use osrt_trainer::step::BatchTensors;
+use osrt_trainer::BatchTensors;
 use osrt_trainer::{JobConfig, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -127,7 +127,7 @@ fn the_volumetric_box_comes_from_the_manifest() {
     assert!(e.to_string().contains("imports/x"), "{e}");
     // …a generated one derives it from its generator settings…
     let mut generated = bare.clone();
-    generated.generator = Some(osrt_dataset::manifest::GeneratorInfo {
+    generated.generator = Some(osrt_dataset::GeneratorInfo {
         preset: "clevr-lite".into(),
         seed: 0,
         settings: serde_json::to_value(GeneratorConfig::clevr_lite()).unwrap(),
@@ -165,7 +165,7 @@ fn variant_steps_are_finite_and_deterministic() {
                 v.bounds = Some(GeneratorConfig::clevr_lite().scene_bounds());
             }
         }
-        let frame = osrt_trainer::config::ray_frame(&job.model);
+        let frame = osrt_trainer::ray_frame(&job.model);
         let cfg = BatchConfig {
             input_views: 1,
             input_selection: InputSelection::Random,

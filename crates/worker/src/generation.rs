@@ -6,16 +6,16 @@ use crate::error::{Result, WorkerError};
 use crate::link::{Client, CoordinatorLink};
 use crate::membership::{Liveness, aborted, spawn_heartbeat};
 use crate::reduce::{broadcast_from_rank0, reduce};
-use crate::worker::WorkerOptions;
+use crate::shell::WorkerOptions;
 use osrt_collective::{Mailbox, Ring, RingConfig};
 use osrt_proto::convert::{Directive, WorkerPlan};
-use osrt_run::ClusterConfig;
 use osrt_run::MetricsRecord;
 use osrt_run::checkpoint;
+use osrt_run::cluster_config::ClusterConfig;
 use osrt_store::Location;
+use osrt_trainer::JobConfig;
 use osrt_trainer::TrainError;
 use osrt_trainer::checkpoint::Snapshot;
-use osrt_trainer::config::JobConfig;
 use osrt_trainer::learner::{Learner, Start};
 use osrt_trainer::staging::Staging;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -287,7 +287,10 @@ async fn plan_job(
 /// A config that is wrong in itself is a [`TrainError::Config`] (the job's fault, fatal);
 /// one that only this worker's device cannot run is a [`TrainError::Device`] (the worker
 /// leaves, the job goes on without it).
-fn job_on_device(toml: &str, device: Option<osrt_trainer::DeviceSpec>) -> Result<JobConfig> {
+fn job_on_device(
+    toml: &str,
+    device: Option<osrt_trainer::device::DeviceSpec>,
+) -> Result<JobConfig> {
     let mut job = JobConfig::from_toml("plan from the coordinator", toml)?;
     job.validate()?;
     if let Some(d) = device.filter(|&d| d != job.train.device) {
@@ -380,7 +383,7 @@ mod device_tests {
     use super::*;
     use crate::membership::is_fatal;
     use osrt_kernels::Precision;
-    use osrt_trainer::DeviceSpec;
+    use osrt_trainer::device::DeviceSpec;
 
     fn toml_of(f: impl FnOnce(&mut JobConfig)) -> String {
         let mut job = JobConfig::preset("tiny").unwrap();

@@ -6,7 +6,7 @@
 use crate::error::{Result, WorkerError};
 use crate::generation::{Ended, run_generation};
 use crate::link::{Client, CoordinatorLink, with_retry};
-use crate::worker::WorkerOptions;
+use crate::shell::WorkerOptions;
 use osrt_collective::Mailbox;
 use osrt_proto::PROTOCOL_VERSION;
 use osrt_proto::convert::{Directive, PlanState, WorkerPlan};

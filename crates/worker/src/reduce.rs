@@ -6,7 +6,7 @@ use crate::error::Result;
 use osrt_collective::{Ring, Stage};
 use osrt_trainer::distributed::{self, Reduced, Signals};
 use osrt_trainer::staging::{Staging, Transfer};
-use osrt_trainer::step::{CONTROL_FLOATS, Gradient, StepGradients};
+use osrt_trainer::{CONTROL_FLOATS, Gradient, StepGradients};
 
 /// Sums `g` over the ring (`None` = a single worker) as all-reduce number `seq`. A
 /// gradient on a GPU goes through `staging` (made on first use, kept for the next steps).

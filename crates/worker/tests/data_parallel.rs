@@ -5,7 +5,9 @@
 use candle_core::Device;
 use osrt_collective::{Mailbox, Ring, RingConfig, serve};
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch, generate_scene};
+use osrt_dataset::{
+    BatchConfig, InputSelection, Scene, TargetViews, build_batch, generator::generate_scene,
+};
 use osrt_proto::auth::Token;
 use osrt_proto::credentials::Credentials;
 use osrt_trainer::distributed::Signals;
@@ -209,8 +211,8 @@ fn bits(v: &[f32]) -> Vec<u32> {
 /// values straddle buckets (4-float buckets: one of control values only, one of both).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_staged_device_gradient_reduces_to_the_host_paths_bits() {
+    use osrt_trainer::Gradient;
     use osrt_trainer::StepGradients;
-    use osrt_trainer::step::Gradient;
     for (bucket, params) in [(4usize, 1003usize), (5000, 40_001)] {
         let mut host_rings = rings("host", bucket, 1000).await;
         let mut staged_rings = rings("staged", bucket, 1000).await;

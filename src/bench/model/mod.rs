@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_bench::model::{ModelReport, bench_render, bench_step, ledger_step, profile_step};
 use osrt_kernels::{Kernels, Precision};
-use osrt_trainer::{DeviceSpec, JobConfig};
+use osrt_trainer::{JobConfig, device::DeviceSpec};
 use report::print_model_report;
 
 #[derive(Args)]

@@ -144,7 +144,7 @@ impl Core {
         // refused, and a refused report stores none of its records.
         let mut steps = Vec::with_capacity(records.len());
         for (i, line) in records.iter().enumerate() {
-            let record = osrt_run::records::validate_line(line)
+            let record = osrt_run::validate_line(line)
                 .map_err(|e| Status::invalid_argument(format!("record {i} of the report: {e}")))?;
             steps.push(record.step());
         }

@@ -187,7 +187,7 @@ impl Coordinator {
         linger: Duration,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<StatusSnapshot, CoordinatorError> {
-        let health_service = osrt_proto::server::CheckOnly::server(&[
+        let health_service = osrt_proto::server_setup::CheckOnly::server(&[
             osrt_proto::v1::coordinator_server::SERVICE_NAME,
         ]);
         let service = InterceptedService::new(

@@ -6,8 +6,8 @@ use super::Coordinator;
 use crate::core::{Core, JobSpec, Persisted};
 use crate::error::CoordinatorError;
 use osrt_run::{
-    CONFIG_FILE, ClusterConfig, INFO_FILE, JOB_FILE, METRICS_FILE, RunError, RunInfo, checkpoint,
-    read_file, write_file,
+    CONFIG_FILE, INFO_FILE, JOB_FILE, METRICS_FILE, RunError, RunInfo, checkpoint,
+    cluster_config::ClusterConfig, read_file, write_file,
 };
 use osrt_store::Location;
 use std::time::Instant;

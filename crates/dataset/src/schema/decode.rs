@@ -35,14 +35,9 @@ fn f32_rows<'a>(a: &'a ArrayRef, n: usize, name: &str, path: &str) -> Result<&'a
     Ok(&vals.values()[start..start + l.len() * n])
 }
 
-/// Decodes a record batch (possibly projected) into scenes, validating every view.
-/// `path` names the file in errors.
-pub fn batch_to_scenes(batch: &RecordBatch, path: &str) -> Result<Vec<Scene>> {
-    batch_to_scenes_with(batch, path, ImageCodec::Raw)
-}
-
-/// [`batch_to_scenes`] of a file whose images and masks are in `codec` (PNGs decoded in
-/// parallel).
+/// Decodes a record batch (possibly projected) of a file whose images and masks are in
+/// `codec` into scenes (PNGs decoded in parallel), validating every view. `path` names the
+/// file in errors.
 pub fn batch_to_scenes_with(
     batch: &RecordBatch,
     path: &str,

@@ -1,6 +1,6 @@
 //! Scenes into a record batch: the writing half of the schema, images and masks raw or
 //! PNG-encoded in parallel. Its own file because it shares only the field lists with the
-//! reading half ([`super::batch_to_scenes`]), which checks everything this trusts.
+//! reading half ([`super::batch_to_scenes_with`]), which checks everything this trusts.
 
 use super::{ImageCodec, arrow_schema, object_fields, view_fields};
 use crate::error::{DatasetError, Result};

@@ -25,7 +25,7 @@
 mod decode;
 mod encode;
 
-pub use decode::{batch_to_scenes, batch_to_scenes_with};
+pub use decode::batch_to_scenes_with;
 pub use encode::{scenes_to_batch, scenes_to_batch_with};
 
 use crate::error::{DatasetError, Result};

@@ -1,11 +1,13 @@
 //! The generator: masks agree with images, occlusion, determinism, presets.
 
 use crate::tiny_config;
-use osrt_dataset::camera::{Camera, Intrinsics};
 use osrt_dataset::generator::tracer::{Lighting, Material, Object, Shape, World, render};
 use osrt_dataset::generator::{COLORS, GeneratorConfig};
 use osrt_dataset::math::Vec3;
-use osrt_dataset::{SplitSizes, WriterOptions, generate_dataset, generate_scene};
+use osrt_dataset::{Camera, Intrinsics};
+use osrt_dataset::{
+    WriterOptions, generator::SplitSizes, generator::generate_dataset, generator::generate_scene,
+};
 use osrt_store::Location;
 
 fn lighting() -> Lighting {

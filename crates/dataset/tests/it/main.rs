@@ -5,7 +5,7 @@ mod generator;
 mod io;
 
 use osrt_dataset::generator::GeneratorConfig;
-use osrt_dataset::{Scene, generate_scene};
+use osrt_dataset::{Scene, generator::generate_scene};
 
 /// A small, fast clevr-lite configuration for tests.
 pub fn tiny_config(size: u32) -> GeneratorConfig {

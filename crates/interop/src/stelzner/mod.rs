@@ -19,11 +19,11 @@
 //! indexes them by the parameter's position in `model.parameters()`, the module
 //! registration order that [`entries`] reproduces.
 
-pub mod config;
-pub mod convert;
+mod run_config;
+mod state_dict;
 
-pub use config::{PEER_HEADS, PEER_OCTAVES, PeerConfig};
-pub use convert::{
+pub use run_config::{PEER_HEADS, PEER_OCTAVES, PeerConfig};
+pub use state_dict::{
     Imported, ImportedAdam, check_tensors, export, import, osrt_shapes, peer_cannot_build,
     peer_model_yaml,
 };

@@ -15,6 +15,10 @@ use super::device_kernels::{self as geometry, Launch, PARAM_CHUNK, SOURCE};
 use std::ffi::c_void;
 use std::sync::OnceLock;
 
+/// The host runtime the kernels compile against (threads for CUDA threads, barriers for
+/// warps and blocks).
+const HEADER: &str = include_str!("emulated/cuda_host.hpp");
+
 type LaunchFn = unsafe extern "C" fn(
     u32,
     u32,
@@ -63,14 +67,16 @@ impl Emulator {
     fn build() -> std::result::Result<Emulator, String> {
         let dir = std::env::temp_dir().join(format!("osrt-emulated-{}", std::process::id()));
         std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-        let header = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/src/cuda/emulated/cuda_host.hpp"
-        );
+        // The header goes beside the source, from the text compiled into this binary: a
+        // path into the checkout would be the one this crate was compiled at, and a build
+        // folder shared by checkouts at other paths (CI's) keeps binaries whose checkout
+        // has moved.
+        let header = dir.join("cuda_host.hpp");
+        std::fs::write(&header, HEADER).map_err(|e| format!("{}: {e}", header.display()))?;
         let src = dir.join("kernels.cpp");
         std::fs::write(
             &src,
-            format!("#include \"{header}\"\n#line 1 \"device_kernels.cu\"\n{SOURCE}"),
+            format!("#include \"cuda_host.hpp\"\n#line 1 \"device_kernels.cu\"\n{SOURCE}"),
         )
         .map_err(|e| format!("{}: {e}", src.display()))?;
         let lib = dir.join("libkernels.so");

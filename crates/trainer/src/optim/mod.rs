@@ -15,11 +15,11 @@
 //! a state restored with non-finite values), every element's result is computed and
 //! checked first, and the step is applied or skipped on that.
 
-mod device;
-mod host;
+mod device_adamw;
+mod host_adamw;
 
-pub use device::DeviceAdamW;
-pub use host::AdamW;
+pub use device_adamw::DeviceAdamW;
+pub use host_adamw::AdamW;
 
 /// AdamW's hyperparameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -228,10 +228,10 @@ impl GradSummary {
             });
         }
         let (mut sums, mut maxima) = (Vec::new(), Vec::new());
-        for off in (0..n).step_by(device::BUCKET) {
-            let part = g.narrow(0, off, device::BUCKET.min(n - off))?;
-            sums.push(device::wide_sum(&part.to_dtype(DType::F64)?.sqr()?)?);
-            maxima.push(device::wide_max(&part.abs()?)?);
+        for off in (0..n).step_by(device_adamw::BUCKET) {
+            let part = g.narrow(0, off, device_adamw::BUCKET.min(n - off))?;
+            sums.push(device_adamw::wide_sum(&part.to_dtype(DType::F64)?.sqr()?)?);
+            maxima.push(device_adamw::wide_max(&part.abs()?)?);
         }
         let both = Tensor::cat(
             &[

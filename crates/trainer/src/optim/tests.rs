@@ -304,7 +304,7 @@ fn clipping_bounds_the_norm() {
 /// same maximum, the sum to f64 rounding; a NaN or an infinity anywhere is not finite.
 #[test]
 fn the_device_gradient_summary_agrees_with_the_host_and_sees_non_finite_values() {
-    for n in [0, 5, 1024 * 3 + 17, device::BUCKET + 4099] {
+    for n in [0, 5, 1024 * 3 + 17, device_adamw::BUCKET + 4099] {
         let g = values(n, 7);
         let host = GradSummary::of(&g);
         let dev =
@@ -328,9 +328,12 @@ fn two_stage_reductions_equal_whole_tensor_reductions() {
     for n in [1, 1023, 2048, 5000] {
         let v = values(n, 9);
         let t = Tensor::new(v.as_slice(), &Device::Cpu).unwrap();
-        let max = device::wide_max(&t).unwrap().to_scalar::<f32>().unwrap();
+        let max = device_adamw::wide_max(&t)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
         assert_eq!(max, v.iter().copied().fold(f32::MIN, f32::max));
-        let sum = device::wide_sum(&t.to_dtype(candle_core::DType::F64).unwrap())
+        let sum = device_adamw::wide_sum(&t.to_dtype(candle_core::DType::F64).unwrap())
             .unwrap()
             .to_scalar::<f64>()
             .unwrap();

@@ -14,12 +14,12 @@
 //! and a batch's tensors (`batch`). This file holds the [`Trainer`] they share.
 
 mod apply;
-mod batch;
+mod batch_tensors;
 mod flat;
 mod gradients;
 
 pub use apply::{ApplyOutcome, Optimizer};
-pub use batch::BatchTensors;
+pub use batch_tensors::BatchTensors;
 pub use flat::{CONTROL_FLOATS, Gradient};
 pub use gradients::{Phases, StepGradients, micro_batches};
 

@@ -9,7 +9,7 @@ use osrt_bench::device_step::{
     plumbing,
 };
 use osrt_kernels::{Kernels, Precision};
-use osrt_trainer::{DeviceSpec, JobConfig};
+use osrt_trainer::{JobConfig, device::DeviceSpec};
 
 #[derive(Args)]
 pub struct CheckDeviceArgs {

@@ -10,7 +10,7 @@ use crate::npz::NamedArray;
 use candle_core::Device;
 use osrt_model::decoder::Config as DecoderConfig;
 use osrt_model::encoder::{Poses, RayInput};
-use osrt_model::{Osrt, Params, SlotInit};
+use osrt_model::{Osrt, Params, slot_attention::SlotInit};
 use std::collections::BTreeMap;
 
 /// osrt's parameter shapes of the model `cfg`, by name.

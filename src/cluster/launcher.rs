@@ -11,7 +11,7 @@ use osrt_proto::auth::{TOKEN_ENV, Token};
 use osrt_proto::credentials::Credentials;
 use osrt_proto::v1;
 use osrt_run::MetricsRecord;
-use osrt_trainer::{DeviceSpec, JobConfig};
+use osrt_trainer::{JobConfig, device::DeviceSpec};
 use std::io::IsTerminal;
 use std::time::Duration;
 
