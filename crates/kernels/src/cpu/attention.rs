@@ -14,7 +14,8 @@
 //! scale applied to the logits, then the same row softmax. Tests check values and
 //! gradients against it, against finite differences, and on extreme inputs.
 
-use super::gemm::{self, BatchView, Threads};
+use super::gemm::{self, BatchView};
+use super::matrix::Threads;
 use super::softmax::{softmax_row, softmax_row_grad};
 use super::{buffer, f32_slice};
 use crate::Precision;

@@ -2,8 +2,9 @@
 //! the input into patch rows (im2col) and its adjoint (col2im), both with CUDA kernels
 //! too, and the convolution as one node (im2col and one product), forward and backward.
 
-use super::gemm::{self, MatRef, Threads};
+use super::gemm;
 use super::linear::{matmul_xwt, weight_grad};
+use super::matrix::{MatRef, Threads};
 use super::{buffer, f32_slice};
 use crate::Precision;
 use crate::kept::Kept;

@@ -17,115 +17,10 @@
 
 #![allow(unsafe_code)]
 
+use super::matrix::{MatRef, Threads};
 use crate::Precision;
 use candle_core::{CpuStorage, DType, Layout, Result};
 use gemm::Parallelism;
-
-/// A strided `[rows, cols]` view of f32 values inside a slice: element `(i, j)` is
-/// `data[off + i·rs + j·cs]`. Constructed only through [`MatRef::new`], which checks
-/// that every element is inside `data`.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct MatRef<'a> {
-    data: &'a [f32],
-    off: usize,
-    rows: usize,
-    cols: usize,
-    rs: usize,
-    cs: usize,
-}
-
-impl<'a> MatRef<'a> {
-    pub(crate) fn new(
-        data: &'a [f32],
-        off: usize,
-        (rows, cols): (usize, usize),
-        (rs, cs): (usize, usize),
-    ) -> Result<Self> {
-        if rows > 0 && cols > 0 {
-            let last = (rows - 1)
-                .checked_mul(rs)
-                .and_then(|r| (cols - 1).checked_mul(cs).and_then(|c| r.checked_add(c)))
-                .and_then(|rc| rc.checked_add(off));
-            if last.is_none_or(|l| l >= data.len()) {
-                candle_core::bail!(
-                    "matmul: a [{rows}, {cols}] view (offset {off}, strides [{rs}, {cs}]) \
-                     outside {} values",
-                    data.len()
-                );
-            }
-        }
-        Ok(Self {
-            data,
-            off,
-            rows,
-            cols,
-            rs,
-            cs,
-        })
-    }
-
-    /// A 2-D layout of an f32 storage (any strides, offset included).
-    pub(crate) fn of(s: &'a CpuStorage, l: &Layout) -> Result<Self> {
-        let CpuStorage::F32(v) = s else {
-            candle_core::bail!("matmul: fused ops take f32");
-        };
-        let (rows, cols) = l.shape().dims2()?;
-        let st = l.stride();
-        Self::new(v, l.start_offset(), (rows, cols), (st[0], st[1]))
-    }
-
-    pub(crate) fn t(self) -> Self {
-        Self {
-            rows: self.cols,
-            cols: self.rows,
-            rs: self.cs,
-            cs: self.rs,
-            ..self
-        }
-    }
-
-    /// Rows `r0 .. r0 + len`.
-    pub(crate) fn rows(self, r0: usize, len: usize) -> Result<Self> {
-        if r0 + len > self.rows {
-            candle_core::bail!("matmul: rows {r0}..{} of {}", r0 + len, self.rows);
-        }
-        Self::new(
-            self.data,
-            self.off + r0 * self.rs,
-            (len, self.cols),
-            (self.rs, self.cs),
-        )
-    }
-
-    /// Columns `c0 .. c0 + len`.
-    pub(crate) fn cols(self, c0: usize, len: usize) -> Result<Self> {
-        self.t().rows(c0, len).map(Self::t)
-    }
-
-    pub(crate) fn dims(&self) -> (usize, usize) {
-        (self.rows, self.cols)
-    }
-
-    /// The slice, the offset of element `(0, 0)` and the strides `(rs, cs)`: every
-    /// element `(i, j)` inside [`Self::dims`] is at `off + i·rs + j·cs < data.len()`.
-    pub(crate) fn raw(&self) -> (&'a [f32], usize, (usize, usize)) {
-        (self.data, self.off, (self.rs, self.cs))
-    }
-
-    /// Element `(i, j)` (inside [`Self::dims`]).
-    pub(crate) fn get(&self, i: usize, j: usize) -> f32 {
-        self.data[self.off + i * self.rs + j * self.cs]
-    }
-}
-
-/// How many threads one product may use.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Threads {
-    /// The current rayon pool (candle's device pool inside a step).
-    Pool,
-    /// The calling thread only: for products that are themselves parallel tasks.
-    One,
-}
 
 /// The operands' type of a product in `p` on this CPU: bf16 where it has bf16 products.
 pub(crate) fn operand_type(p: Precision) -> DType {
@@ -162,7 +57,12 @@ pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads, p: Precision) -> Re
                 DType::F32
             },
         );
-        crate::ledger::product((1, m, n, k), (t, t, f), [a.rs == 1, b.rs == 1], [false; 2]);
+        crate::ledger::product(
+            (1, m, n, k),
+            (t, t, f),
+            [a.raw().2.0 == 1, b.raw().2.0 == 1],
+            [false; 2],
+        );
         if unit.is_some() {
             // The packing rounds both operands to bf16 once per product.
             crate::ledger::cast_of(m * k + k * n, f, t);
@@ -269,7 +169,7 @@ unsafe fn gemm_into(dst: *mut f32, a: MatRef, b: MatRef, threads: Threads) {
         _ => Parallelism::None,
     };
     // An empty view (k = 0) may sit at the end of its slice: gemm reads nothing then.
-    let ptr = |v: &MatRef| v.data.as_ptr().wrapping_add(v.off);
+    let ((da, oa, (ars, acs)), (db, ob, (brs, bcs))) = (a.raw(), b.raw());
     // SAFETY: the caller's contract for `dst`; the operand views are in bounds
     // (`MatRef::new`) and only read.
     unsafe {
@@ -281,12 +181,12 @@ unsafe fn gemm_into(dst: *mut f32, a: MatRef, b: MatRef, threads: Threads) {
             1,
             n as isize,
             false,
-            ptr(&a),
-            a.cs as isize,
-            a.rs as isize,
-            ptr(&b),
-            b.cs as isize,
-            b.rs as isize,
+            da.as_ptr().wrapping_add(oa),
+            acs as isize,
+            ars as isize,
+            db.as_ptr().wrapping_add(ob),
+            bcs as isize,
+            brs as isize,
             0.0,
             1.0,
             false,

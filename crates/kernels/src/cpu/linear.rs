@@ -3,7 +3,8 @@
 //! one-node bias add and linear layer (with and without a bias) with their backward
 //! passes.
 
-use super::gemm::{self, MatRef, Threads};
+use super::gemm;
+use super::matrix::{MatRef, Threads};
 use super::{ROWS_PER_TASK, f32_slice, rows_layout, with_last_dim};
 use crate::Precision;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, D, Layout, Result, Shape, Tensor};

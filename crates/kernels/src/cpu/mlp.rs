@@ -15,8 +15,9 @@
 //! training.
 
 use super::activation::MlpAct;
-use super::gemm::{self, MatRef, Threads};
+use super::gemm;
 use super::linear::{ColumnSum, add_bias_rows, matmul_xwt, weight_grad};
+use super::matrix::{MatRef, Threads};
 use super::{cpu_storage as cpu, f32_slice, rows_layout, with_last_dim};
 use crate::Precision;
 use crate::kept::Kept;

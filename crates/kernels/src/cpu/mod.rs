@@ -19,6 +19,7 @@ pub mod fastmath;
 pub(crate) mod gemm;
 pub(crate) mod layer_norm;
 pub(crate) mod linear;
+pub(crate) mod matrix;
 pub(crate) mod mlp;
 pub(crate) mod softmax;
 

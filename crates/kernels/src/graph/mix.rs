@@ -12,8 +12,9 @@
 //! does not use them).
 
 use crate::cpu::attention::{self, AttentionBwd, Dims};
-use crate::cpu::gemm::{self, MatRef, Threads};
+use crate::cpu::gemm;
 use crate::cpu::linear::{matmul_xwt, weight_grad};
+use crate::cpu::matrix::{MatRef, Threads};
 use crate::cpu::{cpu_storage as cpu, f32_slice, rows_layout};
 use crate::kept::Kept;
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Tensor};

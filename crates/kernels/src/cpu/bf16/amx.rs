@@ -8,7 +8,7 @@
 //! the tiles' 8 KiB of register state: [`available`] asks for it once
 //! (`arch_prctl(ARCH_REQ_XCOMP_PERM, XFEATURE_XTILEDATA)`), which covers every thread.
 
-use super::pack::BLOCK;
+use super::layout::BLOCK;
 use std::arch::asm;
 
 /// Whether the CPU has AMX-BF16 tiles, the OS saves their state, and this process may use

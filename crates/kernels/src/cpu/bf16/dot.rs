@@ -2,7 +2,7 @@
 //! (16 f32 sums, each adding two bf16 products), 8 rows × 32 columns in registers at a
 //! time.
 
-use super::pack::BLOCK;
+use super::layout::BLOCK;
 use std::arch::x86_64::*;
 
 /// Whether this CPU has AVX512-BF16 (and the AVX-512 the packing uses with it).

@@ -32,9 +32,11 @@
 
 mod amx;
 mod dot;
+mod layout;
 mod pack;
 
-use super::gemm::{MatRef, Threads};
+use super::matrix::{MatRef, Threads};
+use layout::{BLOCK, K_BLOCK};
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 use std::sync::OnceLock;
@@ -105,9 +107,9 @@ pub(crate) fn matmul(a: MatRef, b: MatRef, threads: Threads, unit: Unit) -> Vec<
     let mut dst: Vec<MaybeUninit<f32>> = Vec::with_capacity(m * n);
     // SAFETY: `MaybeUninit` needs no initialisation; the capacity is `m·n`.
     unsafe { dst.set_len(m * n) };
-    let kb = k.div_ceil(pack::K_BLOCK);
+    let kb = k.div_ceil(K_BLOCK);
     // Column blocks of 16, paired: each 32 × 32 output block reads two.
-    let nb = n.div_ceil(2 * pack::BLOCK) * 2;
+    let nb = n.div_ceil(2 * BLOCK) * 2;
     let packed_b = pack::pack_b(b, kb, nb, threads);
     let task = |(t, out): (usize, &mut [MaybeUninit<f32>])| {
         let rows = out.len() / n;
@@ -153,7 +155,7 @@ unsafe fn blocks(
     (rows, n, kb, nb): (usize, usize, usize, usize),
     out: &mut [MaybeUninit<f32>],
 ) {
-    const B: usize = pack::BLOCK;
+    const B: usize = BLOCK;
     let mut c = [0f32; 4 * B * B];
     if unit == Unit::Amx {
         // SAFETY: AMX runs here (the caller's contract).
@@ -197,25 +199,6 @@ unsafe fn blocks(
         // SAFETY: as above; the tiles are this task's, released for the next user.
         unsafe { amx::release() };
     }
-}
-
-/// f32 → bf16 as the hardware converts (`VCVTNE2PS2BF16`): round to nearest even,
-/// subnormals to signed zero, NaN quieted, past the largest bf16 to infinity.
-pub(crate) fn bf16_bits(x: f32) -> u16 {
-    let b = x.to_bits();
-    if b & 0x7f80_0000 == 0 {
-        return ((b >> 16) & 0x8000) as u16;
-    }
-    if x.is_nan() {
-        return ((b >> 16) | 0x0040) as u16;
-    }
-    ((b + 0x7fff + ((b >> 16) & 1)) >> 16) as u16
-}
-
-/// The f32 value of bf16 bits.
-#[cfg(test)]
-pub(crate) fn bf16_value(h: u16) -> f32 {
-    f32::from_bits((h as u32) << 16)
 }
 
 #[cfg(test)]

@@ -14,16 +14,10 @@
 //! contiguous), takes the other's path and transposes for the other layout, and converts
 //! one value at a time for any other strides.
 
-use super::bf16_bits;
-use crate::cpu::gemm::{MatRef, Threads};
+use super::layout::{BLOCK, BLOCK_LEN, K_BLOCK, bf16_bits};
+use crate::cpu::matrix::{MatRef, Threads};
 use rayon::prelude::*;
 use std::arch::x86_64::*;
-
-/// Rows (of `A`) or columns (of `B`) per block, and inner pairs per block.
-pub(crate) const BLOCK: usize = 16;
-/// Inner values per block.
-pub(crate) const K_BLOCK: usize = 32;
-const BLOCK_LEN: usize = BLOCK * BLOCK;
 
 /// `A`'s rows `r0 .. r0 + rows` packed into `out` (resized; every value written): for
 /// each 32-row group, for each of `kb` inner blocks, its two 16-row x-major blocks

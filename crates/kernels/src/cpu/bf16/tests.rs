@@ -1,5 +1,6 @@
+use super::layout::{bf16_bits, bf16_value};
 use super::*;
-use crate::cpu::gemm::MatRef;
+use crate::cpu::matrix::MatRef;
 
 fn values(n: usize, seed: u64, scale: f32) -> Vec<f32> {
     let t = crate::testing::randn(&[n.max(1)], scale, seed);

@@ -3,9 +3,10 @@
 //! themselves from the LayerNorm, projection, attention and MLP kernels of `cpu`.
 
 use crate::cpu::attention::{self, AttentionBwd, Dims};
-use crate::cpu::gemm::{self, MatRef, Threads};
+use crate::cpu::gemm;
 use crate::cpu::layer_norm::{LayerNormBwd, LayerNormOp};
 use crate::cpu::linear::{ColumnSum, add_bias_rows, matmul_xwt, weight_grad};
+use crate::cpu::matrix::{MatRef, Threads};
 use crate::cpu::mlp::{self, MlpBwd, Plan};
 use crate::cpu::{MlpAct, f32_slice};
 use crate::kept::Kept;
