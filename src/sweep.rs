@@ -5,10 +5,9 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use osrt_dataset::Manifest;
 use osrt_store::Location;
-use osrt_sweep::RESULT_FILE;
 use osrt_sweep::html::{self, Report};
 use osrt_sweep::seeds::{Group, Member, SeedReport, Target};
-use osrt_sweep::{Curve, PointResult, RunSummary, SweepFile};
+use osrt_sweep::{Curve, PointResult, RESULT_FILE, RunSummary, SweepFile};
 use std::path::{Path, PathBuf};
 
 /// A copy of the sweep file in its output folder: marks the folder as a sweep.

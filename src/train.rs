@@ -10,8 +10,7 @@ use osrt_kernels::{Kernels, Precision};
 use osrt_model::slot_attention::SlotInit;
 use osrt_run::MetricsRecord;
 use osrt_store::Location;
-use osrt_trainer::eval_options;
-use osrt_trainer::{JobConfig, device::DeviceSpec, evaluate, load_run_on};
+use osrt_trainer::{JobConfig, device::DeviceSpec, eval_options, evaluate, load_run_on};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 

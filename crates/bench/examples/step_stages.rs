@@ -16,8 +16,7 @@ use osrt_dataset::generator::GeneratorConfig;
 use osrt_dataset::{
     BatchConfig, InputSelection, TargetViews, build_batch, generator::generate_scene,
 };
-use osrt_trainer::JobConfig;
-use osrt_trainer::{BatchTensors, Trainer};
+use osrt_trainer::{BatchTensors, JobConfig, Trainer};
 use rand::SeedableRng;
 use std::time::Instant;
 

@@ -2,12 +2,10 @@
 //! scenes read and decoded per second with and without masks (plus the bytes fetched,
 //! which shows what projection saves).
 
-use osrt_dataset::Result;
-use osrt_dataset::Scene;
 use osrt_dataset::generator::{GeneratorConfig, generate_scene};
-use osrt_dataset::{Columns, ImageCodec};
-use osrt_dataset::{ReadStats, SplitReader};
-use osrt_dataset::{SplitWriter, WriterOptions};
+use osrt_dataset::{
+    Columns, ImageCodec, ReadStats, Result, Scene, SplitReader, SplitWriter, WriterOptions,
+};
 use osrt_store::Location;
 use rayon::prelude::*;
 use serde::Serialize;

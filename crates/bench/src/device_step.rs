@@ -10,10 +10,8 @@
 use crate::model::bench_batch;
 use candle_core::Device;
 use osrt_kernels::Precision;
-use osrt_trainer::JobConfig;
-use osrt_trainer::Result;
 use osrt_trainer::device::DeviceSpec;
-use osrt_trainer::{Gradient, Trainer};
+use osrt_trainer::{Gradient, JobConfig, Result, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;

@@ -9,10 +9,8 @@ use osrt_dataset::{
     Batch, BatchConfig, InputSelection, Scene, TargetViews, build_batch, generator::generate_scene,
 };
 use osrt_model::{Config, Osrt, Params};
-use osrt_trainer::JobConfig;
-use osrt_trainer::Result;
 use osrt_trainer::staging::{Staging, ring_buckets};
-use osrt_trainer::{BatchTensors, CONTROL_FLOATS, Trainer};
+use osrt_trainer::{BatchTensors, CONTROL_FLOATS, JobConfig, Result, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};

@@ -3,8 +3,9 @@
 //! generated client and server.
 
 use bytes::Bytes;
-use osrt_collective::chunk_wire;
-use osrt_collective::{CollectiveError, Layout, Mailbox, Ring, RingConfig, Stage, serve};
+use osrt_collective::{
+    CollectiveError, Layout, Mailbox, Ring, RingConfig, Stage, chunk_wire, serve,
+};
 use osrt_proto::auth::{AttachToken, Token};
 use osrt_proto::credentials::Credentials;
 use osrt_proto::v1::collective_client::CollectiveClient;

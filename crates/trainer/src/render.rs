@@ -4,10 +4,9 @@
 
 use crate::error::{Result, TrainError};
 use candle_core::{D, Tensor};
-use osrt_dataset::Camera;
 use osrt_dataset::math::Vec3;
 use osrt_dataset::rays::view_rays;
-use osrt_dataset::{BatchConfig, InputSelection, Scene, TargetViews, build_batch};
+use osrt_dataset::{BatchConfig, Camera, InputSelection, Scene, TargetViews, build_batch};
 use osrt_model::Osrt;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

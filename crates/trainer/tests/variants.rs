@@ -12,8 +12,7 @@ use osrt_dataset::{
 };
 use osrt_model::encoder::Poses;
 use osrt_model::{Osrt, Params};
-use osrt_trainer::BatchTensors;
-use osrt_trainer::{JobConfig, Trainer};
+use osrt_trainer::{BatchTensors, JobConfig, Trainer};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 

@@ -4,12 +4,11 @@
 //! how a call is retried while the coordinator is unreachable.
 
 use crate::error::{Result, WorkerError};
-use osrt_proto::MAX_RECORDS_PER_REPORT;
 use osrt_proto::auth::AttachToken;
 use osrt_proto::convert::{Directive, WorkerPlan};
 use osrt_proto::credentials::Credentials;
-use osrt_proto::v1;
 use osrt_proto::v1::coordinator_client::CoordinatorClient;
+use osrt_proto::{MAX_RECORDS_PER_REPORT, v1};
 use osrt_retry::RetryPolicy;
 use osrt_run::MetricsRecord;
 use std::time::Duration;

@@ -211,8 +211,7 @@ fn bits(v: &[f32]) -> Vec<u32> {
 /// values straddle buckets (4-float buckets: one of control values only, one of both).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_staged_device_gradient_reduces_to_the_host_paths_bits() {
-    use osrt_trainer::Gradient;
-    use osrt_trainer::StepGradients;
+    use osrt_trainer::{Gradient, StepGradients};
     for (bucket, params) in [(4usize, 1003usize), (5000, 40_001)] {
         let mut host_rings = rings("host", bucket, 1000).await;
         let mut staged_rings = rings("staged", bucket, 1000).await;

@@ -12,7 +12,7 @@
 //! records past that checkpoint belong to the abandoned timeline and are dropped, so
 //! `metrics.jsonl` always describes the steps the final weights went through.
 
-use osrt_run::{cluster_config::ClusterConfig, cluster_config::ClusterOverrides};
+use osrt_run::cluster_config::{ClusterConfig, ClusterOverrides};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Instant;

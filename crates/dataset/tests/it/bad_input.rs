@@ -5,8 +5,10 @@ use crate::tiny_scenes;
 use arrow::array::{ArrayRef, Int32Array, RecordBatch, UInt64Array};
 use arrow::datatypes::{DataType, Field, Schema};
 use object_store::ObjectStoreExt;
-use osrt_dataset::{Columns, DatasetError, Scene, SplitReader, SplitWriter, WriterOptions};
-use osrt_dataset::{VERSION_KEY, scenes_to_batch};
+use osrt_dataset::{
+    Columns, DatasetError, Scene, SplitReader, SplitWriter, VERSION_KEY, WriterOptions,
+    scenes_to_batch,
+};
 use osrt_store::Location;
 use parquet::arrow::ArrowWriter;
 use parquet::file::metadata::KeyValue;
@@ -333,8 +335,7 @@ async fn footers_that_lie_about_their_row_count() {
 /// belongs, bytes that are no PNG) is refused naming the file, scene and view.
 #[tokio::test]
 async fn png_views_that_do_not_fit_their_rows_are_refused() {
-    use osrt_dataset::ImageCodec;
-    use osrt_dataset::{CODEC_KEY, scenes_to_batch_with};
+    use osrt_dataset::{CODEC_KEY, ImageCodec, scenes_to_batch_with};
     // A file of `scenes` (raw bytes, or PNG-coded) that names a codec in version `v`.
     let coded = |scenes: &[Scene], raw: bool, v: &str| {
         let batch = if raw {
