@@ -6,7 +6,7 @@ use clap::{Args, ValueEnum};
 use osrt_dataset::Columns;
 use osrt_store::Location;
 use osrt_trainer::predict::{PredictInputs, inputs_from_npz, inputs_from_scenes, predict};
-use osrt_trainer::{device::DeviceSpec, load_run_on};
+use osrt_trainer::{TestTime, device::DeviceSpec, load_run_on};
 use std::path::PathBuf;
 
 /// Implementations whose checkpoints osrt reads and writes.
@@ -134,7 +134,7 @@ fn parse_range(s: &str) -> Result<std::ops::Range<usize>, String> {
 }
 
 pub async fn run_predict(a: PredictArgs) -> Result<()> {
-    let loaded = load_run_on(&a.run, None, a.device)
+    let loaded = load_run_on(&a.run, &TestTime::default(), a.device)
         .await
         .with_context(|| format!("loading run {}", a.run))?;
     let model = &loaded.trainer.model;

@@ -9,7 +9,7 @@ use osrt_store::Location;
 use osrt_sweep::picture_files::{write_gif, write_png};
 use osrt_trainer::pictures::{rgb_image, rgb8_image, segmentation_image, strip};
 use osrt_trainer::render::{encode_scene, orbit, render_view, scene_camera};
-use osrt_trainer::{LoadedRun, device::DeviceSpec, load_run, load_run_on};
+use osrt_trainer::{LoadedRun, TestTime, device::DeviceSpec, load_run, load_run_on};
 use serde_json::json;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -224,7 +224,7 @@ pub async fn render(a: RenderArgs) -> Result<()> {
     if a.motion == Motion::Orbit && a.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let loaded = load_run_on(&a.run, None, a.device)
+    let loaded = load_run_on(&a.run, &TestTime::default(), a.device)
         .await
         .with_context(|| format!("loading run {}", a.run))?;
     let data = a.data.clone().unwrap_or_else(|| loaded.info.data.clone());

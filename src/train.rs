@@ -10,7 +10,7 @@ use osrt_kernels::{Kernels, Precision};
 use osrt_model::slot_attention::SlotInit;
 use osrt_run::MetricsRecord;
 use osrt_store::Location;
-use osrt_trainer::{JobConfig, device::DeviceSpec, eval_options, evaluate, load_run_on};
+use osrt_trainer::{JobConfig, TestTime, device::DeviceSpec, eval_options, evaluate, load_run_on};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -157,6 +157,10 @@ pub struct EvalArgs {
     /// Slots at test time (random slot init only), e.g. more slots on the `ood` split.
     #[arg(long)]
     pub slots: Option<usize>,
+    /// Slot-attention iterations at test time (default: as trained); they share their
+    /// weights, so any count runs the trained model.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub slot_iterations: Option<u64>,
     /// Where the model runs: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
@@ -414,6 +418,7 @@ pub struct EvalRequest {
     pub views: Option<usize>,
     pub grayscale: bool,
     pub slots: Option<usize>,
+    pub slot_iterations: Option<usize>,
     pub device: DeviceSpec,
 }
 
@@ -424,7 +429,11 @@ pub async fn evaluate_run(
     req: &EvalRequest,
 ) -> Result<(u64, String, osrt_trainer::EvalResult)> {
     let split = req.split.as_str();
-    let loaded = load_run_on(run, req.slots, req.device)
+    let test = TestTime {
+        num_slots: req.slots,
+        slot_iterations: req.slot_iterations,
+    };
+    let loaded = load_run_on(run, &test, req.device)
         .await
         .with_context(|| format!("loading run {run}"))?;
     let data = req.data.clone().unwrap_or_else(|| loaded.info.data.clone());
@@ -470,6 +479,7 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
         views: a.views,
         grayscale: a.grayscale,
         slots: a.slots,
+        slot_iterations: a.slot_iterations.map(|n| n as usize),
         device: a.device,
     };
     let (step, data, r) = evaluate_run(&a.run, &req).await?;
@@ -486,6 +496,9 @@ pub async fn eval(a: EvalArgs) -> Result<()> {
             a.run, a.split, r.scenes
         );
         println!("  protocol    {}", r.protocol);
+        if a.slot_iterations.is_some() {
+            println!("  slot iters  {}", r.slot_iterations);
+        }
         println!(
             "  PSNR        {:.2} dB (mean-colour baseline {:.2} dB)",
             r.psnr, r.baseline_psnr

@@ -378,6 +378,33 @@ fn render_writes_frames_and_an_edit_changes_the_picture() {
     assert_ne!(c["psnr"], r["psnr"], "grey inputs change the result");
     let e = fails(&["eval", "--run", run, "--slots", "5"]);
     assert!(e.contains("only random slot init"), "{e}");
+
+    // Slot iterations at test time: the trained count gives the default's result, another
+    // count runs the same weights to other slots.
+    let iterations = |n: &str| {
+        let out = osrt(&[
+            "eval",
+            "--run",
+            run,
+            "--views",
+            "2",
+            "--slot-iterations",
+            n,
+            "--json",
+        ]);
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    let trained = c["slot_iterations"].as_u64().unwrap();
+    let same = iterations(&trained.to_string());
+    assert_eq!(
+        (same["psnr"].clone(), same["fg_ari"].clone()),
+        (c["psnr"].clone(), c["fg_ari"].clone())
+    );
+    let more = iterations(&(trained + 2).to_string());
+    assert_eq!(more["slot_iterations"].as_u64(), Some(trained + 2));
+    assert_ne!(more["psnr"], c["psnr"], "more iterations change the slots");
+    let e = fails(&["eval", "--run", run, "--slot-iterations", "0"]);
+    assert!(e.contains("slot-iterations"), "{e}");
     let e = fails(&["eval", "--run", run, "--views", "4"]);
     assert!(e.contains("only 3 views"), "{e}");
 }

@@ -478,7 +478,8 @@ fn the_time_to_quality_sweep_has_groups_of_three_seeds() {
             ("horizon=fixed", seeds.clone()),
             ("horizon=budget", seeds.clone()),
             ("slot_gradient=bilevel", seeds.clone()),
-            ("slot_gradient=implicit", seeds),
+            ("slot_gradient=implicit", seeds.clone()),
+            ("precision=bf16", seeds),
         ]
     );
 }

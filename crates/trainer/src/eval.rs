@@ -29,6 +29,9 @@ pub struct EvalResult {
     /// Target views rendered per second of decoding (slots → image).
     pub render_fps: f64,
     pub segmentation: bool,
+    /// Slot-attention iterations the scenes were encoded with (the trained count unless
+    /// `osrt eval --slot-iterations` changed it).
+    pub slot_iterations: usize,
     /// FG-ARI per number of objects in the scene (ascending), where segmentation is scored.
     pub by_objects: Vec<ObjectCountScore>,
     /// The protocol the scores follow, in words: input views, targets, what FG-ARI pools.
@@ -189,13 +192,12 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
             0.0
         },
         segmentation,
+        slot_iterations: model.cfg.slot_attention.iterations,
         protocol: protocol(opts),
         sample,
-        by_objects: if segmentation {
-            by_object_count(seg_by_objects)
-        } else {
-            Vec::new()
-        },
+        by_objects: segmentation
+            .then(|| by_object_count(seg_by_objects))
+            .unwrap_or_default(),
     })
 }
 

@@ -30,7 +30,7 @@ mod step;
 pub use config::{JobConfig, TrainConfig, ray_frame};
 pub use error::{Result, TrainError};
 pub use eval::{EvalOptions, EvalResult, evaluate};
-pub use loaded::{LoadedRun, eval_options, load_run, load_run_on, load_run_with_slots};
+pub use loaded::{LoadedRun, TestTime, eval_options, load_run, load_run_on};
 pub use step::{
     ApplyOutcome, BatchTensors, CONTROL_FLOATS, Gradient, Phases, StepGradients, Trainer,
 };

@@ -31,23 +31,25 @@ pub struct LoadedRun {
 }
 
 pub async fn load_run(run: &str) -> Result<LoadedRun> {
-    load_run_with_slots(run, None).await
+    load_run_on(run, &TestTime::default(), DeviceSpec::Cpu).await
 }
 
-/// [`load_run`] with the model built for `num_slots` slots instead of the trained count
-/// (evaluating scenes with more objects than training had, paper §4.3). Only random slot
-/// init has weights independent of the slot count; the learned and tokens inits hold one
-/// embedding per slot and are refused with a clear error.
-pub async fn load_run_with_slots(run: &str, num_slots: Option<usize>) -> Result<LoadedRun> {
-    load_run_on(run, num_slots, DeviceSpec::Cpu).await
+/// What evaluation may change in a trained model without touching its weights.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TestTime {
+    /// Slots instead of the trained count (evaluating scenes with more objects than
+    /// training had, paper §4.3). Only random slot init has weights independent of the
+    /// slot count; the learned and tokens inits hold one embedding per slot and are
+    /// refused with a clear error.
+    pub num_slots: Option<usize>,
+    /// Slot-attention iterations instead of the trained count: the iterations share
+    /// their weights, so more of them refine the same fixed point further.
+    pub slot_iterations: Option<usize>,
 }
 
-/// [`load_run_with_slots`] with the model on `device` (evaluation and rendering on a GPU).
-pub async fn load_run_on(
-    run: &str,
-    num_slots: Option<usize>,
-    device: DeviceSpec,
-) -> Result<LoadedRun> {
+/// A trained run with the model built as `test` asks, on `device` (evaluation and
+/// rendering on a GPU).
+pub async fn load_run_on(run: &str, test: &TestTime, device: DeviceSpec) -> Result<LoadedRun> {
     let loc = Location::parse(run)?;
     let missing = |name: &str| TrainError::Run {
         path: loc.describe(&loc.path(name)),
@@ -68,7 +70,7 @@ pub async fn load_run_on(
         reason: e.to_string(),
     })?;
     let mut job = job;
-    if let Some(k) = num_slots {
+    if let Some(k) = test.num_slots {
         let sa = &mut job.model.slot_attention;
         if k != sa.num_slots && sa.init != osrt_model::slot_attention::SlotInit::Random {
             return Err(TrainError::Config {
@@ -88,6 +90,15 @@ pub async fn load_run_on(
             });
         }
         sa.num_slots = k;
+    }
+    if let Some(n) = test.slot_iterations {
+        if n == 0 {
+            return Err(TrainError::Config {
+                path: "--slot-iterations".into(),
+                reason: "slot attention needs at least 1 iteration".into(),
+            });
+        }
+        job.model.slot_attention.iterations = n;
     }
     let mut trainer = Trainer::new(job.clone(), device.open()?)?;
     let step = osrt_run::checkpoint::latest_verified(&loc, None)

@@ -52,7 +52,7 @@ pub struct SweepFile {
 }
 
 /// The settings a point may make, in the order names list them.
-const AXES: [&str; 16] = [
+const AXES: [&str; 17] = [
     "decoder",
     "poses",
     "input_views",
@@ -69,6 +69,7 @@ const AXES: [&str; 16] = [
     "warmup_steps",
     "horizon",
     "slot_gradient",
+    "precision",
 ];
 
 /// An explicit point's settings as text, in [`AXES`] order; `i` names it in errors.
@@ -160,6 +161,10 @@ pub struct Axes {
     /// How the gradient flows through the slot iterations: `full`, `implicit`, `bilevel`.
     #[serde(default)]
     pub slot_gradient: Vec<String>,
+    /// The products' precision (`train.precision`): `f32`, or `bf16` (bf16 operands, f32
+    /// sums, where the device has bf16 products).
+    #[serde(default)]
+    pub precision: Vec<String>,
 }
 
 impl Axes {
@@ -193,6 +198,7 @@ impl Axes {
             ("warmup_steps", text(&self.warmup_steps)),
             ("horizon", self.horizon.clone()),
             ("slot_gradient", self.slot_gradient.clone()),
+            ("precision", self.precision.clone()),
         ]
         .into_iter()
         .filter(|(_, v)| !v.is_empty())
@@ -259,6 +265,7 @@ impl Point {
                 "slot_gradient" => {
                     job.model.slot_attention.gradient = value.parse().map_err(err)?
                 }
+                "precision" => job.train.precision = value.parse().map_err(err)?,
                 "slots" => job.model.slot_attention.num_slots = int()?,
                 "iterations" => job.model.slot_attention.iterations = int()?,
                 "slot_init" => {

@@ -216,6 +216,7 @@ fn the_time_to_quality_sweep_changes_one_thing_per_point() {
         "horizon=budget",
         "slot_gradient=bilevel",
         "slot_gradient=implicit",
+        "precision=bf16",
     ]
     .iter()
     .flat_map(|c| (0..3).map(move |s| format!("{c},seed={s}")))
@@ -227,11 +228,13 @@ fn the_time_to_quality_sweep_changes_one_thing_per_point() {
         let changed = (
             job.train.horizon != base.train.horizon,
             job.model.slot_attention.gradient != base.model.slot_attention.gradient,
+            job.train.precision != base.train.precision,
         );
-        let want = match (p.get("horizon"), p.get("slot_gradient")) {
-            (Some("budget"), None) => (true, false),
-            (Some("fixed"), None) => (false, false),
-            (None, Some("bilevel" | "implicit")) => (false, true),
+        let want = match (p.get("horizon"), p.get("slot_gradient"), p.get("precision")) {
+            (Some("budget"), None, None) => (true, false, false),
+            (Some("fixed"), None, None) => (false, false, false),
+            (None, Some("bilevel" | "implicit"), None) => (false, true, false),
+            (None, None, Some("bf16")) => (false, false, true),
             other => panic!("unexpected point {other:?}"),
         };
         assert_eq!(changed, want, "{}", p.name());
