@@ -186,19 +186,22 @@ fn evaluate_here(model: &Osrt, scenes: &[Scene], opts: &EvalOptions) -> Result<E
         fg_ari: scores.fg_ari.filter(|_| segmentation),
         fg_ari_2d: scores.fg_ari_2d.filter(|_| segmentation),
         ratio: scores.ratio.filter(|_| segmentation),
-        render_fps: if decode_s > 0.0 {
-            frames as f64 / decode_s
-        } else {
-            0.0
-        },
+        render_fps: per_second(frames, decode_s),
         segmentation,
         slot_iterations: model.cfg.slot_attention.iterations,
         protocol: protocol(opts),
         sample,
-        by_objects: segmentation
-            .then(|| by_object_count(seg_by_objects))
-            .unwrap_or_default(),
+        by_objects: if segmentation {
+            by_object_count(seg_by_objects)
+        } else {
+            Vec::new()
+        },
     })
+}
+
+/// `n` per second of `s` seconds; 0 where nothing was timed.
+fn per_second(n: usize, s: f64) -> f64 {
+    if s > 0.0 { n as f64 / s } else { 0.0 }
 }
 
 /// Segmentation scores per object count, from each count's scenes and their pooled
